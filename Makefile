@@ -1,0 +1,36 @@
+# crater_thermal: `make run` and `make test` each work on a fresh machine.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: run test install thesis bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[viz,distributed,test]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# Runs the small default case and writes results/default/ (run.nc, replay.nc, report/).
+run: $(STAMP)
+	$(VENV)/bin/crater-thermal run cases/default.toml -o results/default/run.nc --overwrite
+	$(VENV)/bin/crater-thermal replay results/default/run.nc --profile 1300/1800 --profile 800/1100 --profile rock -o results/default/replay.nc --overwrite
+	$(VENV)/bin/crater-thermal report results/default/run.nc results/default/replay.nc -o results/default/report --overwrite
+	@echo "open results/default/report/report.html"
+
+test: $(STAMP)
+	$(PY) -m pytest -q tests
+
+thesis: $(STAMP)
+	$(VENV)/bin/crater-thermal sweep cases/thesis/*.toml -o results/thesis
+
+bench: $(STAMP)
+	$(PY) bench/conduction.py
+	$(PY) bench/viewfactors.py
+	$(PY) bench/thesis.py
+
+clean:
+	rm -rf $(VENV) results .pytest_cache

@@ -1,0 +1,3 @@
+from crater_thermal.cli import main
+
+main()
