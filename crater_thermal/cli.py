@@ -50,7 +50,60 @@ def version() -> None:
 # ---------------------------------------------------------------- run / replay (simulate)
 
 
+@app.command()
+def run(
+    case: Path = typer.Argument(..., help="Case file (TOML), see cases/README.md."),
+    output: Path = typer.Option(..., "-o", "--output", help="Run dataset to write (netCDF)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from the checkpoint beside OUTPUT."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help="Progress bar (default: on a terminal)."),
+) -> None:
+    """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""
+    from crater_thermal import config, simulate
+
+    path = simulate.run_case(config.load_case(case), output, resume=resume, overwrite=overwrite,
+                             progress=progress)
+    typer.echo(f"wrote {path}")
+
+
+@app.command()
+def replay(
+    flux: Path = typer.Argument(..., help="Run or flux dataset (netCDF) with solar_incident and ir_incident."),
+    profile: List[str] = typer.Option([], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
+    density_grid: Optional[str] = typer.Option(None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
+    initial_temperature: Optional[float] = typer.Option(None, "--initial-temperature", help="Uniform start [K] instead of the periodic steady state."),
+    property_set: Optional[str] = typer.Option(None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
+    allow_inverted: bool = typer.Option(False, "--allow-inverted", help="Allow top density > bottom density."),
+    output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet"),
+) -> None:
+    """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
+    from crater_thermal import simulate
+
+    path = simulate.replay_file(flux, profile, density_grid=density_grid, initial_temperature=initial_temperature,
+                                property_set=property_set, allow_inverted=allow_inverted, output=output,
+                                overwrite=overwrite, progress=progress)
+    typer.echo(f"wrote {path}")
+
+
 # ---------------------------------------------------------------- sweep
+
+
+@app.command()
+def sweep(
+    cases: List[Path] = typer.Argument(..., help="Case files (TOML)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output folder: one sub-folder per case."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Local processes (default: cores)."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet"),
+) -> None:
+    """Run many cases and their replays; a restarted sweep skips finished cases."""
+    from crater_thermal import sweep as sweep_mod
+
+    for r in sweep_mod.sweep(cases, output, scheduler=scheduler, workers=workers, progress=progress):
+        state = "skipped (already done)" if r["skipped"] else f"done in {r['seconds']:.1f} s"
+        typer.echo(f"{Path(r['case']).stem}: {state}")
 
 
 # ---------------------------------------------------------------- report / show
