@@ -287,3 +287,253 @@ def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_
                                    "initial_temperature_K": initial_temperature,
                                    "ir_assumption": "saved nominal IR (thesis 7.2)"})
     return io.write_dataset_atomic(out, output, overwrite)
+
+
+def _view_factor_cache_dir() -> str:
+    """Folder for cached view-factor matrices (``CRATER_THERMAL_CACHE`` or ~/.cache/crater_thermal)."""
+    base = os.environ.get("CRATER_THERMAL_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "crater_thermal")
+    return os.path.join(base, "viewfactors")
+
+
+@dataclass
+class Forcing:
+    """Everything a case's coupled run needs before conduction starts (all SI)."""
+
+    mesh: object
+    F: object  # sparse (nf, nf) or None
+    spin_times: np.ndarray  # (ns,) datetime64[ns]; empty when there is no spin-up window
+    times: np.ndarray  # (nt,) datetime64[ns], the recorded period
+    sun_dirs: np.ndarray  # (ns + nt - 1, 3) over spin-up + record (shared sample once)
+    sun_dist_m: np.ndarray
+    direct: np.ndarray  # (ns + nt - 1, nf) [W m-2]
+    solar: np.ndarray  # direct + scattered [W m-2]
+
+    @property
+    def n_spin(self) -> int:
+        return len(self.spin_times)
+
+    def split(self, arr):
+        """(spin-up part, record part) of a series over spin-up + record (the join sample is in both)."""
+        ns = self.n_spin
+        if ns == 0:
+            return arr[:0], arr
+        return arr[:ns], arr[ns - 1:]
+
+
+def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
+    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window."""
+    from crater_thermal import ephemeris, geometry, illumination, radiosity, raytrace, viewfactors  # noqa: F401
+    from crater_thermal.constants import YEAR
+
+    with timer("geometry"):
+        mesh = case_mesh(case)
+        tracer = raytrace.RayTracer(mesh)
+    with timer("viewfactors"):
+        F = None
+        if getattr(case.crater, "kind", "crater") != "flat":
+            F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
+                                               progress=progress_enabled(progress))
+            if F.nnz == 0:
+                F = None
+    step_s = float(case.steps.flux_step_hours) * 3600.0
+    with timer("ephemeris"):
+        times = ephemeris.time_grid(case.period.start, case.period.end, step_s)
+        spin_years = float(case.period.spinup_years)
+        if spin_years > 0:
+            n_spin = int(round(spin_years * YEAR / step_s))
+            spin_times = times[0] - np.arange(n_spin, -1, -1) * np.timedelta64(int(step_s * 1e9), "ns")
+        else:
+            spin_times = times[:0]
+        all_times = np.concatenate([spin_times[:-1], times]) if len(spin_times) else times
+        sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(all_times, case.location.lat_deg, case.location.lon_deg)
+    with timer("direct"):
+        disk = None if case.sun.point_sun else illumination.sun_disk(
+            **({"n_rings": case.sun.n_rings} if getattr(case.sun, "n_rings", None) else {}),
+            law=case.sun.limb_darkening)
+        direct = illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
+                                                solar_constant=getattr(case.surface, "solar_constant", None) or 1361.0,
+                                                disk=disk, progress=progress_enabled(progress))
+    with timer("radiosity"):
+        if F is None:
+            solar = direct
+        else:
+            scat = radiosity.ScatteringSolver(F, case.surface.albedo, method=case.scattering.method,
+                                              n_bounces=case.scattering.n_bounces)
+            solar = scat.solar_incident(direct)
+    return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
+
+
+def _case_fingerprint(case) -> str:
+    import hashlib
+
+    return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
+
+
+def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
+             timer: Timer | None = None, tol_K: float = 0.01):
+    """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
+
+    The state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and when
+    the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the same
+    numbers as an uninterrupted run. Returns the output path.
+    """
+    from pathlib import Path
+
+    from crater_thermal import io, thermal
+
+    out_path = Path(out_path)
+    ckpt_path = Path(_checkpoint_path(out_path))
+    fingerprint = _case_fingerprint(case)
+    ckpt = None
+    if resume and ckpt_path.exists():
+        try:
+            ckpt = dict(np.load(ckpt_path, allow_pickle=False))
+        except Exception as exc:
+            raise FluxFileError(f"checkpoint {ckpt_path} is unreadable ({type(exc).__name__}); "
+                                "run again without --resume") from None
+        if str(ckpt["fingerprint"]) != fingerprint:
+            raise ConfigError(f"checkpoint {ckpt_path} belongs to a different case; run without --resume")
+    if ckpt is None:
+        io.check_output(out_path, overwrite)
+    timer = timer or Timer()
+    fc = compute_forcing(case, timer, progress)
+    mesh, nf = fc.mesh, fc.mesh.n_facets
+    albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
+    nominal = thermal.parse_profile(case.surface.nominal_profile)
+    solver_kw = {}
+    if getattr(case.steps, "conduction_step_s", None):
+        solver_kw["dt_max"] = float(case.steps.conduction_step_s)
+    solver = thermal.ColumnSolver([nominal] * nf, property_set=case.surface.property_set, emissivity=eps,
+                                  geothermal_flux=case.surface.geothermal_flux_W_m2, **solver_kw)
+    stepper = CoupledStepper(solver, fc.F, albedo, eps)
+    spin_solar, rec_solar = fc.split(fc.solar)
+    t0 = fc.times[0]
+    spin_t = seconds_since(fc.spin_times, t0)
+    rec_t = seconds_since(fc.times, t0)
+    nt = len(fc.times)
+    every = int(getattr(case.output, "checkpoint_interval_steps", 0) or 0)
+    mode = case.period.spinup
+    T0 = getattr(case.period, "initial_temperature_K", None)
+
+    def save_ckpt(phase, k, out_T, out_ir, extra):
+        with timer("io"):
+            io.save_npz_atomic(ckpt_path, fingerprint=np.array(fingerprint), phase=np.array(phase), k=np.array(k),
+                               state=solver.state(), out_T=out_T[:k + 1], out_ir=out_ir[:k + 1], **extra)
+
+    spin_info: dict = {}
+    spin_ir = None
+    if ckpt is not None:
+        spin_ir = ckpt.get("spin_ir")
+        spin_info = {"start_method": str(ckpt["start_method"]), "iterations": int(ckpt["iterations"]),
+                     "residual": ckpt["residual"]}
+    else:
+        with timer("conduction"):
+            spin_info, spin_ir = _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K,
+                                          progress)
+    # ---- recorded period
+    out_T = np.empty((nt, nf))
+    out_ir = np.empty((nt, nf))
+    if ckpt is not None:
+        k0 = int(ckpt["k"])
+        out_T[:k0 + 1] = ckpt["out_T"]
+        out_ir[:k0 + 1] = ckpt["out_ir"]
+        solver.set_state(ckpt["state"])
+    else:
+        k0 = 0
+        out_T[0] = solver.surface_temperature
+        out_ir[0] = spin_ir[-1] if spin_ir is not None and len(spin_ir) else stepper.ir(out_T[0])
+    extra = {"start_method": np.array(spin_info["start_method"]), "iterations": np.array(spin_info["iterations"]),
+             "residual": np.asarray(spin_info["residual"], float)}
+    if spin_ir is not None:
+        extra["spin_ir"] = spin_ir
+    if ckpt is None:
+        save_ckpt("record", 0, out_T, out_ir, extra)
+    with progress_bar("run " + case.name, nt - 1 - k0, progress) as update:
+        with timer("conduction"):
+            for k in range(k0, nt - 1):
+                out_T[k + 1], out_ir[k + 1] = stepper.step(rec_solar[k], rec_solar[k + 1], out_ir[k],
+                                                           rec_t[k + 1] - rec_t[k])
+                if every and (k + 1) % every == 0 and k + 1 < nt - 1:
+                    save_ckpt("record", k + 1, out_T, out_ir, extra)
+                update(1, info=str(fc.times[k + 1])[:16])
+    # ---- write
+    with timer("io"):
+        spin_direct, rec_direct = fc.split(fc.direct)
+        spin_dirs, rec_dirs = fc.split(fc.sun_dirs)
+        _, rec_dist = fc.split(fc.sun_dist_m)
+        from crater_thermal.constants import AU
+
+        extra_vars = {"start_residual": (("facet",), np.asarray(spin_info["residual"], float),
+                                         {"units": "K", "long_name": "max over the column of |T(end) - T(start)| "
+                                          "of the spin-up window's last period"})}
+        if getattr(case.output, "save_spinup_fluxes", True) and fc.n_spin:
+            extra_vars["spinup_solar_incident"] = (("spinup_time", "facet"), spin_solar, {"units": "W m-2"})
+            extra_vars["spinup_ir_incident"] = (("spinup_time", "facet"), spin_ir, {"units": "W m-2"})
+        ds = io.run_dataset(
+            mesh, fc.times, solar_incident=rec_solar, ir_incident=out_ir, solar_direct=rec_direct,
+            surface_temperature=out_T, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU,
+            attrs={"case_name": case.name, "case_toml": case.toml_text, "albedo": albedo, "emissivity": eps,
+                   "lat_deg": float(case.location.lat_deg), "lon_deg": float(case.location.lon_deg),
+                   "property_set": case.surface.property_set, "nominal_profile": nominal.label,
+                   "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
+                   "start_method": spin_info["start_method"], "spinup_iterations": int(spin_info["iterations"]),
+                   "spinup_years": float(case.period.spinup_years),
+                   "initial_temperature_K": T0, "timing_s": dict(timer.split)},
+            extra=extra_vars)
+        if fc.n_spin:
+            ds = ds.assign_coords(spinup_time=fc.spin_times)
+        io.write_dataset_atomic(ds, out_path, overwrite=True if ckpt is not None else overwrite)
+    if ckpt_path.exists():
+        ckpt_path.unlink()
+    return out_path
+
+
+def _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K, progress):
+    """Bring the columns to the start of the record. Returns (info, spin-up IR series or None)."""
+    from crater_thermal import thermal
+
+    ns = len(spin_t)
+    if ns == 0:
+        if T0 is not None:
+            solver.set_uniform(float(T0))
+            method = f"uniform {float(T0)} K, no spin-up"
+        else:
+            solver.set_equilibrium(stepper.absorbed(fc.solar, 0.0 * fc.solar))
+            method = "equilibrium estimate, no spin-up"
+        return {"start_method": method, "iterations": 0, "residual": np.full(fc.mesh.n_facets, np.nan)}, None
+    # first guess of the absorbed flux: sunlight plus the IR of a radiative-equilibrium crater
+    guess_T = (np.maximum(stepper.absorbed(spin_solar, 0.0), 1e-3) / (stepper.emissivity * SIGMA)) ** 0.25
+    guess_ir = stepper.ir(guess_T.mean(axis=0)) if fc.F is not None else 0.0
+    absorbed_guess = stepper.absorbed(spin_solar, guess_ir)
+    holder = {}
+
+    def period_map(x):
+        solver.set_state(x)
+        _, ir = stepper.run(spin_t, spin_solar, record=True)
+        holder["ir"] = ir
+        return solver.state()
+
+    if mode == "periodic":
+        if T0 is not None:
+            solver.set_uniform(float(T0))
+        else:
+            solver.set_equilibrium(absorbed_guess)
+        info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
+        x_end = period_map(solver.state()) if "ir" not in holder else None
+        if x_end is not None:
+            solver.set_state(x_end)
+        residual = np.asarray(info["residual_K"], float)
+        return {"start_method": f"periodic steady state over {case.period.spinup_years} yr "
+                                f"(tolerance {tol_K} K)", "iterations": int(info["iterations"]),
+                "residual": residual}, holder["ir"]
+    # fixed spin-up, the thesis procedure
+    if T0 is not None:
+        solver.set_uniform(float(T0))
+        method = f"fixed spin-up {case.period.spinup_years} yr from uniform {float(T0)} K"
+    else:
+        solver.set_equilibrium(absorbed_guess)
+        method = f"fixed spin-up {case.period.spinup_years} yr from the equilibrium estimate"
+    x0 = solver.state()
+    _, ir = stepper.run(spin_t, spin_solar, record=True)
+    residual = np.max(np.abs(solver.state() - x0), axis=1)
+    return {"start_method": method, "iterations": 1, "residual": residual}, ir
