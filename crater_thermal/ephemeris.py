@@ -73,6 +73,7 @@ __all__ = [
     "to_datetime64",
     "time_grid",
     "check_time_range",
+    "ephemeris_range",
     "moon_rotation_iau2009",
     "moon_rotation",
     "sun_position_moon_fixed",
@@ -215,6 +216,21 @@ def to_datetime64(value: TimeLike, name: str = "time") -> np.ndarray:
     return out
 
 
+def ephemeris_range(moon_frame: str = "iau2009") -> Tuple[np.datetime64, np.datetime64, str]:
+    """Usable time span (UTC) and a description of its source.
+
+    Returns
+    -------
+    start, end : datetime64[ns]
+    what : str
+        e.g. "DE421 (de421.bsp)".
+    """
+    if moon_frame == "de421":
+        return (max(EPHEMERIS_START, DE421_LIBRATION_START), min(EPHEMERIS_END, DE421_LIBRATION_END),
+                "DE421 with the moon_pa_de421_1900-2050.bpc librations")
+    return EPHEMERIS_START, EPHEMERIS_END, "DE421 (de421.bsp)"
+
+
 def check_time_range(times: np.ndarray, moon_frame: str = "iau2009", name: str = "times") -> None:
     """Raise :class:`EphemerisRangeError` if any time lies outside the ephemeris.
 
@@ -230,14 +246,11 @@ def check_time_range(times: np.ndarray, moon_frame: str = "iau2009", name: str =
     if t.size == 0:
         return
     lo, hi = t.min(), t.max()
-    start, end, what = EPHEMERIS_START, EPHEMERIS_END, "DE421 (de421.bsp)"
-    if moon_frame == "de421":
-        start, end = max(start, DE421_LIBRATION_START), min(end, DE421_LIBRATION_END)
-        what = "DE421 with the moon_pa_de421_1900-2050.bpc librations"
+    start, end, what = ephemeris_range(moon_frame)
     if lo < start or hi > end:
         bad = lo if lo < start else hi
         raise EphemerisRangeError(
-            f"{name} include {np.datetime_as_string(bad, unit='s')}, outside the range of {what}: "
+            f"{name}: {np.datetime_as_string(bad, unit='s')} is outside the range of {what}: "
             f"{np.datetime_as_string(start, unit='D')} to {np.datetime_as_string(end, unit='D')} (UTC)"
         )
 
