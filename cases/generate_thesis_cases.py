@@ -90,7 +90,7 @@ profiles = {PROFILES}   # nominal (check), loose, rock{grid}
 
 [output]
 checkpoint_interval_steps = 500
-save_spinup_fluxes = false
+save_spinup_fluxes = true
 """
 
 

@@ -80,7 +80,7 @@ Schema (units in the key names; defaults in brackets; "-" = required)::
     [output]
     checkpoint_interval_steps int [0] checkpoint every n flux steps (0: only after spin-up),
                                       0 <= n <= 10_000_000
-    save_spinup_fluxes bool [false]   also store the spin-up window's fluxes
+    save_spinup_fluxes bool [true]    also store the spin-up window's fluxes (replays then start exactly as the run did)
 
 The dataclass fields carry the TOML key names (units in the names); SI
 conveniences are properties (``Case.flux_step_s``, ``Period.spinup_s``, ...).
@@ -281,7 +281,7 @@ class Output:
     """Output options."""
 
     checkpoint_interval_steps: int = 0
-    save_spinup_fluxes: bool = False
+    save_spinup_fluxes: bool = True
 
 
 @dataclass(frozen=True)
@@ -704,7 +704,7 @@ def _build_case(raw: dict, text: str, base_dir: Optional[Path], path: Optional[P
     sec = _Section(raw.get("output"), "output", where)
     output = Output(
         checkpoint_interval_steps=sec.number("checkpoint_interval_steps", 0, lo=0, hi=10_000_000, integer=True),
-        save_spinup_fluxes=sec.boolean("save_spinup_fluxes", False),
+        save_spinup_fluxes=sec.boolean("save_spinup_fluxes", True),
     )
     sec.finish()
 

@@ -323,7 +323,6 @@ class Forcing:
 def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window."""
     from crater_thermal import ephemeris, geometry, illumination, radiosity, raytrace, viewfactors  # noqa: F401
-    from crater_thermal.constants import YEAR
 
     with timer("geometry"):
         mesh = case_mesh(case)
@@ -338,20 +337,22 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     step_s = float(case.steps.flux_step_hours) * 3600.0
     with timer("ephemeris"):
         times = ephemeris.time_grid(case.period.start, case.period.end, step_s)
-        spin_years = float(case.period.spinup_years)
-        if spin_years > 0:
-            n_spin = int(round(spin_years * YEAR / step_s))
+        spin_s = float(case.period.spinup_s)
+        if spin_s > 0:
+            n_spin = max(1, int(round(spin_s / step_s)))
             spin_times = times[0] - np.arange(n_spin, -1, -1) * np.timedelta64(int(step_s * 1e9), "ns")
         else:
             spin_times = times[:0]
         all_times = np.concatenate([spin_times[:-1], times]) if len(spin_times) else times
-        sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(all_times, case.location.lat_deg, case.location.lon_deg)
+        sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(
+            all_times, case.location.lat_deg, case.location.lon_deg, moon_frame=case.sun.moon_frame,
+            correction=case.sun.correction, moon_kernels=case.sun.moon_kernels)
     with timer("direct"):
         disk = None if case.sun.point_sun else illumination.sun_disk(
             **({"n_rings": case.sun.n_rings} if getattr(case.sun, "n_rings", None) else {}),
             law=case.sun.limb_darkening)
         direct = illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
-                                                solar_constant=getattr(case.surface, "solar_constant", None) or 1361.0,
+                                                solar_constant=case.sun.solar_constant_W_m2,
                                                 disk=disk, progress=progress_enabled(progress))
     with timer("radiosity"):
         if F is None:
@@ -370,7 +371,7 @@ def _case_fingerprint(case) -> str:
 
 
 def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
-             timer: Timer | None = None, tol_K: float = 0.01):
+             timer: Timer | None = None):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
 
     The state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and when
@@ -413,7 +414,8 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     nt = len(fc.times)
     every = int(getattr(case.output, "checkpoint_interval_steps", 0) or 0)
     mode = case.period.spinup
-    T0 = getattr(case.period, "initial_temperature_K", None)
+    T0 = case.period.initial_temperature_K
+    tol_K = case.period.periodic_tol_K
 
     def save_ckpt(phase, k, out_T, out_ir, extra):
         with timer("io"):
