@@ -429,7 +429,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         spin_info = {"start_method": str(ckpt["start_method"]), "iterations": int(ckpt["iterations"]),
                      "residual": ckpt["residual"]}
     else:
-        with timer("conduction"):
+        with timer("conduction_spinup"):
             spin_info, spin_ir = _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K,
                                           progress)
     # ---- recorded period
@@ -451,7 +451,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     if ckpt is None:
         save_ckpt("record", 0, out_T, out_ir, extra)
     with progress_bar("run " + case.name, nt - 1 - k0, progress) as update:
-        with timer("conduction"):
+        with timer("conduction_record"):
             for k in range(k0, nt - 1):
                 out_T[k + 1], out_ir[k + 1] = stepper.step(rec_solar[k], rec_solar[k + 1], out_ir[k],
                                                            rec_t[k + 1] - rec_t[k])
