@@ -174,7 +174,9 @@ def _profile_T(run, top, bottom, rock=False):
     w = np.apply_along_axis(lambda c: np.convolve(c, k, mode="same"), 0, lit.astype(float))
     if rock:
         return T + 25.0 * (1 - w) - 8.0 * w
-    night = -2.5 * (1800.0 - bottom) / 700.0 - 0.5 * (1300.0 - top) / 500.0
+    # facets with larger swings (Sun-facing walls) differ more (thesis 7.2, Fig. 7.7b)
+    swing = 1.0 + 0.5 * run["solar_direct"].values.mean(0) / max(run["solar_direct"].values.mean(0).max(), 1e-9)
+    night = (-2.5 * (1800.0 - bottom) / 700.0 - 0.5 * (1300.0 - top) / 500.0) * swing
     day = -0.1 * night
     return T + night * (1 - w) + day * w
 
