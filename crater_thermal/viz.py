@@ -37,6 +37,10 @@ def _has_display() -> bool:
 
 def _pyvista():
     """Import pyvista; render off-screen when there is no display."""
+    if not _has_display():
+        # headless: let VTK go straight to EGL instead of warning about a missing X server
+        # (override with VTK_DEFAULT_OPENGL_WINDOW, e.g. vtkOSOpenGLRenderWindow for OSMesa builds)
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     try:
         import pyvista as pv
     except ImportError as exc:  # pragma: no cover - depends on the environment
@@ -134,7 +138,9 @@ class _Scene:
         from crater_thermal.analysis import _has
 
         self.sun = np.asarray(run["sun_direction"].values, float) if _has(run, "sun_direction") else None
-        self.p.view_vector((0.35, -1.0, 1.1), viewup=(0.0, 0.0, 1.0))
+        # look from the equator side, so the pole-side (Sun-facing) inner wall is in view
+        lat = float(run.attrs.get("lat_deg", -90.0))
+        self.p.view_vector((0.35, 1.0 if lat <= 0 else -1.0, 1.1), viewup=(0.0, 0.0, 1.0))
         self.p.camera.zoom(1.25)
 
     def update(self, values, i: int, title: str):
