@@ -48,7 +48,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import asdict, dataclass
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import scipy.constants as _sc
@@ -289,7 +289,7 @@ def nominal_temperature(run, replay=None) -> np.ndarray:
             top_bottom = _parse_two_layer(lab)
             lab = find_profile(replay, *top_bottom) if top_bottom else None
         if lab is not None:
-            return np.asarray(replay["surface_temperature"].values[labels.index(lab)], dtype=float)
+            return np.asarray(replay["surface_temperature"][labels.index(lab)].values, dtype=float)
     return np.asarray(run["surface_temperature"].values, dtype=float)
 
 
@@ -301,23 +301,37 @@ def _parse_two_layer(label: str) -> Optional[Tuple[float, float]]:
         return None
 
 
+def profile_temperature(replay, label: str) -> np.ndarray:
+    """(nt, nf) [K] surface temperature of one replayed profile (reads only that slice)."""
+    labels = profile_labels(replay)
+    if label not in labels:
+        raise ConfigError(f"profile={label!r} not in the replay; allowed: {', '.join(labels)}")
+    return np.asarray(replay["surface_temperature"][labels.index(label)].values, dtype=float)
+
+
+def iter_profile_differences(run, replay, nominal_T=None) -> Iterator[Tuple[str, np.ndarray]]:
+    """Yield ``(label, dT)`` for every replayed profile except the nominal, one at a time.
+
+    dT : (nt, nf) float [K] = profile minus nominal. Only one profile is in memory at a time
+    (a thesis density grid has ~90 profiles of (8766, 502) samples).
+    """
+    check_pair(run, replay)
+    nom = nominal_temperature(run, replay) if nominal_T is None else nominal_T
+    nom_lab = nominal_label(run, replay)
+    for lab in profile_labels(replay):
+        if lab != nom_lab:
+            yield lab, profile_temperature(replay, lab) - nom
+
+
 def profile_differences(run, replay) -> Dict[str, np.ndarray]:
     """Replayed profile minus nominal, per time and facet.
 
     Returns
     -------
     dict label -> (nt, nf) float [K], for every replayed profile except the nominal one.
+    (Holds them all in memory; :func:`iter_profile_differences` does not.)
     """
-    check_pair(run, replay)
-    nom = nominal_temperature(run, replay)
-    nom_lab = nominal_label(run, replay)
-    T = np.asarray(replay["surface_temperature"].values, dtype=float)
-    out = {}
-    for i, lab in enumerate(profile_labels(replay)):
-        if lab == nom_lab:
-            continue
-        out[lab] = T[i] - nom
-    return out
+    return dict(iter_profile_differences(run, replay))
 
 
 def loose_label(replay, nominal: str) -> Optional[str]:
@@ -389,6 +403,45 @@ def night_median_map(dT, night) -> np.ndarray:
     return np.median(dT[night], axis=0)
 
 
+def density_grid(replay, values: Mapping[str, float], nominal: Optional[str] = None):
+    """Arrange one value per two-layer profile on the top x bottom density grid.
+
+    Parameters
+    ----------
+    replay : dataset with ``profile`` (and ``rho_top``, ``rho_bottom`` [kg m-3]; else parsed from labels)
+    values : dict label -> float
+        E.g. night-time median differences [K]; rock profiles are ignored.
+    nominal : str, optional
+        Nominal label; its cell is 0 when absent from ``values``.
+
+    Returns
+    -------
+    tops, bottoms : (ntop,), (nbottom,) float [kg m-3], sorted unique densities
+    grid : (ntop, nbottom) float, NaN where no value (e.g. top > bottom, not replayed)
+    """
+    labels = profile_labels(replay)
+    if _has(replay, "rho_top") and _has(replay, "rho_bottom"):
+        rt = np.asarray(replay["rho_top"].values, float)
+        rb = np.asarray(replay["rho_bottom"].values, float)
+    else:
+        pairs = [_parse_two_layer(lab) or (np.nan, np.nan) for lab in labels]
+        rt, rb = np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+    keep = [i for i, lab in enumerate(labels) if not is_rock(lab) and np.isfinite(rt[i]) and np.isfinite(rb[i])]
+    tops = np.unique(rt[keep])
+    bottoms = np.unique(rb[keep])
+    grid = np.full((tops.size, bottoms.size), np.nan)
+    for i in keep:
+        lab = labels[i]
+        if lab in values and values[lab] is not None:
+            val = float(values[lab])
+        elif lab == nominal:
+            val = 0.0
+        else:
+            continue
+        grid[np.searchsorted(tops, rt[i]), np.searchsorted(bottoms, rb[i])] = val
+    return tops, bottoms, grid
+
+
 def density_grid_medians(replay, diffs: Mapping[str, np.ndarray], night, facet_mask,
                          nominal: Optional[str] = None):
     """Night-time median difference over the two-layer density grid (thesis Fig. 7.7a).
@@ -405,32 +458,14 @@ def density_grid_medians(replay, diffs: Mapping[str, np.ndarray], night, facet_m
 
     Returns
     -------
-    tops, bottoms : (ntop,), (nbottom,) float [kg m-3], sorted unique densities
-    grid : (ntop, nbottom) float [K], NaN where the profile was not replayed (e.g. top > bottom)
+    tops, bottoms, grid : as :func:`density_grid`, grid [K].
     """
-    labels = profile_labels(replay)
-    if _has(replay, "rho_top") and _has(replay, "rho_bottom"):
-        rt = np.asarray(replay["rho_top"].values, float)
-        rb = np.asarray(replay["rho_bottom"].values, float)
-    else:
-        pairs = [_parse_two_layer(lab) or (np.nan, np.nan) for lab in labels]
-        rt, rb = np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
-    keep = [i for i, lab in enumerate(labels) if not is_rock(lab) and np.isfinite(rt[i]) and np.isfinite(rb[i])]
-    tops = np.unique(rt[keep])
-    bottoms = np.unique(rb[keep])
-    grid = np.full((tops.size, bottoms.size), np.nan)
     night = np.asarray(night, bool)
     fm = np.asarray(facet_mask, bool)
-    for i in keep:
-        lab = labels[i]
-        if lab == nominal:
-            val = 0.0
-        elif lab in diffs and night.any() and fm.any():
-            val = float(np.median(diffs[lab][night][:, fm]))
-        else:
-            continue
-        grid[np.searchsorted(tops, rt[i]), np.searchsorted(bottoms, rb[i])] = val
-    return tops, bottoms, grid
+    med = {}
+    if night.any() and fm.any():
+        med = {lab: float(np.median(np.asarray(d)[night][:, fm])) for lab, d in diffs.items() if not is_rock(lab)}
+    return density_grid(replay, med, nominal)
 
 
 def representative_facets(run, regions) -> Dict[str, int]:
@@ -474,16 +509,17 @@ def latitude_statistics(pairs: Sequence[Tuple[object, object]], threshold_K: flo
     """
     out = {}
     for run, replay in pairs:
-        diffs = profile_differences(run, replay)
+        check_pair(run, replay)
         lab = loose_label(replay, nominal_label(run, replay))
         if lab is None:
             raise FluxFileError("replay has no regolith profile other than the nominal one")
+        dT = profile_temperature(replay, lab) - nominal_temperature(run, replay)
         night = night_mask(run)
         reg = regions_of(run)
         out[float(run.attrs.get("lat_deg", np.nan))] = dict(
             profile=lab,
-            night=region_statistics(diffs[lab], night, reg, threshold_K, region_names),
-            day=region_statistics(diffs[lab], ~night, reg, threshold_K, region_names),
+            night=region_statistics(dT, night, reg, threshold_K, region_names),
+            day=region_statistics(dT, ~night, reg, threshold_K, region_names),
         )
     return out
 

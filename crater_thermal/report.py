@@ -101,12 +101,11 @@ def _open(path, kind: str):
     opener = getattr(ctio, f"open_{kind}", None) if ctio is not None else None
     if opener is not None:
         return opener(p)
-    # stop-gap until crater_thermal.io (the xarray owner) is on main
+    # stop-gap until crater_thermal.io (the xarray owner) is on main; lazy: profiles are read one at a time
     import xarray as xr
 
     try:
-        with xr.open_dataset(p) as ds:
-            return ds.load()
+        return xr.open_dataset(p)
     except (OSError, ValueError) as exc:
         raise FluxFileError(f"cannot read {kind} file {p}: {' '.join(str(exc).split())}") from None
 
@@ -170,18 +169,28 @@ class _Analysis:
         self.lat = float(run.attrs.get("lat_deg", np.nan))
         self.nominal = an.nominal_label(run, replay)
         self.labels = an.profile_labels(replay)
-        self.diffs = an.profile_differences(run, replay)
         self.loose = an.loose_label(replay, self.nominal)
         self.rock = an.rock_label(replay)
         self.T_nom = an.nominal_temperature(run, replay)
         self.threshold = threshold_K
-        self.night_stats = {p: an.region_statistics(d, self.night, self.regions, threshold_K) for p, d in self.diffs.items()}
-        self.day_stats = {p: an.region_statistics(d, ~self.night, self.regions, threshold_K) for p, d in self.diffs.items()}
         self.facets = an.representative_facets(run, self.regions)
-        self.night_map = {p: an.night_median_map(d, self.night) for p, d in self.diffs.items()}
+        # one profile at a time: keep small results, and the full difference only for the loose profile
+        self.night_stats, self.day_stats, self.night_map, self.floor_night_median = {}, {}, {}, {}
+        self.loose_dT = None
+        for p, d in an.iter_profile_differences(run, replay, self.T_nom):
+            self.night_stats[p] = an.region_statistics(d, self.night, self.regions, threshold_K)
+            self.day_stats[p] = an.region_statistics(d, ~self.night, self.regions, threshold_K)
+            self.night_map[p] = an.night_median_map(d, self.night)
+            self.floor_night_median[p] = self.night_stats[p]["floor"]["median_K"]
+            if p == self.loose:
+                self.loose_dT = d
 
     def profile_T(self, label):
-        return np.asarray(self.replay["surface_temperature"].values[self.labels.index(label)], float)
+        return an.profile_temperature(self.replay, label)
+
+    def density_grid(self):
+        return an.density_grid(self.replay, {p: v for p, v in self.floor_night_median.items() if not an.is_rock(p)},
+                               self.nominal)
 
 
 def _stat(stats, key):
@@ -192,7 +201,7 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrumen
              figures: List[str], snapshot_note: Optional[str]) -> dict:
     nom_night = {r: (float(np.median(A.T_nom[A.night][:, A.regions == r]))
                      if A.night.any() and (A.regions == r).any() else None) for r in an.REGIONS}
-    tops, bottoms, grid = an.density_grid_medians(A.replay, A.diffs, A.night, A.regions == "floor", A.nominal)
+    tops, bottoms, grid = A.density_grid()
     det = {}
     if A.loose is not None:
         for r in an.REGIONS:
@@ -316,7 +325,7 @@ def _fig_dT_series(A, path):
         a = ax[k, 0]
         _shade_night(a, A.days, A.night)
         if A.loose:
-            a.plot(A.days, A.diffs[A.loose][:, i], color="tab:blue", label=f"{A.loose} - {A.nominal}")
+            a.plot(A.days, A.loose_dT[:, i], color="tab:blue", label=f"{A.loose} - {A.nominal}")
         a.axhline(0, color="k", lw=0.5)
         for s in (-1, 1):
             a.axhline(s * an.NATURAL_SCATTER_K, color="tab:gray", ls=":", lw=0.8)
@@ -331,7 +340,7 @@ def _fig_dT_series(A, path):
 def _fig_density_grid(A, path):
     from matplotlib.patches import Rectangle
 
-    tops, bottoms, grid = an.density_grid_medians(A.replay, A.diffs, A.night, A.regions == "floor", A.nominal)
+    tops, bottoms, grid = A.density_grid()
     fig, ax = _figure(1, 1, (7, 5.5))
     a = ax[0, 0]
     m = np.nanmax(np.abs(grid)) if np.isfinite(grid).any() else 1.0
@@ -618,8 +627,24 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
     runs, reps = _as_list(run_ds), _as_list(replay_ds)
     if len(runs) != len(reps) or not runs:
         raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
-    runs = [_open_run(r) if isinstance(r, (str, os.PathLike)) else r for r in runs]
-    reps = [_open_replay(r) if isinstance(r, (str, os.PathLike)) else r for r in reps]
+    opened = []
+    try:
+        runs = [_track(_open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
+        reps = [_track(_open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
+        return _make_report(runs, reps, out_dir, overwrite, progress, instrument, threshold_K,
+                            footprint_fraction, snapshots)
+    finally:
+        for ds in opened:
+            ds.close()
+
+
+def _track(ds, opened: list):
+    opened.append(ds)
+    return ds
+
+
+def _make_report(runs, reps, out_dir: Path, overwrite, progress, instrument, threshold_K, footprint_fraction,
+                 snapshots) -> Path:
     for run in runs:
         an.check_run(run, an._RUN_VARS + ("solar_incident", "ir_incident"))
     all_A = [_Analysis(r, p, threshold_K) for r, p in zip(runs, reps)]

@@ -104,8 +104,7 @@ def field(run, var: str = "surface_temperature", replay=None, profile: Optional[
         labels = an.profile_labels(replay)
         if profile not in labels:
             raise ConfigError(f"profile={profile!r} not in the replay; allowed: {', '.join(labels)}")
-        vals = (np.asarray(replay["surface_temperature"].values[labels.index(profile)], float)
-                - an.nominal_temperature(run, replay))
+        vals = an.profile_temperature(replay, profile) - an.nominal_temperature(run, replay)
         return vals, f"{profile} - nominal [K]", "RdBu_r"
     if var not in VARIABLES:
         raise ConfigError(f"var={var!r} not allowed; allowed: {', '.join(VARIABLES)}")
@@ -260,8 +259,23 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
     """
     from crater_thermal.report import _open_replay, _open_run
 
-    run = _open_run(run_path) if isinstance(run_path, (str, os.PathLike)) else run_path
-    rep = _open_replay(replay) if isinstance(replay, (str, os.PathLike)) else replay
+    opened = []
+    try:
+        if isinstance(run_path, (str, os.PathLike)):
+            run_path = _open_run(run_path)
+            opened.append(run_path)
+        if isinstance(replay, (str, os.PathLike)):
+            replay = _open_replay(replay)
+            opened.append(replay)
+        return _show(run_path, time, var, profile, replay, screenshot, animate, overwrite, window_size,
+                     max_frames, fps, progress)
+    finally:
+        for ds in opened:
+            ds.close()
+
+
+def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_size, max_frames, fps,
+          progress) -> dict:
     vals, scalar_title, cmap = field(run, var, rep, profile)
     times = np.asarray(run["time"].values)
     from crater_thermal.analysis import _has
