@@ -77,6 +77,7 @@ SUMMARY_KEYS = {
     "density_grid_floor_night_median_dT_K": "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night medians (Fig. 7.7a).",
     "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
     "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
+    "latitude_dwell_time_s": "{lat_deg (str): {region: float|null}} [s]: dwell needed to detect loose vs nominal per latitude (null = not detectable).",
     "instrument": "{netd_ref_K, t_ref_K, band_um, integration_s, calibration_offset_K, min_temperature_K, natural_scatter_K, k_sigma}: instrument model parameters.",
     "footprint_fraction": "float [-]: fraction of the pixel covered by loose regolith (Eq. 8.2 mixing with nominal).",
     "detectability": "{region: {dT_K, dT_observed_K, T_scene_K, netd_K, n_samples, dwell_time_s (null = not detectable), detectable, reason}}: loose vs nominal from night medians.",
@@ -158,7 +159,7 @@ def _clean(x):
 class _Analysis:
     """Everything the figures and the summary need, computed once."""
 
-    def __init__(self, run, replay, threshold_K: float):
+    def __init__(self, run, replay, threshold_K: float, advance: Callable[[], None] = lambda: None):
         an.check_pair(run, replay)
         self.run, self.replay = run, replay
         self.times = np.asarray(run["time"].values).astype("datetime64[ns]")
@@ -184,6 +185,23 @@ class _Analysis:
             self.floor_night_median[p] = self.night_stats[p]["floor"]["median_K"]
             if p == self.loose:
                 self.loose_dT = d
+            advance()
+        self.nom_night = {r: (float(np.median(self.T_nom[self.night][:, self.regions == r]))
+                              if self.night.any() and (self.regions == r).any() else None) for r in an.REGIONS}
+
+    def detectability(self, instrument: an.Instrument, footprint_fraction: float) -> dict:
+        """Loose vs nominal per region from night-time medians (analysis.detectability)."""
+        det = {}
+        if self.loose is None:
+            return det
+        for r in an.REGIONS:
+            med = self.night_stats[self.loose][r]["median_K"]
+            if med is None or self.nom_night[r] is None:
+                det[r] = dict(dT_K=med, dT_observed_K=None, T_scene_K=None, netd_K=None, n_samples=None,
+                              dwell_time_s=None, detectable=False, reason="no night-time samples")
+            else:
+                det[r] = an.detectability(med, self.nom_night[r], instrument, footprint_fraction)
+        return det
 
     def profile_T(self, label):
         return an.profile_temperature(self.replay, label)
@@ -199,24 +217,17 @@ def _stat(stats, key):
 
 def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrument, footprint_fraction: float,
              figures: List[str], snapshot_note: Optional[str]) -> dict:
-    nom_night = {r: (float(np.median(A.T_nom[A.night][:, A.regions == r]))
-                     if A.night.any() and (A.regions == r).any() else None) for r in an.REGIONS}
+    nom_night = A.nom_night
     tops, bottoms, grid = A.density_grid()
-    det = {}
-    if A.loose is not None:
-        for r in an.REGIONS:
-            med = A.night_stats[A.loose][r]["median_K"]
-            if med is None or nom_night[r] is None:
-                det[r] = dict(dT_K=med, dT_observed_K=None, T_scene_K=None, netd_K=None, n_samples=None,
-                              dwell_time_s=None, detectable=False, reason="no night-time samples")
-            else:
-                det[r] = an.detectability(med, nom_night[r], instrument, footprint_fraction)
-    lat_night, lat_day = {}, {}
+    det = A.detectability(instrument, footprint_fraction)
+    lat_night, lat_day, lat_dwell = {}, {}, {}
     for B in [A, *others]:
         if B.loose is None:
             continue
-        lat_night[f"{B.lat:g}"] = {r: B.night_stats[B.loose][r]["median_K"] for r in an.REGIONS}
-        lat_day[f"{B.lat:g}"] = {r: B.day_stats[B.loose][r]["median_K"] for r in an.REGIONS}
+        key = f"{B.lat:g}"
+        lat_night[key] = {r: B.night_stats[B.loose][r]["median_K"] for r in an.REGIONS}
+        lat_day[key] = {r: B.day_stats[B.loose][r]["median_K"] for r in an.REGIONS}
+        lat_dwell[key] = {r: v["dwell_time_s"] for r, v in B.detectability(instrument, footprint_fraction).items()}
     s = dict(
         schema_version=1,
         mesh_hash=str(A.run.attrs.get("mesh_hash")),
@@ -247,6 +258,7 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrumen
         density_grid_floor_night_median_dT_K=dict(rho_top_kg_m3=tops, rho_bottom_kg_m3=bottoms, dT_K=grid),
         latitude_night_median_dT_K=lat_night,
         latitude_day_median_dT_K=lat_day,
+        latitude_dwell_time_s=lat_dwell,
         instrument=instrument.as_dict(),
         footprint_fraction=float(footprint_fraction),
         detectability=det,
@@ -470,7 +482,7 @@ def _fig_detectability(det: dict, instrument: an.Instrument, path):
     a.set_ylabel("dwell time [s]")
     a.set_title(f"Loose vs nominal at {instrument.k_sigma:g} sigma; NETD {instrument.netd_ref_K:g} K at "
                 f"{instrument.t_ref_K:g} K in {instrument.band_um[0]:g}-{instrument.band_um[1]:g} um; "
-                f"floor: {instrument.natural_scatter_K:g} K scatter, {instrument.min_temperature_K:g} K minimum", fontsize=9)
+                f"noise floor: {instrument.natural_scatter_K:g} K natural scatter, {instrument.min_temperature_K:g} K minimum", fontsize=9)
     a.legend(fontsize=8)
     fig.savefig(path)
 
@@ -645,9 +657,17 @@ def _track(ds, opened: list):
 
 def _make_report(runs, reps, out_dir: Path, overwrite, progress, instrument, threshold_K, footprint_fraction,
                  snapshots) -> Path:
-    for run in runs:
+    for run, rep in zip(runs, reps):
         an.check_run(run, an._RUN_VARS + ("solar_incident", "ir_incident"))
-    all_A = [_Analysis(r, p, threshold_K) for r, p in zip(runs, reps)]
+        an.check_pair(run, rep)
+    n_profiles = sum(len(an.profile_labels(p)) - 1 for p in reps)
+    n_steps = n_profiles + len(FIGURES) + 1
+    with progress_bar("report: profiles, figures", n_steps, progress) as advance:
+        all_A = [_Analysis(r, p, threshold_K, advance) for r, p in zip(runs, reps)]
+        return _write_report(all_A, out_dir, overwrite, advance, instrument, footprint_fraction, snapshots)
+
+
+def _write_report(all_A, out_dir: Path, overwrite, advance, instrument, footprint_fraction, snapshots) -> Path:
     A = all_A[0]
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -669,25 +689,24 @@ def _make_report(runs, reps, out_dir: Path, overwrite, progress, instrument, thr
         ]
         figures: List[str] = []
         note = None
-        with progress_bar("report figures", len(jobs) + 2, progress) as advance:
-            for name, job in jobs:
-                job(fig_dir / name)
-                figures.append(name)
-                advance()
-            summary = _summary(A, all_A[1:], instrument, footprint_fraction, figures + ["detectability.png"], None)
-            _fig_detectability(summary["detectability"], instrument, fig_dir / "detectability.png")
-            figures.append("detectability.png")
+        for name, job in jobs:
+            job(fig_dir / name)
+            figures.append(name)
             advance()
-            if snapshots:
-                try:
-                    figures += _snapshots(A, fig_dir)
-                except CraterThermalError:
-                    raise
-                except Exception as exc:  # rendering depends on OpenGL; the report must not
-                    note = f"3-D snapshots not rendered ({exc.__class__.__name__}: {' '.join(str(exc).split())[:200]})"
-            else:
-                note = "3-D snapshots not requested"
-            advance()
+        summary = _summary(A, all_A[1:], instrument, footprint_fraction, figures + ["detectability.png"], None)
+        _fig_detectability(summary["detectability"], instrument, fig_dir / "detectability.png")
+        figures.append("detectability.png")
+        advance()
+        if snapshots:
+            try:
+                figures += _snapshots(A, fig_dir)
+            except CraterThermalError:
+                raise
+            except Exception as exc:  # rendering depends on OpenGL; the report must not
+                note = f"3-D snapshots not rendered ({exc.__class__.__name__}: {' '.join(str(exc).split())[:200]})"
+        else:
+            note = "3-D snapshots not requested"
+        advance()
         summary["figures"] = figures
         summary["snapshot_note"] = note
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")

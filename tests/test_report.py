@@ -136,9 +136,10 @@ def test_report_survives_a_rendering_failure(files, tmp_path, monkeypatch):
 def test_several_latitudes(files, tmp_path):
     _, run, rep = files
     run2 = make_run(lat_deg=-80.0, n_lunar_days=1.0, n_rings=8)
-    rp.make_report([run, run2], [rep, make_replay(run2)], tmp_path / "r", progress=False, snapshots=False)
+    # progress=True: the rich bar must also work (here on a captured, non-terminal stream)
+    rp.make_report([run, run2], [rep, make_replay(run2)], tmp_path / "r", progress=True, snapshots=False)
     s = _strict_json(tmp_path / "r" / "summary.json")
-    assert set(s["latitude_night_median_dT_K"]) == {"-86", "-80"}
+    assert set(s["latitude_night_median_dT_K"]) == {"-86", "-80"} == set(s["latitude_dwell_time_s"])
 
 
 def test_cli_report_quiet_when_not_a_terminal(files, tmp_path):
