@@ -204,6 +204,8 @@ def classify_regions(centroids, meta: Mapping, lat_deg: float, wall_split: float
         Facet centroids in the crater frame.
     meta : mapping
         Mesh meta with ``floor_radius_m`` and ``rim_radius_m`` [m] (``rim_width_m`` optional).
+        A ``"bowl"`` (spherical cap) without ``floor_radius_m`` has no floor; ``rim_radius_m``
+        defaults to ``diameter_m / 2``; a ``"flat"`` mesh without a rim is all ``surround``.
     lat_deg : float [deg]
         Crater latitude (sets the pole side).
     wall_split : float [-]
@@ -213,15 +215,23 @@ def classify_regions(centroids, meta: Mapping, lat_deg: float, wall_split: float
     -------
     (nf,) str array of labels from :data:`REGIONS`.
     """
+    meta = dict(meta)
+    kind = meta.get("kind")
+    if meta.get("rim_radius_m") is None and meta.get("diameter_m") is not None:
+        meta["rim_radius_m"] = 0.5 * float(meta["diameter_m"])
+    if meta.get("floor_radius_m") is None and kind == "bowl":
+        meta["floor_radius_m"] = 0.0  # a spherical cap has no flat floor
+    c = np.asarray(centroids, dtype=float)
+    if meta.get("rim_radius_m") is None and kind == "flat":
+        return np.full(len(c), "surround")
     for key in ("floor_radius_m", "rim_radius_m"):
         if meta.get(key) is None:
-            raise FluxFileError(f"mesh_meta lacks {key!r}, needed for region classes (kind={meta.get('kind')})")
+            raise FluxFileError(f"mesh_meta lacks {key!r}, needed for region classes (kind={kind})")
     if not 0.0 < wall_split < 1.0:
         raise ConfigError(f"wall_split={wall_split} out of range (0, 1)")
     rf, rr = float(meta["floor_radius_m"]), float(meta["rim_radius_m"])
     if not 0.0 <= rf < rr:
         raise FluxFileError(f"mesh_meta floor_radius_m={rf} must be in [0, rim_radius_m={rr})")
-    c = np.asarray(centroids, dtype=float)
     r = np.hypot(c[:, 0], c[:, 1])
     r_mid = rf + wall_split * (rr - rf)
     r_out = rr + rim_width_m(meta)
@@ -229,7 +239,8 @@ def classify_regions(centroids, meta: Mapping, lat_deg: float, wall_split: float
     base[r <= r_out] = "rim"
     base[r <= rr] = "upper_wall"
     base[r <= r_mid] = "lower_wall"
-    base[r <= rf] = "floor"
+    if rf > 0:  # a bowl (rf = 0) has no floor, even at r = 0
+        base[r <= rf] = "floor"
     pole = pole_direction(lat_deg)
     poleward = c[:, :2] @ pole > 0.0
     sided = np.isin(base, ("lower_wall", "upper_wall", "rim"))

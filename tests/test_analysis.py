@@ -76,6 +76,14 @@ def test_region_rim_width_defaults_to_pike():
     assert an.rim_width_m(meta) == pytest.approx(2636.0, abs=1.0)
 
 
+def test_region_bowl_and_flat_meta():
+    c = np.array([[0.0, 0.0, -10.0], [0.0, -300.0, -5.0], [0.0, 450.0, 0.0]])
+    # bowl, D = 1000 m: no floor; wall split at r = 250; r = 450 is upper wall (north side, equatorward)
+    got = an.classify_regions(c, {"kind": "bowl", "diameter_m": 1000.0}, lat_deg=-86.0).tolist()
+    assert got == ["lower_wall_equatorward", "upper_wall_poleward", "upper_wall_equatorward"]
+    assert an.classify_regions(c, {"kind": "flat"}, lat_deg=-86.0).tolist() == ["surround"] * 3
+
+
 def test_region_needs_meta_radii():
     with pytest.raises(FluxFileError, match="floor_radius_m"):
         an.classify_regions(np.zeros((2, 3)), {"rim_radius_m": 10.0}, -86.0)
