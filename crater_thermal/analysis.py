@@ -41,6 +41,8 @@ Instrument model (thesis 7.3, 8.5; :class:`Instrument`)
   scene and does not average down with dwell time: a difference smaller than it is reported as
   not detectable (the thesis's own criterion compares dT with this 0.94 K). A scene colder than the
   instrument's lowest detectable temperature (20 K) is also not detectable.
+  Option ``Instrument(scatter_in_quadrature=True)``: the stricter reading, |dT| >= k sqrt(NETD^2/n +
+  0.94^2), so with k = 3 differences below 2.82 K are never detectable.
 """
 
 from __future__ import annotations
@@ -557,6 +559,10 @@ class Instrument:
     min_temperature_K : float [K]  lowest detectable scene temperature (20 K).
     natural_scatter_K : float [K]  std of rock-free regolith temperatures (0.94 K), the noise floor.
     k_sigma : float [-]         detection threshold in units of the averaged NETD.
+    scatter_in_quadrature : bool
+        False (default, the thesis's criterion): the natural scatter is a floor, |dT| must exceed it
+        once, and k applies to the instrument noise NETD/sqrt(n) alone. True (stricter): detection
+        needs |dT| >= k sqrt(NETD^2/n + scatter^2), impossible when |dT| <= k * scatter.
     """
 
     netd_ref_K: float = 2.0
@@ -567,6 +573,7 @@ class Instrument:
     min_temperature_K: float = 20.0
     natural_scatter_K: float = NATURAL_SCATTER_K
     k_sigma: float = 3.0
+    scatter_in_quadrature: bool = False
 
     def __post_init__(self):
         for name in ("netd_ref_K", "t_ref_K", "integration_s", "k_sigma"):
@@ -699,11 +706,22 @@ def detectability(dT_K: float, T_nominal_K: float, instrument: Instrument = Inst
         return out
     e = float(netd(T_scene, instrument))
     out["netd_K"] = e
-    if abs(d_obs) <= instrument.natural_scatter_K:
-        out["reason"] = (f"|dT| {abs(d_obs):.3g} K within the natural scatter "
-                         f"{instrument.natural_scatter_K:g} K of regolith temperatures")
+    k, sc = instrument.k_sigma, instrument.natural_scatter_K
+    if instrument.scatter_in_quadrature:
+        if abs(d_obs) <= k * sc:
+            out["reason"] = (f"|dT| {abs(d_obs):.3g} K within {k:g} x the natural scatter "
+                             f"{sc:g} K of regolith temperatures")
+            return out
+        # |dT|^2 >= k^2 (NETD^2 / n + sc^2)  <=>  n >= k^2 NETD^2 / (|dT|^2 - k^2 sc^2)
+        n = max(1, math.ceil(k**2 * e**2 / (d_obs**2 - (k * sc) ** 2) - 1e-12))
+        out.update(n_samples=int(n), dwell_time_s=n * instrument.integration_s, detectable=True,
+                   reason=f"{k:g}-sigma with NETD/sqrt(n) and scatter in quadrature")
         return out
-    n = max(1, math.ceil((instrument.k_sigma * e / abs(d_obs)) ** 2 - 1e-12))
+    if abs(d_obs) <= sc:
+        out["reason"] = (f"|dT| {abs(d_obs):.3g} K within the natural scatter "
+                         f"{sc:g} K of regolith temperatures")
+        return out
+    n = max(1, math.ceil((k * e / abs(d_obs)) ** 2 - 1e-12))
     out.update(n_samples=int(n), dwell_time_s=n * instrument.integration_s, detectable=True,
                reason=f"{instrument.k_sigma:g}-sigma with NETD/sqrt(n)")
     return out

@@ -253,6 +253,18 @@ def test_detectability_hand():
     assert mixed["dwell_time_s"] >= full["dwell_time_s"]
 
 
+def test_detectability_scatter_in_quadrature_hand():
+    inst = an.Instrument(scatter_in_quadrature=True)
+    # 3 x 0.94 = 2.82 K: a 2.5 K difference can never reach 3 sigma
+    assert not an.detectability(-2.5, 50.0, inst)["detectable"]
+    res = an.detectability(-4.0, 50.0, inst)
+    e = float(an.netd(46.0, inst))
+    n = math.ceil(9 * e**2 / (16.0 - 2.82**2))  # hand: k^2 NETD^2 / (dT^2 - (k sc)^2)
+    assert res["detectable"] and res["n_samples"] == n
+    # and then the criterion holds: 3 sqrt(NETD^2/n + 0.94^2) <= 4 K
+    assert 3 * math.sqrt(e**2 / n + 0.94**2) <= 4.0
+
+
 def test_instrument_validation():
     with pytest.raises(ConfigError, match="netd_ref_K"):
         an.Instrument(netd_ref_K=-1.0)
