@@ -64,12 +64,18 @@ def report(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing report.html."),
     footprint_fraction: float = typer.Option(1.0, help="Pixel fraction of loose regolith (Eq. 8.2) [0-1]."),
     no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
+    k_sigma: float = typer.Option(3.0, "--k-sigma", help="Detection threshold in units of NETD/sqrt(n)."),
+    netd_ref_k: float = typer.Option(2.0, "--netd-ref-k", help="Detector NETD [K] at 50 K (Diviner ~2 K)."),
+    scatter_in_quadrature: bool = typer.Option(False, "--scatter-in-quadrature",
+                                               help="Stricter: add the 0.94 K natural scatter in quadrature."),
 ) -> None:
     """Figures (thesis Figs. 7.4-7.9), report.html and summary.json for a run and its replay."""
+    from crater_thermal.analysis import Instrument
     from crater_thermal.report import make_report
 
+    inst = Instrument(k_sigma=k_sigma, netd_ref_K=netd_ref_k, scatter_in_quadrature=scatter_in_quadrature)
     path = make_report(run, replay, out, overwrite=overwrite, footprint_fraction=footprint_fraction,
-                       snapshots=not no_snapshots)
+                       snapshots=not no_snapshots, instrument=inst)
     typer.echo(str(path))
 
 

@@ -78,7 +78,7 @@ SUMMARY_KEYS = {
     "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
     "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
     "latitude_dwell_time_s": "{lat_deg (str): {region: float|null}} [s]: dwell needed to detect loose vs nominal per latitude (null = not detectable).",
-    "instrument": "{netd_ref_K, t_ref_K, band_um, integration_s, calibration_offset_K, min_temperature_K, natural_scatter_K, k_sigma}: instrument model parameters.",
+    "instrument": "{netd_ref_K, t_ref_K, band_um, integration_s, calibration_offset_K, min_temperature_K, natural_scatter_K, k_sigma, scatter_in_quadrature}: instrument model parameters (analysis.Instrument).",
     "footprint_fraction": "float [-]: fraction of the pixel covered by loose regolith (Eq. 8.2 mixing with nominal).",
     "detectability": "{region: {dT_K, dT_observed_K, T_scene_K, netd_K, n_samples, dwell_time_s (null = not detectable), detectable, reason}}: loose vs nominal from night medians.",
     "figures": "list[str]: files written under figures/.",
