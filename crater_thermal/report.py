@@ -554,8 +554,11 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
             f"<p>Instrument model: NETD {inst['netd_ref_K']:g} K at {inst['t_ref_K']:g} K, scaled with the "
             f"band-integrated Planck derivative over {inst['band_um'][0]:g}-{inst['band_um'][1]:g} um; "
             f"{inst['integration_s']:g} s integrations averaged as sqrt(n); {inst['k_sigma']:g}-sigma detection; "
-            f"differences below the {inst['natural_scatter_K']:g} K natural scatter of regolith temperatures or "
-            f"scenes below {inst['min_temperature_K']:g} K count as not detectable. The absolute calibration "
+            + (f"the {inst['natural_scatter_K']:g} K natural scatter of regolith temperatures is added in quadrature "
+               f"(never detectable below {inst['k_sigma'] * inst['natural_scatter_K']:.3g} K)"
+               if inst["scatter_in_quadrature"] else
+               f"differences below the {inst['natural_scatter_K']:g} K natural scatter of regolith temperatures")
+            + f"; scenes below {inst['min_temperature_K']:g} K count as not detectable. The absolute calibration "
             f"offset ({inst['calibration_offset_K']:g} K) cancels in relative differences. Footprint fraction "
             f"{summary['footprint_fraction']:g} (Eq. 8.2 mixing with nominal).</p>")
     if summary["snapshot_note"]:
@@ -576,6 +579,14 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
 
 def _as_list(x) -> list:
     return list(x) if isinstance(x, (list, tuple)) else [x]
+
+
+def _refuse_existing(out_dir: Path, overwrite: bool) -> None:
+    if overwrite:
+        return
+    for name in ("report.html", "summary.json", "figures"):
+        if (out_dir / name).exists():
+            raise OutputExistsError(f"{out_dir / name} exists; use --overwrite to replace it")
 
 
 def _install(tmp: Path, out_dir: Path) -> None:
@@ -632,8 +643,7 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         ``out_dir/report.html`` exists and ``overwrite`` is False.
     """
     out_dir = Path(out_dir)
-    if (out_dir / "report.html").exists() and not overwrite:
-        raise OutputExistsError(f"{out_dir / 'report.html'} exists; use --overwrite to replace it")
+    _refuse_existing(out_dir, overwrite)
     if not 0.0 <= footprint_fraction <= 1.0:
         raise ConfigError(f"footprint_fraction={footprint_fraction} out of range [0, 1]")
     runs, reps = _as_list(run_ds), _as_list(replay_ds)
@@ -711,8 +721,7 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instrument, footprin
         summary["snapshot_note"] = note
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
         (tmp / "report.html").write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS}), encoding="utf-8")
-        if (out_dir / "report.html").exists() and not overwrite:  # appeared meanwhile
-            raise OutputExistsError(f"{out_dir / 'report.html'} exists; use --overwrite to replace it")
+        _refuse_existing(out_dir, overwrite)  # in case one appeared meanwhile
         _install(tmp, out_dir)
     finally:
         if tmp.exists():
