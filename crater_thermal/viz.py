@@ -291,7 +291,11 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
                           "or an animation (--animate GIF)")
     title = VARIABLES.get(var, ("", ""))[0] if profile is None else f"Profile {profile} minus nominal"
     out = dict(time=time_label(times[i]), screenshot=None, animation=None, n_frames=0)
+    if not fps > 0:
+        raise ConfigError(f"fps={fps} out of range (0, inf)")
     finite = vals[np.isfinite(vals)]
+    if finite.size == 0:
+        raise ConfigError(f"var={var!r} has no finite values to show")
     if profile is not None:
         m = float(np.abs(finite).max()) if finite.size else 1.0
         clim = (-max(m, 1e-3), max(m, 1e-3))
