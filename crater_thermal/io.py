@@ -189,13 +189,13 @@ def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_tempera
 # ----------------------------------------------------------------------------- reading
 
 
-def _open(path, what: str) -> xr.Dataset:
+def _open(path, what: str, load: bool = True) -> xr.Dataset:
     path = Path(path)
     if not path.is_file():
         raise FluxFileError(f"{what} file {path} does not exist")
     try:
         ds = xr.open_dataset(path, engine="netcdf4")
-        return ds.load()
+        return ds.load() if load else ds
     except Exception as exc:  # netCDF4/HDF5 raise many types for a corrupt file
         raise FluxFileError(f"cannot read {what} file {path}: {type(exc).__name__}: {exc}") from None
 
@@ -210,10 +210,14 @@ def _check_var(ds, path, name, dims, units) -> None:
         got = str(var.attrs.get("units", "")).strip()
         if got not in units:
             raise FluxFileError(f"{path}: variable '{name}' has units '{got}', expected '{units[0]}'")
-    values = np.asarray(var.values)
-    if values.dtype.kind in "fc" and not np.all(np.isfinite(values)):
-        bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
-        raise FluxFileError(f"{path}: variable '{name}' has {bad} NaN/inf values")
+    if var.dtype.kind not in "fc":
+        return
+    # block by block along the first dimension, so a lazily opened multi-GB variable is never whole in memory
+    for i in range(var.shape[0]) if var.ndim == 3 else [slice(None)]:
+        values = np.asarray(var[i].values)
+        if not np.all(np.isfinite(values)):
+            bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
+            raise FluxFileError(f"{path}: variable '{name}' has {bad} NaN/inf values")
 
 
 def _check_time(ds, path) -> None:
@@ -273,8 +277,8 @@ def open_run(path) -> xr.Dataset:
 
 
 def open_replay(path) -> xr.Dataset:
-    """Open and validate a replay dataset."""
-    ds = _open(path, "replay")
+    """Open and validate a replay dataset (lazily: a density-grid replay can be GBs; read per profile)."""
+    ds = _open(path, "replay", load=False)
     _check_time(ds, path)
     _check_var(ds, path, "surface_temperature", ("profile", "time", "facet"), TEMPERATURE_UNITS)
     for name in ("rho_top", "rho_bottom"):

@@ -92,23 +92,9 @@ PathOrDs = Union[str, os.PathLike, object]
 
 
 def _open(path, kind: str):
-    p = Path(path)
-    if not p.is_file():
-        raise FluxFileError(f"{kind} file {p} does not exist")
-    try:
-        from crater_thermal import io as ctio
-    except ImportError:
-        ctio = None
-    opener = getattr(ctio, f"open_{kind}", None) if ctio is not None else None
-    if opener is not None:
-        return opener(p)
-    # stop-gap until crater_thermal.io (the xarray owner) is on main; lazy: profiles are read one at a time
-    import xarray as xr
+    from crater_thermal import io as ctio
 
-    try:
-        return xr.open_dataset(p)
-    except (OSError, ValueError) as exc:
-        raise FluxFileError(f"cannot read {kind} file {p}: {' '.join(str(exc).split())}") from None
+    return getattr(ctio, f"open_{kind}")(path)
 
 
 def _open_run(path):
