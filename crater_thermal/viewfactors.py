@@ -60,7 +60,7 @@ __all__ = [
 ]
 
 #: Pairs closer than this many facet sizes (``max(sqrt(A_i), sqrt(A_j))``) use sub-facet quadrature.
-NEAR_DISTANCE_FACTOR = 2.0
+NEAR_DISTANCE_FACTOR = 3.0
 #: Each triangle of a near pair is cut into ``NEAR_SUBDIVISIONS ** 2`` sub-triangles.
 NEAR_SUBDIVISIONS = 4
 #: Pairs whose centroid cosines are not above this need no ray (their view factor is < 1e-9 of the
@@ -69,7 +69,7 @@ COS_CUTOFF = 1e-9
 #: Upper bound of candidate pairs per work chunk (memory: about 45 bytes per pair).
 CHUNK_PAIRS = 1 << 20
 #: Part of the cache key: bump when the algorithm changes the numbers.
-ALGORITHM_VERSION = f"v1-near{NEAR_DISTANCE_FACTOR:g}x{NEAR_SUBDIVISIONS}-cos{COS_CUTOFF:g}"
+ALGORITHM_VERSION = f"v2-near{NEAR_DISTANCE_FACTOR:g}x{NEAR_SUBDIVISIONS}-cos{COS_CUTOFF:g}"
 
 
 def _subtriangle_barycentrics(k: int) -> np.ndarray:
@@ -84,32 +84,82 @@ def _subtriangle_barycentrics(k: int) -> np.ndarray:
     return np.ascontiguousarray(np.column_stack([1.0 - uv.sum(axis=1), uv]))
 
 
-@numba.njit(nogil=True, cache=True, fastmath=False)
-def _near_kernel(i, j, V, Fc, N, bary):
-    """Mean of cos_i cos_j / (pi d^2) over sub-triangle centroid pairs of facets i and j."""
-    q = bary.shape[0]
-    pa = np.empty((q, 3))
-    pb = np.empty((q, 3))
-    for s in range(q):
-        for c in range(3):
-            pa[s, c] = bary[s, 0] * V[Fc[i, 0], c] + bary[s, 1] * V[Fc[i, 1], c] + bary[s, 2] * V[Fc[i, 2], c]
-            pb[s, c] = bary[s, 0] * V[Fc[j, 0], c] + bary[s, 1] * V[Fc[j, 1], c] + bary[s, 2] * V[Fc[j, 2], c]
-    acc = 0.0
-    for a in range(q):
-        for b in range(q):
-            dx = pb[b, 0] - pa[a, 0]
-            dy = pb[b, 1] - pa[a, 1]
-            dz = pb[b, 2] - pa[a, 2]
-            ci = N[i, 0] * dx + N[i, 1] * dy + N[i, 2] * dz
-            cj = -(N[j, 0] * dx + N[j, 1] * dy + N[j, 2] * dz)
-            if ci > 0.0 and cj > 0.0:
-                d2 = dx * dx + dy * dy + dz * dz
-                acc += ci * cj / (d2 * d2)
-    return acc / (math.pi * q * q)
+@numba.njit(nogil=True, cache=True)
+def _clip_by_plane(V, Fc, j, n, c, out):
+    """Part of triangle j in front of (or on) the plane (normal n through c); returns vertex count (0-4)."""
+    m = 0
+    for k in range(3):
+        a = Fc[j, k]
+        b = Fc[j, (k + 1) % 3]
+        da = n[0] * (V[a, 0] - c[0]) + n[1] * (V[a, 1] - c[1]) + n[2] * (V[a, 2] - c[2])
+        db = n[0] * (V[b, 0] - c[0]) + n[1] * (V[b, 1] - c[1]) + n[2] * (V[b, 2] - c[2])
+        if da >= 0.0:  # vertices on the plane belong to the clipped polygon
+            for q in range(3):
+                out[m, q] = V[a, q]
+            m += 1
+        if (da > 0.0 and db < 0.0) or (da < 0.0 and db > 0.0):
+            t = da / (da - db)
+            for q in range(3):
+                out[m, q] = V[a, q] + t * (V[b, q] - V[a, q])
+            m += 1
+    return m
 
 
 @numba.njit(nogil=True, cache=True)
-def _candidate_pairs(i0, i1, C, N, S, P, V, Fc, bary, near_factor, cos_cut, o32, d32, pi_, pj_, kk, need):
+def _point_to_polygon(px, py, pz, n, poly, m):
+    """Exact view factor from a differential area (point p, unit normal n) to a planar polygon that lies
+    entirely in front of it (Lambert's contour formula: sum of edge angles times n . edge-plane normal,
+    over 2 pi)."""
+    acc = 0.0
+    for k in range(m):
+        ax = poly[k, 0] - px
+        ay = poly[k, 1] - py
+        az = poly[k, 2] - pz
+        kk = (k + 1) % m
+        bx = poly[kk, 0] - px
+        by = poly[kk, 1] - py
+        bz = poly[kk, 2] - pz
+        cx = ay * bz - az * by
+        cy = az * bx - ax * bz
+        cz = ax * by - ay * bx
+        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if cn <= 0.0:
+            continue
+        gamma = math.atan2(cn, ax * bx + ay * by + az * bz)
+        acc += gamma * (n[0] * cx + n[1] * cy + n[2] * cz) / cn
+    return abs(acc) / (2.0 * math.pi)
+
+
+@numba.njit(nogil=True, cache=True)
+def _facet_to_facet(i, j, V, Fc, N, C, bary, poly):
+    """F_ij: mean over quadrature points p of facet i of the exact point-to-facet view factor to facet j
+    (j clipped to the half-space in front of i; zero where p is behind j's plane)."""
+    m = _clip_by_plane(V, Fc, j, N[i], C[i], poly)
+    if m < 3:
+        return 0.0
+    q = bary.shape[0]
+    acc = 0.0
+    for s in range(q):
+        px = bary[s, 0] * V[Fc[i, 0], 0] + bary[s, 1] * V[Fc[i, 1], 0] + bary[s, 2] * V[Fc[i, 2], 0]
+        py = bary[s, 0] * V[Fc[i, 0], 1] + bary[s, 1] * V[Fc[i, 1], 1] + bary[s, 2] * V[Fc[i, 2], 1]
+        pz = bary[s, 0] * V[Fc[i, 0], 2] + bary[s, 1] * V[Fc[i, 1], 2] + bary[s, 2] * V[Fc[i, 2], 2]
+        # p must be in front of j's plane: then every point of j faces p
+        if N[j, 0] * (px - C[j, 0]) + N[j, 1] * (py - C[j, 1]) + N[j, 2] * (pz - C[j, 2]) <= 0.0:
+            continue
+        acc += _point_to_polygon(px, py, pz, N[i], poly, m)
+    return acc / q
+
+
+@numba.njit(nogil=True, cache=True)
+def _near_kernel(i, j, V, Fc, N, C, A, bary, poly):
+    """Symmetric mean kernel K_ij = (F_ij / A_j + F_ji / A_i) / 2 for a near pair (exact reciprocity)."""
+    fij = _facet_to_facet(i, j, V, Fc, N, C, bary, poly)
+    fji = _facet_to_facet(j, i, V, Fc, N, C, bary, poly)
+    return 0.5 * (fij / A[j] + fji / A[i])
+
+
+@numba.njit(nogil=True, cache=True)
+def _candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o32, d32, pi_, pj_, kk, need):
     """Fill buffers with the candidate pairs (i, j > i) of rows i0..i1-1; returns their number.
 
     o32/d32: float32 ray origin (P_i) and unnormalised direction (P_j - P_i), so tfar = 1 reaches P_j.
@@ -118,6 +168,7 @@ def _candidate_pairs(i0, i1, C, N, S, P, V, Fc, bary, near_factor, cos_cut, o32,
     nf = C.shape[0]
     n = 0
     cc2 = cos_cut * cos_cut
+    poly = np.empty((4, 3))
     for i in range(i0, i1):
         cix = C[i, 0]
         ciy = C[i, 1]
@@ -137,7 +188,7 @@ def _candidate_pairs(i0, i1, C, N, S, P, V, Fc, bary, near_factor, cos_cut, o32,
             lim = near_factor * sm
             facing = ci > 0.0 and cj > 0.0 and ci * ci > cc2 * d2 and cj * cj > cc2 * d2
             if d2 < lim * lim:
-                k = _near_kernel(i, j, V, Fc, N, bary)
+                k = _near_kernel(i, j, V, Fc, N, C, A, bary, poly)
                 if k <= 0.0:
                     continue
                 need[n] = facing
@@ -159,34 +210,26 @@ def _candidate_pairs(i0, i1, C, N, S, P, V, Fc, bary, near_factor, cos_cut, o32,
     return n
 
 
-@numba.njit(cache=True)
-def _assemble(nf, pi_, pj_, kk, A):
-    """CSR arrays (sorted columns) from unordered pairs sorted by (i, j); scales rows that exceed 1."""
-    rs = np.zeros(nf)
+@numba.njit(nogil=True, cache=True)
+def _accumulate(pi_, pj_, kk, A, rs, counts):
+    """Add one chunk of visible pairs to the row sums and the per-row entry counts (counts[r + 1])."""
     for p in range(pi_.shape[0]):
-        rs[pi_[p]] += kk[p] * A[pj_[p]]
-        rs[pj_[p]] += kk[p] * A[pi_[p]]
-    excess = 0.0
-    s = np.ones(nf)
-    for r in range(nf):
-        if rs[r] > 1.0:
-            s[r] = 1.0 / rs[r]
-            if rs[r] - 1.0 > excess:
-                excess = rs[r] - 1.0
-    counts = np.zeros(nf + 1, np.int64)
-    for p in range(pi_.shape[0]):
-        counts[pi_[p] + 1] += 1
-        counts[pj_[p] + 1] += 1
-    indptr = np.cumsum(counts)
-    pos = indptr[:-1].copy()
-    nnz = indptr[-1]
-    indices = np.empty(nnz, np.int32)
-    data = np.empty(nnz, np.float64)
+        i = pi_[p]
+        j = pj_[p]
+        rs[i] += kk[p] * A[j]
+        rs[j] += kk[p] * A[i]
+        counts[i + 1] += 1
+        counts[j + 1] += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _fill(pi_, pj_, kk, A, s, rescale, pos, indices, data):
+    """Write one chunk of pairs (i, j) and (j, i) into CSR arrays; pairs must come sorted by (i, j)."""
     for p in range(pi_.shape[0]):
         i = pi_[p]
         j = pj_[p]
         k = kk[p]
-        if excess > 0.0:
+        if rescale:
             k *= min(s[i], s[j])
         indices[pos[i]] = j
         data[pos[i]] = k * A[j]
@@ -194,6 +237,29 @@ def _assemble(nf, pi_, pj_, kk, A):
         indices[pos[j]] = i
         data[pos[j]] = k * A[i]
         pos[j] += 1
+
+
+def _assemble(nf: int, results: list, A: np.ndarray):
+    """CSR arrays (sorted columns: pairs arrive ordered by i, then j) from per-chunk visible pairs.
+
+    Pair (i, j) lands in row i after every (i', i) with i' < i, and in row j after all pairs with a
+    smaller first index, so each row is filled in increasing column order without a sort.
+    Rows summing above 1 are rescaled symmetrically (see the module docstring).
+    """
+    rs = np.zeros(nf)
+    counts = np.zeros(nf + 1, np.int64)
+    for pi_, pj_, kk in results:
+        _accumulate(pi_, pj_, kk, A, rs, counts)
+    excess = float(max(0.0, rs.max() - 1.0)) if nf else 0.0
+    s = np.where(rs > 1.0, 1.0 / np.maximum(rs, 1.0), 1.0)
+    indptr = np.cumsum(counts)
+    pos = indptr[:-1].copy()
+    nnz = int(indptr[-1])
+    indices = np.empty(nnz, np.int32)
+    data = np.empty(nnz, np.float64)
+    while results:
+        pi_, pj_, kk = results.pop(0)  # free each chunk once written
+        _fill(pi_, pj_, kk, A, s, excess > 0.0, pos, indices, data)
     return indptr, indices, data, excess
 
 
@@ -306,7 +372,7 @@ def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None, progress: bool =
         pj_ = np.empty(cap, np.int32)
         kk = np.empty(cap, np.float64)
         need = np.empty(cap, np.bool_)
-        n = _candidate_pairs(i0, i1, C, N, S, P, V, Fc, bary, NEAR_DISTANCE_FACTOR, COS_CUTOFF,
+        n = _candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, NEAR_DISTANCE_FACTOR, COS_CUTOFF,
                              o32, d32, pi_, pj_, kk, need)
         if n == 0:
             return pi_[:0], pj_[:0], kk[:0]
@@ -338,10 +404,7 @@ def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None, progress: bool =
     finally:
         if progress:
             prog.stop()
-    pi_ = np.concatenate([r[0] for r in results]) if results else np.empty(0, np.int32)
-    pj_ = np.concatenate([r[1] for r in results]) if results else np.empty(0, np.int32)
-    kk = np.concatenate([r[2] for r in results]) if results else np.empty(0)
-    indptr, indices, data, excess = _assemble(nf, pi_, pj_, kk, A)
+    indptr, indices, data, excess = _assemble(nf, results, A)
     F = sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
     F.has_sorted_indices = True
     F.rowsum_excess = float(excess)
