@@ -43,9 +43,14 @@ of an equilateral triangle of the target facet area; ring ``k`` carries ``n_k`` 
 proportional to the area of the adjacent bands, and neighbouring rings are stitched by merging their
 vertex azimuths.  A band between rings of ``n_{k-1}`` and ``n_k`` vertices holds ``n_{k-1} + n_k``
 triangles, the central fan ``n_1``, so an open surface has ``2 sum(n_k) - n_K`` facets; the counts are
-adjusted so that this equals the requested number exactly (any count >= 3 for an open surface).  A
-closed sphere has ``2 sum(n_k)`` facets, so an odd request gets the next even count.  Facet areas are
-near-uniform (max/min area ratio about 2-3).  Every facet is oriented counter-clockwise seen from
+adjusted so that this equals the requested number exactly.  Each ring has enough vertices that no band
+folds over (checked; a too-small request raises :class:`ConfigError` naming the smallest count that
+works, e.g. 28 for D = 0.5 km).  A closed sphere has ``2 sum(n_k)`` facets, so an odd request gets the
+next even count.  Facet areas are near-uniform: max/min area about 1.7 for the 502-facet 10 km crater
+and below 4 for D >= 10 km and >= 300 facets.  Small craters have floors smaller than one facet
+(D = 1 km: floor diameter 31 m), and their floor facets are correspondingly small (max/min area up to
+~70 at D = 1 km): the floor edge is always a vertex ring so that the floor diameter is exact.
+Every facet is oriented counter-clockwise seen from
 outside (crater, bowl, flat: normals point up).
 """
 
@@ -365,16 +370,28 @@ def crater_profile(diameter_km: float = 10.0, surround_km: float = 0.0, wall: st
 
 
 def _stitch(ia: np.ndarray, ta: np.ndarray, ib: np.ndarray, tb: np.ndarray) -> list[tuple[int, int, int]]:
-    """Triangulate the band between two closed rings by merging their vertex azimuths."""
+    """Triangulate the band between two closed rings by merging their vertex azimuths.
+
+    Ring a is the inner one (nearer the start of the profile); azimuths increase counter-clockwise
+    seen from +z.  Triangles come out counter-clockwise seen from the profile's left-normal side.
+    """
     na, nb = len(ia), len(ib)
     two_pi = 2.0 * math.pi
+    # start ring b at its vertex nearest in azimuth to a's first vertex, with azimuths unwrapped
+    # relative to ta[0], so that both walks start together and close together
+    wrapped = (tb - ta[0] + math.pi) % two_pi - math.pi
+    j0 = int(np.argmin(np.abs(wrapped)))
+    order = (j0 + np.arange(nb)) % nb
+    ib = ib[order]
+    tb = ta[0] + wrapped[j0] + (tb[order] - tb[j0]) % two_pi
+    ta = ta[0] + (ta - ta[0]) % two_pi
     tris = []
     i = j = 0
     while i < na or j < nb:
         next_a = ta[i + 1] if i + 1 < na else ta[0] + two_pi
         next_b = tb[j + 1] if j + 1 < nb else tb[0] + two_pi
         if j >= nb or (i < na and next_a <= next_b):
-            tris.append((ia[i % na], ia[(i + 1) % na], ib[j % nb]))
+            tris.append((ia[i % na], ib[j % nb], ia[(i + 1) % na]))
             i += 1
         else:
             tris.append((ia[i % na], ib[j % nb], ib[(j + 1) % nb]))
@@ -382,10 +399,10 @@ def _stitch(ia: np.ndarray, ta: np.ndarray, ib: np.ndarray, tb: np.ndarray) -> l
     return tris
 
 
-def _ring_counts(targets: np.ndarray, n_facets: int, closed: bool) -> np.ndarray:
-    """Integer vertex counts per ring whose facet total is exactly ``n_facets`` (open) or closest (closed)."""
+def _ring_counts(targets: np.ndarray, n_facets: int, closed: bool, n_min: np.ndarray) -> np.ndarray:
+    """Integer vertex counts per ring (each >= ``n_min``) whose facet total is exactly ``n_facets``."""
     K = len(targets)
-    n = np.maximum(np.rint(targets).astype(np.int64), 3)
+    n = np.maximum(np.rint(targets).astype(np.int64), n_min)
 
     def total(n):
         return int(2 * n.sum() - (0 if closed else n[-1]))
@@ -397,7 +414,7 @@ def _ring_counts(targets: np.ndarray, n_facets: int, closed: bool) -> np.ndarray
         if not closed and delta % 2 != 0:
             # the last ring changes the total by 1
             step = 1 if delta > 0 else -1
-            if n[-1] + step >= 3:
+            if n[-1] + step >= n_min[-1]:
                 n[-1] += step
                 continue
         step = 1 if delta > 0 else -1
@@ -406,13 +423,83 @@ def _ring_counts(targets: np.ndarray, n_facets: int, closed: bool) -> np.ndarray
         order = cand[np.argsort(-resid[cand])]
         moved = False
         for k in order:
-            if n[k] + step >= 3:
+            if n[k] + step >= n_min[k]:
                 n[k] += step
                 moved = True
                 break
         if not moved:
             break
     return n
+
+
+def _build_rings(prof, rings, s_prof, targets, n_min, n_facets, closed):
+    """Vertices and faces for given ring minima; returns (V, F), or the indices of rings to enlarge
+    when some band folds over (a triangle facing the wrong way in the revolved profile)."""
+    K = len(rings)
+    targets = np.maximum(targets, n_min)
+    counts = _ring_counts(targets, n_facets, closed, n_min)
+    total = int(2 * counts.sum() - (0 if closed else counts[-1]))
+    if total != n_facets + (n_facets % 2 if closed else 0):
+        raise ConfigError(f"n_facets = {n_facets} is too few to triangulate this surface: use at least {total}")
+
+    verts = [np.array([[0.0, 0.0, prof[0, 1]]])]
+    ring_idx, ring_theta = [], []
+    start = 1
+    phase_step = 0.5 * (math.sqrt(5.0) - 1.0)
+    for k in range(K):
+        nk = int(counts[k])
+        phase = (k * phase_step) % 1.0
+        th = 2.0 * math.pi * (np.arange(nk) + phase) / nk
+        r, z = rings[k]
+        verts.append(np.stack([r * np.cos(th), r * np.sin(th), np.full(nk, z)], axis=1))
+        ring_idx.append(np.arange(start, start + nk))
+        ring_theta.append(th)
+        start += nk
+    apex = start
+    if closed:
+        verts.append(np.array([[0.0, 0.0, prof[-1, 1]]]))
+    V = np.concatenate(verts)
+    ring_of = np.full(len(V), -1)
+    for k in range(K):
+        ring_of[ring_idx[k]] = k
+    if closed:
+        ring_of[apex] = K
+
+    tris = []
+    ia = ring_idx[0]
+    for i in range(len(ia)):
+        tris.append((0, ia[i], ia[(i + 1) % len(ia)]))
+    for k in range(1, K):
+        tris.extend(_stitch(ring_idx[k - 1], ring_theta[k - 1], ring_idx[k], ring_theta[k]))
+    if closed:
+        ia = ring_idx[-1]
+        for i in range(len(ia)):
+            tris.append((apex, ia[(i + 1) % len(ia)], ia[i]))
+    F = np.array(tris, dtype=np.int64)
+
+    # fold check: the face normal must lie on the side of the profile's left normal (-dz, dr), revolved
+    P = V[F]
+    nrm = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    c = P.mean(axis=1)
+    rho = np.hypot(c[:, 0], c[:, 1])
+    rk = ring_of[F]  # (nf, 3) ring number per corner (-1 = axis start, K = apex)
+    s_vert = s_prof[rk + 1]
+    lo = np.argmin(s_vert, axis=1)
+    hi = np.argmax(s_vert, axis=1)
+    ar = np.arange(len(F))
+    rv = np.hypot(P[:, :, 0], P[:, :, 1])
+    dr = rv[ar, hi] - rv[ar, lo]
+    dz = P[ar, hi, 2] - P[ar, lo, 2]
+    safe = np.where(rho > 0, rho, 1.0)
+    ref = np.stack([-dz * c[:, 0] / safe, -dz * c[:, 1] / safe, dr], axis=1)
+    folded = np.einsum("ij,ij->i", nrm, ref) <= 0
+    if closed:
+        folded[:] = False  # the sphere is re-triangulated as a convex hull by the caller
+    if folded.any():
+        bad = np.unique(rk[folded].max(axis=1))
+        bad = bad[(bad >= 0) & (bad < K)]
+        return bad
+    return V, F
 
 
 def _revolve(pieces, n_facets: int, closed: bool, meta: dict) -> Mesh:
@@ -458,69 +545,24 @@ def _revolve(pieces, n_facets: int, closed: bool, meta: dict) -> Mesh:
     A = np.vstack([M, lam * np.eye(K)])
     rhs = np.concatenate([T, lam * ref])
     targets = np.linalg.lstsq(A, rhs, rcond=None)[0]
-    targets = np.maximum(targets, 3.0)
-    counts = _ring_counts(targets, n_facets, closed)
-
-    # vertices
-    verts = [np.array([[0.0, 0.0, prof[0, 1]]])]
-    ring_idx, ring_theta = [], []
-    start = 1
-    phase_step = 0.5 * (math.sqrt(5.0) - 1.0)
-    for k in range(K):
-        nk = int(counts[k])
-        phase = (k * phase_step) % 1.0
-        th = 2.0 * math.pi * (np.arange(nk) + phase) / nk
-        th = th - 2.0 * math.pi * math.floor(th[0] / (2.0 * math.pi))
-        r, z = rings[k]
-        verts.append(np.stack([r * np.cos(th), r * np.sin(th), np.full(nk, z)], axis=1))
-        ring_idx.append(np.arange(start, start + nk))
-        ring_theta.append(th)
-        start += nk
-    if closed:
-        verts.append(np.array([[0.0, 0.0, prof[-1, 1]]]))
-        apex = start
-    V = np.concatenate(verts)
-
-    tris = []
-    ia, ta = ring_idx[0], ring_theta[0]
-    for i in range(len(ia)):
-        tris.append((0, ia[i], ia[(i + 1) % len(ia)]))
+    # a ring's polygon must enclose the previous ring (else the band folds over in projection):
+    # r_k cos(pi / n_k) > r_{k-1}, with a 2 % margin
+    n_min = np.full(K, 3, dtype=np.int64)
     for k in range(1, K):
-        tris.extend(_stitch(ring_idx[k - 1], ring_theta[k - 1], ring_idx[k], ring_theta[k]))
-    if closed:
-        ia = ring_idx[-1]
-        for i in range(len(ia)):
-            tris.append((apex, ia[i], ia[(i + 1) % len(ia)]))
-    F = np.array(tris, dtype=np.int64)
-
-    # orientation: the profile's left normal (-dz, dr), revolved, is the wanted side
-    P = V[F]
-    nrm = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    c = P.mean(axis=1)
-    rho = np.hypot(c[:, 0], c[:, 1])
-    # profile direction at each facet from its vertices' (r, z): highest-r/-z spread is robust enough
-    rv = np.hypot(P[:, :, 0], P[:, :, 1])
-    zv = P[:, :, 2]
-    # sort each facet's vertices along the profile by arc position -> use the profile points' order
+        ratio = 1.02 * rings_r[k - 1] / rings_r[k]
+        if ratio < 1.0:
+            n_min[k] = max(3, math.ceil(math.pi / math.acos(ratio)))
+        elif not closed:
+            raise MeshError("internal: profile radius must increase outwards")
     s_prof = np.concatenate([[0.0], np.cumsum(dl)])
-    s_vert = np.empty(len(V))
-    s_vert[0] = 0.0
-    for k in range(K):
-        s_vert[ring_idx[k]] = s_prof[k + 1]
-    if closed:
-        s_vert[apex] = s_prof[-1]
-    sv = s_vert[F]
-    lo = np.argmin(sv, axis=1)
-    hi = np.argmax(sv, axis=1)
-    ar = np.arange(len(F))
-    dr = rv[ar, hi] - rv[ar, lo]
-    dz = zv[ar, hi] - zv[ar, lo]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cphi = np.where(rho > 0, c[:, 0] / rho, 1.0)
-        sphi = np.where(rho > 0, c[:, 1] / rho, 0.0)
-    ref = np.stack([-dz * cphi, -dz * sphi, dr], axis=1)
-    flip = np.einsum("ij,ij->i", nrm, ref) < 0
-    F[flip] = F[flip][:, [0, 2, 1]]
+    for _attempt in range(200):
+        tri = _build_rings(prof, rings, s_prof, targets, n_min, n_facets, closed)
+        if isinstance(tri, tuple):
+            V, F = tri
+            break
+        n_min[tri] += 1  # rings whose band folded over: more vertices
+    else:  # pragma: no cover - the loop always converges for sane profiles
+        raise MeshError("internal: could not triangulate the profile without folds")
     meta = dict(meta)
     meta["n_rings"] = int(K)
     return Mesh(V, F, meta)
