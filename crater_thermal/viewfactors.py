@@ -30,8 +30,9 @@ above 1.  Then (and only then) pairs are scaled by ``min(s_i, s_j)`` with ``s_i 
 which keeps ``K`` symmetric (reciprocity intact) and every row sum <= 1; the largest excess before the
 scaling is reported in the returned matrix's ``rowsum_excess`` attribute (0 when nothing was scaled).
 
-Cache: with ``cache_dir`` the matrix is stored as ``viewfactors_<mesh.hash>_<ALGORITHM_VERSION>.npz``
-(atomic write) and read back on the next call with the same mesh.
+Cache: with ``cache_dir`` the matrix is stored as ``viewfactors_<mesh.hash>_<version and constants>.npz``
+(atomic write; the key also holds the tuning constants) and read back on the next call with the
+same mesh.
 """
 
 from __future__ import annotations
@@ -68,8 +69,16 @@ NEAR_SUBDIVISIONS = 4
 COS_CUTOFF = 1e-9
 #: Upper bound of candidate pairs per work chunk (memory: about 45 bytes per pair).
 CHUNK_PAIRS = 1 << 20
-#: Part of the cache key: bump when the algorithm changes the numbers.
-ALGORITHM_VERSION = f"v2-near{NEAR_DISTANCE_FACTOR:g}x{NEAR_SUBDIVISIONS}-cos{COS_CUTOFF:g}"
+#: Part of the cache key: bump the leading number when the algorithm changes the numbers.
+ALGORITHM_VERSION = "v2"
+
+
+def _algorithm_key() -> str:
+    """Cache key part: algorithm version plus the current tuning constants and ray offset."""
+    from crater_thermal.raytrace import RAY_OFFSET_FRACTION
+
+    return (f"{ALGORITHM_VERSION}-near{NEAR_DISTANCE_FACTOR:g}x{NEAR_SUBDIVISIONS}"
+            f"-cos{COS_CUTOFF:g}-off{RAY_OFFSET_FRACTION:g}")
 
 
 def _subtriangle_barycentrics(k: int) -> np.ndarray:
@@ -279,13 +288,13 @@ def _row_chunks(nf: int, chunk_pairs: int) -> list[tuple[int, int]]:
 
 
 def _cache_path(cache_dir, mesh: Mesh) -> Path:
-    return Path(cache_dir) / f"viewfactors_{mesh.hash}_{ALGORITHM_VERSION}.npz"
+    return Path(cache_dir) / f"viewfactors_{mesh.hash}_{_algorithm_key()}.npz"
 
 
 def _load_cached(path: Path, mesh: Mesh):
     try:
         with np.load(path, allow_pickle=False) as z:
-            if str(z["mesh_hash"]) != mesh.hash or str(z["version"]) != ALGORITHM_VERSION:
+            if str(z["mesh_hash"]) != mesh.hash or str(z["version"]) != _algorithm_key():
                 return None
             F = sp.csr_matrix((z["data"], z["indices"], z["indptr"]), shape=tuple(z["shape"]))
             F.rowsum_excess = float(z["rowsum_excess"])
@@ -300,7 +309,7 @@ def _save_cached(path: Path, F: sp.csr_matrix, mesh: Mesh) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, data=F.data, indices=F.indices, indptr=F.indptr, shape=np.array(F.shape),
-                     mesh_hash=np.array(mesh.hash), version=np.array(ALGORITHM_VERSION),
+                     mesh_hash=np.array(mesh.hash), version=np.array(_algorithm_key()),
                      rowsum_excess=np.array(getattr(F, "rowsum_excess", 0.0)))
         os.replace(tmp, path)
     except BaseException:
