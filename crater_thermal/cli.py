@@ -192,8 +192,15 @@ def show(
             typer.echo(res[key])
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"warning: {' '.join(str(message).split())}", file=sys.stderr if file is None else file)
+
+
 def main(argv: Optional[List[str]] = None) -> None:
     """Console-script entry point."""
+    import warnings
+
+    warnings.showwarning = _one_line_warning
     try:
         app(args=argv, standalone_mode=False)
     except CraterThermalError as exc:
