@@ -202,7 +202,7 @@ def test_cli_run_bad_case(tmp_path):
     r = _cli("run", bad, "-o", tmp_path / "run.nc")
     assert r.returncode == 2 and "lat_deg" in r.stderr and "Traceback" not in r.stderr
     late = tmp_path / "late.toml"
-    late.write_text(SMALL_CASE.format(name="late", facets=60, end="2060-01-31", spinup="periodic", spinup_days=10,
+    late.write_text(SMALL_CASE.format(name="late", facets=60, end="2060-01-31", spinup="periodic", spinup_days=30,
                                       tol=0.01, every=0, extra_period=""))
     r = _cli("run", late, "-o", tmp_path / "run.nc")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "2053" in r.stderr
