@@ -43,6 +43,43 @@ def version() -> None:
 
 # ---------------------------------------------------------------- mesh (geometry)
 
+mesh_app = typer.Typer(no_args_is_help=True, help="Make crater meshes (idealized Table 7.1 crater, Ingersoll bowl).")
+app.add_typer(mesh_app, name="mesh")
+
+
+@mesh_app.command("crater")
+def mesh_crater(
+    diameter_km: float = typer.Option(10.0, "--diameter-km", help="Rim diameter [km], (0, 15]."),
+    facets: int = typer.Option(502, "--facets", help="Exact number of facets (thesis: 502)."),
+    surround_km: float = typer.Option(0.0, "--surround-km", help="Flat plain ring beyond the rim flank [km]."),
+    wall: str = typer.Option("thesis", "--wall", help="Wall circle: 'thesis' (centre on axis) or 'tangent' (tangent to floor)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply, .obj, .stl)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
+) -> None:
+    """Idealized simple crater (thesis Table 7.1) as a triangle mesh."""
+    from crater_thermal import geometry
+
+    m = geometry.crater_mesh(diameter_km=diameter_km, n_facets=facets, surround_km=surround_km, wall=wall)
+    geometry.save_mesh(m, output, overwrite=overwrite)
+    typer.echo(f"wrote {output}: {m.n_facets} facets, hash {m.hash}")
+
+
+@mesh_app.command("bowl")
+def mesh_bowl(
+    depth_to_diameter: float = typer.Option(0.2, "--depth-to-diameter", help="Depth / diameter, (0, 0.5]."),
+    facets: int = typer.Option(3000, "--facets", help="Exact number of facets."),
+    diameter_m: float = typer.Option(1000.0, "--diameter-m", help="Rim diameter [m]."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply, .obj, .stl)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
+) -> None:
+    """Spherical-cap bowl (Ingersoll et al. 1992) as a triangle mesh."""
+    from crater_thermal import geometry
+
+    m = geometry.bowl_mesh(depth_to_diameter=depth_to_diameter, n_facets=facets, diameter_m=diameter_m)
+    geometry.save_mesh(m, output, overwrite=overwrite)
+    typer.echo(f"wrote {output}: {m.n_facets} facets, hash {m.hash}")
+
+
 
 # ---------------------------------------------------------------- steady (radiosity)
 
