@@ -48,6 +48,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence, Union
 
+import numba
 import numpy as np
 
 from crater_thermal.constants import AU, SOLAR_CONSTANT, SUN_RADIUS
@@ -375,6 +376,59 @@ def _check_inputs(sun_dirs, sun_distance_m, solar_constant):
         raise ConfigError(f"solar_constant = {solar_constant!r} W m-2 must be finite and >= 0")
     return s / norms[:, None], r
 
+@numba.njit(cache=True)
+def _candidates(dirs, normals, weights, origins32, above_all, block):
+    """Rays worth tracing in one batch of time steps.
+
+    For every (patch direction ``k = step * m + j``, facet ``f``) with ``n_f . d_k > 0``
+    the contribution ``w_j cos i`` goes to the flat cell ``step * nf + f`` of
+    ``block`` directly when the ray is known to escape (origin above the whole
+    mesh, pointing up); otherwise the ray is returned for tracing: its cell,
+    weight, float32 origin and direction.
+    """
+    nk = dirs.shape[0]
+    nf = normals.shape[0]
+    m = weights.shape[0]
+    count = 0
+    for k in range(nk):
+        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        for f in range(nf):
+            if normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz > 0.0:
+                if not (above_all[f] and dz > 0.0):
+                    count += 1
+    cell = np.empty(count, np.int64)
+    wcos = np.empty(count, np.float64)
+    ray_org = np.empty((count, 3), np.float32)
+    ray_dir = np.empty((count, 3), np.float32)
+    i = 0
+    for k in range(nk):
+        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        step = k // m
+        w = weights[k - step * m]
+        for f in range(nf):
+            c = normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz
+            if c > 0.0:
+                if above_all[f] and dz > 0.0:
+                    block[step * nf + f] += w * c
+                    continue
+                cell[i] = step * nf + f
+                wcos[i] = w * c
+                ray_org[i, 0] = origins32[f, 0]
+                ray_org[i, 1] = origins32[f, 1]
+                ray_org[i, 2] = origins32[f, 2]
+                ray_dir[i, 0] = dx
+                ray_dir[i, 1] = dy
+                ray_dir[i, 2] = dz
+                i += 1
+    return cell, wcos, ray_org, ray_dir
+
+
+@numba.njit(cache=True)
+def _accumulate(block, cell, wcos, visible):
+    for i in range(cell.shape[0]):
+        if visible[i]:
+            block[cell[i]] += wcos[i]
+
 
 def direct_irradiance(
     mesh,
@@ -384,7 +438,7 @@ def direct_irradiance(
     solar_constant: float = SOLAR_CONSTANT,
     disk: SunDisk | None = None,
     progress: bool = False,
-    chunk_rays: int = 2_000_000,
+    chunk_rays: int = 4_000_000,
 ) -> np.ndarray:
     """Direct solar irradiance on every facet at every time.
 
@@ -432,24 +486,20 @@ def direct_irradiance(
 
     origins = np.asarray(tracer.facet_origins(np.arange(nf)), dtype=float)  # (nf, 3)
     z_top = float(np.max(np.asarray(mesh.vertices)[:, 2]))
-    above_all = origins[:, 2] > z_top  # rays from here going up escape
+    above_all = origins[:, 2] > z_top  # rays from here going up escape: no trace needed
+    # Fast path: the geometry helper's RayTracer takes pre-centred float32 rays (run_raw).
+    use_raw = hasattr(tracer, "run_raw") and hasattr(tracer, "centre")
+    shift = np.asarray(tracer.centre, dtype=float) if use_raw else np.zeros(3)
+    origins32 = np.ascontiguousarray(origins - shift, dtype=np.float32)
 
-    # A time step can light facet f only if some patch is in front of it. Bound:
-    # n.d >= n.s - sin(alpha) for all patches, so if n.s <= -sin(alpha) none is.
+    # Time steps at which no patch can be above any facet's plane are skipped:
+    # n.d >= n.s - sin(alpha) for every patch, so the disk is behind facet f if n.s <= -sin(alpha).
     alpha = np.arcsin(SUN_RADIUS / r) if disk is not None else np.zeros(nt)
-    ns = s @ normals.T  # (nt, nf)
-    maybe = ns > -np.sin(alpha)[:, None] - 1e-12
-    per_t = maybe.sum(axis=1) * m
-    # batch time steps so that each batch has at most ~chunk_rays candidate rays
-    bounds = [0]
-    acc = 0
-    for t in range(nt):
-        if acc + per_t[t] > chunk_rays and t > bounds[-1]:
-            bounds.append(t)
-            acc = 0
-        acc += per_t[t]
-    bounds.append(nt)
-    batches = list(zip(bounds[:-1], bounds[1:]))
+    max_ns = (s @ normals.T).max(axis=1)  # (nt,)
+    active = np.nonzero(max_ns > -np.sin(alpha) - 1e-12)[0]
+    # batches of time steps: the dense (steps * patches * facets) cosine block stays ~chunk_rays
+    nb = max(1, int(chunk_rays // max(1, m * nf)))
+    batches = [active[i : i + nb] for i in range(0, active.size, nb)]
 
     iterator = batches
     if progress:
@@ -457,26 +507,16 @@ def direct_irradiance(
 
         iterator = track(batches, description="direct sunlight")
 
-    for t0, t1 in iterator:
-        tt, ff = np.nonzero(maybe[t0:t1])
-        if tt.size == 0:
-            continue
-        dirs = patch_directions(s[t0:t1], r[t0:t1], disk)  # (nb, m, 3)
-        # cos incidence for each candidate (t, f) and patch: (nc, m)
-        cosi = np.einsum("cmk,ck->cm", dirs[tt], normals[ff])
-        ci, pj = np.nonzero(cosi > 0.0)
-        if ci.size == 0:
-            continue
-        d = dirs[tt[ci], pj]  # (nr, 3)
-        fidx = ff[ci]
-        free = above_all[fidx] & (d[:, 2] > 0.0)
-        vis = np.ones(ci.size, dtype=bool)
-        need = ~free
-        if np.any(need):
-            vis[need] = ~np.asarray(tracer.occluded(origins[fidx[need]], d[need]), dtype=bool)
-        contrib = weights[pj] * cosi[ci, pj] * vis
-        cell = tt[ci] * nf + fidx  # flat index within the batch
-        block = np.bincount(cell, weights=contrib, minlength=(t1 - t0) * nf)
-        out[t0:t1] += block.reshape(t1 - t0, nf)
+    for tsel in iterator:
+        dirs = patch_directions(s[tsel], r[tsel], disk).reshape(-1, 3)  # (nb*m, 3)
+        block = np.zeros(tsel.size * nf)
+        cell, wcos, ray_org, ray_dir = _candidates(dirs, normals, weights, origins32, above_all, block)
+        if cell.size:
+            if use_raw:
+                visible = tracer.run_raw(ray_org, ray_dir) == -1
+            else:
+                visible = ~np.asarray(tracer.occluded(ray_org.astype(float), ray_dir.astype(float)), dtype=bool)
+            _accumulate(block, cell, wcos, visible)
+        out[tsel] += block.reshape(tsel.size, nf)
     out *= flux[:, None]
     return out
