@@ -87,10 +87,109 @@ def mesh_bowl(
 # ---------------------------------------------------------------- run / replay (simulate)
 
 
+@app.command()
+def run(
+    case: Path = typer.Argument(..., help="Case file (TOML), see cases/README.md."),
+    output: Path = typer.Option(..., "-o", "--output", help="Run dataset to write (netCDF)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from the checkpoint beside OUTPUT."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help="Progress bar (default: on a terminal)."),
+) -> None:
+    """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""
+    from crater_thermal import config, simulate
+
+    path = simulate.run_case(config.load_case(case), output, resume=resume, overwrite=overwrite,
+                             progress=progress)
+    typer.echo(f"wrote {path}")
+
+
+@app.command()
+def replay(
+    flux: Path = typer.Argument(..., help="Run or flux dataset (netCDF) with solar_incident and ir_incident."),
+    profile: List[str] = typer.Option([], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
+    density_grid: Optional[str] = typer.Option(None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
+    initial_temperature: Optional[float] = typer.Option(None, "--initial-temperature", help="Uniform start [K] instead of the periodic steady state."),
+    property_set: Optional[str] = typer.Option(None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
+    allow_inverted: bool = typer.Option(False, "--allow-inverted", help="Allow top density > bottom density."),
+    output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet"),
+) -> None:
+    """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
+    from crater_thermal import simulate
+
+    path = simulate.replay_file(flux, profile, density_grid=density_grid, initial_temperature=initial_temperature,
+                                property_set=property_set, allow_inverted=allow_inverted, output=output,
+                                overwrite=overwrite, progress=progress)
+    typer.echo(f"wrote {path}")
+
+
 # ---------------------------------------------------------------- sweep
 
 
+@app.command()
+def sweep(
+    cases: List[Path] = typer.Argument(..., help="Case files (TOML)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output folder: one sub-folder per case."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Local processes (default: cores)."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet"),
+) -> None:
+    """Run many cases and their replays; a restarted sweep skips finished cases."""
+    from crater_thermal import sweep as sweep_mod
+
+    for r in sweep_mod.sweep(cases, output, scheduler=scheduler, workers=workers, progress=progress):
+        state = "skipped (already done)" if r["skipped"] else f"done in {r['seconds']:.1f} s"
+        typer.echo(f"{Path(r['case']).stem}: {state}")
+
+
 # ---------------------------------------------------------------- report / show
+
+
+@app.command()
+def report(
+    run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output)."),
+    replay: Path = typer.Argument(..., help="Replay dataset made from RUN."),
+    out: Path = typer.Option(..., "-o", "--out", help="Output folder: report.html, figures/, summary.json."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing report.html."),
+    footprint_fraction: float = typer.Option(1.0, help="Pixel fraction of loose regolith (Eq. 8.2) [0-1]."),
+    no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
+    k_sigma: float = typer.Option(3.0, "--k-sigma", help="Detection threshold in units of NETD/sqrt(n)."),
+    netd_ref_k: float = typer.Option(2.0, "--netd-ref-k", help="Detector NETD [K] at 50 K (Diviner ~2 K)."),
+    scatter_in_quadrature: bool = typer.Option(False, "--scatter-in-quadrature",
+                                               help="Stricter: add the 0.94 K natural scatter in quadrature."),
+) -> None:
+    """Figures (thesis Figs. 7.4-7.9), report.html and summary.json for a run and its replay."""
+    from crater_thermal.analysis import Instrument
+    from crater_thermal.report import make_report
+
+    inst = Instrument(k_sigma=k_sigma, netd_ref_K=netd_ref_k, scatter_in_quadrature=scatter_in_quadrature)
+    path = make_report(run, replay, out, overwrite=overwrite, footprint_fraction=footprint_fraction,
+                       snapshots=not no_snapshots, instrument=inst)
+    typer.echo(str(path))
+
+
+@app.command()
+def show(
+    run: Path = typer.Argument(..., help="Run dataset."),
+    time: Optional[str] = typer.Option(None, "--time", help="ISO UTC time (nearest sample); default: highest Sun."),
+    var: str = typer.Option("surface_temperature", "--var",
+                            help="surface_temperature | solar_incident | ir_incident | solar_direct."),
+    profile: Optional[str] = typer.Option(None, "--profile", help="Replayed profile label: show it minus nominal [K]."),
+    replay: Optional[Path] = typer.Option(None, "--replay", help="Replay dataset (with --profile)."),
+    screenshot: Optional[Path] = typer.Option(None, "--screenshot", help="Write a PNG (off-screen)."),
+    animate: Optional[Path] = typer.Option(None, "--animate", help="Write an animation over time (.gif; .mp4 needs imageio[ffmpeg])."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
+    max_frames: int = typer.Option(120, "--max-frames", help="Most frames in an animation."),
+) -> None:
+    """3-D view of the crater coloured by a variable, with the Sun direction (pyvista)."""
+    from crater_thermal.viz import show as _show
+
+    res = _show(run, time=time, var=var, profile=profile, replay=replay, screenshot=screenshot,
+                animate=animate, overwrite=overwrite, max_frames=max_frames)
+    for key in ("screenshot", "animation"):
+        if res[key]:
+            typer.echo(res[key])
 
 
 def main(argv: Optional[List[str]] = None) -> None:

@@ -1,6 +1,5 @@
 """Tests for crater_thermal.viewfactors: analytic cavities, reciprocity, visibility, near pairs, cache."""
 
-import math
 
 import numpy as np
 import pytest
@@ -138,11 +137,24 @@ def test_crater_reciprocity_rowsums_and_symmetry(crater502):
     z = m.centroids[:, 2]
     floor = z < z.min() + 1.0
     assert np.all(rs[floor] > 0.05)
-    # the wall facing the floor sees less sky than the floor sees the wall? check physical bounds:
-    # a floor point sees the sky through the rim opening; its sky fraction is at least
-    # sin^2 of the rim elevation seen from the axis, i.e. rows <= cos^2(elev)
-    elev = math.atan2(m.meta["rim_height_m"] - m.meta["floor_z_m"], m.meta["rim_radius_m"])
-    assert np.all(rs[floor] < math.cos(elev) ** 2 + 0.05)
+
+
+def test_crater_floor_sees_crater_outside_the_rim_opening():
+    # a floor point at distance a from the axis, H below the crest plane, sees the sky through the
+    # rim circle (radius R): F_sky = (1 - (H^2 + a^2 - R^2) / sqrt((H^2 + a^2 + R^2)^2 - 4 a^2 R^2)) / 2
+    # (differential area to a parallel coaxial-offset disc); everything else it sees is crater, and
+    # nothing outside the crest is visible from the floor.  Polygonal rim and wall: measured +1.3 % at
+    # 502 facets, +0.6..0.9 % at 1000, +0.2..0.4 % at 3000; 1.5 % tolerance at 1000.
+    m = crater_mesh(10.0, 1000)
+    rs = row_sums(view_factor_matrix(m))
+    c = m.centroids
+    floor = c[:, 2] < c[:, 2].min() + 1.0
+    a = np.hypot(c[floor, 0], c[floor, 1])
+    H = m.meta["rim_height_m"] - m.meta["floor_z_m"]
+    R = m.meta["rim_radius_m"]
+    sky = 0.5 * (1 - (H**2 + a**2 - R**2) / np.sqrt((H**2 + a**2 + R**2) ** 2 - 4 * a**2 * R**2))
+    assert floor.sum() >= 7
+    assert np.all(np.abs(rs[floor] / (1 - sky) - 1) < 0.015)
 
 
 def test_check_reciprocity_detects_asymmetry(crater502):
@@ -186,3 +198,11 @@ def test_chunking_does_not_change_result(crater502):
     G = view_factor_matrix(m, tracer=RayTracer(m, n_threads=3), chunk_pairs=5000)
     assert np.array_equal(F.indptr, G.indptr) and np.array_equal(F.indices, G.indices)
     assert np.allclose(F.data, G.data, rtol=0, atol=0)
+
+
+def test_single_thread_and_coplanar(crater502):
+    m, F = crater502
+    G = view_factor_matrix(m, tracer=RayTracer(m, n_threads=1), chunk_pairs=20000)
+    assert np.array_equal(F.indices, G.indices) and np.array_equal(F.data, G.data)
+    # a flat patch: every pair is coplanar (cos = 0), nothing is exchanged
+    assert view_factor_matrix(flat_mesh(10.0, 200)).nnz == 0

@@ -1,0 +1,715 @@
+"""Report of a run and its replay: figures (thesis Figs. 7.4-7.9 analogues), report.html, summary.json.
+
+``make_report(run, replay, out_dir)`` writes
+
+* ``out_dir/figures/*.png`` (:data:`FIGURES`), matplotlib (object API, Agg canvas) and, when
+  rendering works, 3-D crater snapshots from :mod:`crater_thermal.viz`;
+* ``out_dir/report.html``: self-contained (PNGs embedded as base64), readable offline;
+* ``out_dir/summary.json``: the keys documented in :data:`SUMMARY_KEYS` (units in the key names).
+
+Everything is first written to a temporary folder beside ``out_dir`` and then moved into place,
+``report.html`` last; an existing ``report.html`` is refused unless ``overwrite=True``.
+The analysis itself lives in :mod:`crater_thermal.analysis`.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import html
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from crater_thermal import analysis as an
+from crater_thermal.errors import ConfigError, CraterThermalError, FluxFileError, OutputExistsError
+
+#: Figure files written to ``figures/`` (3-D snapshots are added when rendering works).
+FIGURES = {
+    "fig7_4_incident_flux.png": "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. 7.4).",
+    "fig7_5_temperature.png": "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5).",
+    "fig7_6_loose_minus_nominal.png": "Loose minus nominal surface temperature over the run, night shaded (Fig. 7.6).",
+    "fig7_7a_density_grid.png": "Night-time median difference to nominal on the floor over the density grid, top x bottom density; nominal outlined (Fig. 7.7a).",
+    "fig7_7b_regions.png": "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b).",
+    "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
+    "fig7_9_quartiles.png": "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9).",
+    "detectability.png": "Dwell time needed to detect loose vs nominal at k sigma, per region (instrument model, thesis 7.3).",
+}
+SNAPSHOTS = {
+    "map3d_temperature.png": "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction.",
+    "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
+}
+
+#: Top-level keys of summary.json and what they hold (units in the names; regions are analysis.REGIONS).
+SUMMARY_KEYS = {
+    "schema_version": "int: layout version of this file (1).",
+    "mesh_hash": "str: mesh hash shared by the run and the replay.",
+    "lat_deg": "float [deg]: latitude of the crater (first run if several).",
+    "lon_deg": "float [deg]: longitude of the crater.",
+    "time_start_utc": "str: first sample, ISO UTC.",
+    "time_end_utc": "str: last sample, ISO UTC.",
+    "n_times": "int: number of time samples.",
+    "n_facets": "int: number of mesh facets.",
+    "night_fraction": "float [-]: fraction of samples with the Sun's centre below the horizon at the crater centre.",
+    "regions": "list[str]: region labels (analysis.REGIONS); *_poleward = on the pole side of the axis, facing the equator.",
+    "region_facet_count": "{region: int}: facets per region.",
+    "profiles": "list[str]: replayed profile labels.",
+    "nominal_profile": "str: the nominal profile label (differences are profile minus this).",
+    "loose_profile": "str|null: the loose profile label (800/1100 if replayed).",
+    "rock_profile": "str|null: the rock profile label, if replayed.",
+    "threshold_K": "float [K]: |dT| threshold for the *_frac_abs_dT_above_threshold statistics.",
+    "night_median_dT_K": "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region facets.",
+    "night_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, night.",
+    "night_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, night.",
+    "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (Sun above the horizon).",
+    "day_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, day.",
+    "day_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, day.",
+    "night_frac_abs_dT_above_threshold": "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K.",
+    "night_median_T_nominal_K": "{region: float|null} [K]: night-time median nominal surface temperature.",
+    "max_abs_night_median_dT_K": "{profile: float} [K]: largest per-facet |night-time median difference|.",
+    "density_grid_floor_night_median_dT_K": "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night medians (Fig. 7.7a).",
+    "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
+    "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
+    "latitude_dwell_time_s": "{lat_deg (str): {region: float|null}} [s]: dwell needed to detect loose vs nominal per latitude (null = not detectable).",
+    "instrument": "{netd_ref_K, t_ref_K, band_um, integration_s, calibration_offset_K, min_temperature_K, natural_scatter_K, k_sigma, scatter_in_quadrature}: instrument model parameters (analysis.Instrument).",
+    "footprint_fraction": "float [-]: fraction of the pixel covered by loose regolith (Eq. 8.2 mixing with nominal).",
+    "detectability": "{region: {dT_K, dT_observed_K, T_scene_K, netd_K, n_samples, dwell_time_s (null = not detectable), detectable, reason}}: loose vs nominal from night medians.",
+    "figures": "list[str]: files written under figures/.",
+    "snapshot_note": "str|null: why 3-D snapshots are missing, if they are.",
+}
+
+PathOrDs = Union[str, os.PathLike, object]
+
+
+# ---------------------------------------------------------------------------------------- I/O
+
+
+def _open(path, kind: str):
+    from crater_thermal import io as ctio
+
+    return getattr(ctio, f"open_{kind}")(path)
+
+
+def _open_run(path):
+    """Open a run dataset through ``crater_thermal.io.open_run``."""
+    return _open(path, "run")
+
+
+def _open_replay(path):
+    """Open a replay dataset through ``crater_thermal.io.open_replay``."""
+    return _open(path, "replay")
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, total: int, enabled: Optional[bool] = None) -> Iterator[Callable[[], None]]:
+    """Context yielding ``advance()``; a rich bar on stderr when enabled (default: stderr is a terminal)."""
+    if enabled is None:
+        enabled = sys.stderr.isatty()
+    if not enabled:
+        yield lambda: None
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True), transient=True) as prog:
+        task = prog.add_task(description, total=total)
+        yield lambda: prog.advance(task)
+
+
+# ------------------------------------------------------------------------------------ summary
+
+
+def _clean(x):
+    """JSON-safe: numpy scalars to Python, NaN/inf to None, keys to str."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_clean(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x)]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(float(x)) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+class _Analysis:
+    """Everything the figures and the summary need, computed once."""
+
+    def __init__(self, run, replay, threshold_K: float, advance: Callable[[], None] = lambda: None):
+        an.check_pair(run, replay)
+        self.run, self.replay = run, replay
+        self.times = np.asarray(run["time"].values).astype("datetime64[ns]")
+        self.days = (self.times - self.times[0]).astype(np.int64) / 86400e9
+        self.night = an.night_mask(run)
+        self.regions = an.regions_of(run)
+        self.meta = an.mesh_meta(run)
+        self.lat = float(run.attrs.get("lat_deg", np.nan))
+        self.nominal = an.nominal_label(run, replay)
+        self.labels = an.profile_labels(replay)
+        self.loose = an.loose_label(replay, self.nominal)
+        self.rock = an.rock_label(replay)
+        self.T_nom = an.nominal_temperature(run, replay)
+        self.threshold = threshold_K
+        self.facets = an.representative_facets(run, self.regions)
+        # one profile at a time: keep small results, and the full difference only for the loose profile
+        self.night_stats, self.day_stats, self.night_map, self.floor_night_median = {}, {}, {}, {}
+        self.loose_dT = None
+        for p, d in an.iter_profile_differences(run, replay, self.T_nom):
+            self.night_stats[p] = an.region_statistics(d, self.night, self.regions, threshold_K)
+            self.day_stats[p] = an.region_statistics(d, ~self.night, self.regions, threshold_K)
+            self.night_map[p] = an.night_median_map(d, self.night)
+            self.floor_night_median[p] = self.night_stats[p]["floor"]["median_K"]
+            if p == self.loose:
+                self.loose_dT = d
+            advance()
+        self.nom_night = {r: (float(np.median(self.T_nom[self.night][:, self.regions == r]))
+                              if self.night.any() and (self.regions == r).any() else None) for r in an.REGIONS}
+
+    def detectability(self, instrument: an.Instrument, footprint_fraction: float) -> dict:
+        """Loose vs nominal per region from night-time medians (analysis.detectability)."""
+        det = {}
+        if self.loose is None:
+            return det
+        for r in an.REGIONS:
+            med = self.night_stats[self.loose][r]["median_K"]
+            if med is None or self.nom_night[r] is None:
+                det[r] = dict(dT_K=med, dT_observed_K=None, T_scene_K=None, netd_K=None, n_samples=None,
+                              dwell_time_s=None, detectable=False, reason="no night-time samples")
+            else:
+                det[r] = an.detectability(med, self.nom_night[r], instrument, footprint_fraction)
+        return det
+
+    def profile_T(self, label):
+        return an.profile_temperature(self.replay, label)
+
+    def density_grid(self):
+        return an.density_grid(self.replay, {p: v for p, v in self.floor_night_median.items() if not an.is_rock(p)},
+                               self.nominal)
+
+
+def _stat(stats, key):
+    return {p: {r: s[key] for r, s in by_region.items()} for p, by_region in stats.items()}
+
+
+def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrument, footprint_fraction: float,
+             figures: List[str], snapshot_note: Optional[str]) -> dict:
+    nom_night = A.nom_night
+    tops, bottoms, grid = A.density_grid()
+    det = A.detectability(instrument, footprint_fraction)
+    lat_night, lat_day, lat_dwell = {}, {}, {}
+    for B in [A, *others]:
+        if B.loose is None:
+            continue
+        key = f"{B.lat:g}"
+        lat_night[key] = {r: B.night_stats[B.loose][r]["median_K"] for r in an.REGIONS}
+        lat_day[key] = {r: B.day_stats[B.loose][r]["median_K"] for r in an.REGIONS}
+        lat_dwell[key] = {r: v["dwell_time_s"] for r, v in B.detectability(instrument, footprint_fraction).items()}
+    s = dict(
+        schema_version=1,
+        mesh_hash=str(A.run.attrs.get("mesh_hash")),
+        lat_deg=A.lat,
+        lon_deg=float(A.run.attrs.get("lon_deg", np.nan)),
+        time_start_utc=str(np.datetime_as_string(A.times[0], unit="s")) + "Z",
+        time_end_utc=str(np.datetime_as_string(A.times[-1], unit="s")) + "Z",
+        n_times=int(A.times.size),
+        n_facets=int(A.regions.size),
+        night_fraction=float(A.night.mean()),
+        regions=list(an.REGIONS),
+        region_facet_count={r: int((A.regions == r).sum()) for r in an.REGIONS},
+        profiles=list(A.labels),
+        nominal_profile=A.nominal,
+        loose_profile=A.loose,
+        rock_profile=A.rock,
+        threshold_K=A.threshold,
+        night_median_dT_K=_stat(A.night_stats, "median_K"),
+        night_q1_dT_K=_stat(A.night_stats, "q1_K"),
+        night_q3_dT_K=_stat(A.night_stats, "q3_K"),
+        day_median_dT_K=_stat(A.day_stats, "median_K"),
+        day_q1_dT_K=_stat(A.day_stats, "q1_K"),
+        day_q3_dT_K=_stat(A.day_stats, "q3_K"),
+        night_frac_abs_dT_above_threshold=_stat(A.night_stats, "frac_above_threshold"),
+        night_median_T_nominal_K=nom_night,
+        max_abs_night_median_dT_K={p: float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else None
+                                   for p, m in A.night_map.items()},
+        density_grid_floor_night_median_dT_K=dict(rho_top_kg_m3=tops, rho_bottom_kg_m3=bottoms, dT_K=grid),
+        latitude_night_median_dT_K=lat_night,
+        latitude_day_median_dT_K=lat_day,
+        latitude_dwell_time_s=lat_dwell,
+        instrument=instrument.as_dict(),
+        footprint_fraction=float(footprint_fraction),
+        detectability=det,
+        figures=list(figures),
+        snapshot_note=snapshot_note,
+    )
+    assert set(s) == set(SUMMARY_KEYS), set(s) ^ set(SUMMARY_KEYS)
+    return _clean(s)
+
+
+# ------------------------------------------------------------------------------------ figures
+
+
+def _figure(nrows=1, ncols=1, size=(9.0, 4.5), **kw):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size, dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False, **kw)
+    return fig, axes
+
+
+def _shade_night(ax, days, night):
+    if not night.any():
+        return
+    edges = np.flatnonzero(np.diff(np.r_[0, night.astype(int), 0]))
+    for a, b in zip(edges[::2], edges[1::2]):
+        ax.axvspan(days[a], days[min(b, len(days)) - 1], color="0.85", lw=0, zorder=0)
+
+
+def _facet_title(A, key):
+    i = A.facets[key]
+    return f"{key.replace('_', ' ')} (facet {i}, {A.regions[i].replace('_', ' ')})"
+
+
+def _fig_fluxes(A, path):
+    fig, ax = _figure(2, 1, (9, 6), sharex=True)
+    for k, key in enumerate(("floor", "upper_wall")):
+        i = A.facets[key]
+        a = ax[k, 0]
+        _shade_night(a, A.days, A.night)
+        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange", label="solar incident (direct + scattered)")
+        a.plot(A.days, A.run["ir_incident"].values[:, i], color="tab:red", label="IR emitted by the crater, incident")
+        a.set_ylabel("flux [W m-2]")
+        a.set_title(_facet_title(A, key), fontsize=10)
+        a.legend(fontsize=8, loc="upper right")
+    ax[1, 0].set_xlabel("days since start (grey: night at the crater centre)")
+    fig.suptitle(f"Incident fluxes, lat {A.lat:g} deg")
+    fig.savefig(path)
+
+
+def _fig_temperature(A, path):
+    fig, ax = _figure(2, 1, (9, 6), sharex=True)
+    for k, key in enumerate(("floor", "upper_wall")):
+        i = A.facets[key]
+        a = ax[k, 0]
+        _shade_night(a, A.days, A.night)
+        a.plot(A.days, A.T_nom[:, i], color="k", label=f"nominal {A.nominal}")
+        if A.loose:
+            a.plot(A.days, A.profile_T(A.loose)[:, i], color="tab:blue", lw=0.8, label=f"loose {A.loose}")
+        if A.rock:
+            a.plot(A.days, A.profile_T(A.rock)[:, i], color="tab:brown", label=A.rock)
+        a.set_ylabel("T [K]")
+        a.set_title(_facet_title(A, key), fontsize=10)
+        a.legend(fontsize=8, loc="upper right")
+    ax[1, 0].set_xlabel("days since start (grey: night)")
+    fig.suptitle(f"Surface temperature, lat {A.lat:g} deg")
+    fig.savefig(path)
+
+
+def _fig_dT_series(A, path):
+    fig, ax = _figure(2, 1, (9, 6), sharex=True)
+    for k, key in enumerate(("floor", "upper_wall")):
+        i = A.facets[key]
+        a = ax[k, 0]
+        _shade_night(a, A.days, A.night)
+        if A.loose:
+            a.plot(A.days, A.loose_dT[:, i], color="tab:blue", label=f"{A.loose} - {A.nominal}")
+        a.axhline(0, color="k", lw=0.5)
+        for s in (-1, 1):
+            a.axhline(s * an.NATURAL_SCATTER_K, color="tab:gray", ls=":", lw=0.8)
+        a.set_ylabel("dT [K]")
+        a.set_title(_facet_title(A, key) + "; dotted: +-0.94 K natural scatter", fontsize=10)
+        a.legend(fontsize=8, loc="upper right")
+    ax[1, 0].set_xlabel("days since start (grey: night)")
+    fig.suptitle(f"Loose minus nominal, lat {A.lat:g} deg")
+    fig.savefig(path)
+
+
+def _fig_density_grid(A, path):
+    from matplotlib.patches import Rectangle
+
+    tops, bottoms, grid = A.density_grid()
+    fig, ax = _figure(1, 1, (7, 5.5))
+    a = ax[0, 0]
+    m = np.nanmax(np.abs(grid)) if np.isfinite(grid).any() else 1.0
+    m = m if m > 0 else 1.0
+    im = a.imshow(np.ma.masked_invalid(grid), origin="lower", cmap="RdBu_r", vmin=-m, vmax=m, aspect="auto")
+    a.set_xticks(range(bottoms.size), [f"{b:g}" for b in bottoms], rotation=45)
+    a.set_yticks(range(tops.size), [f"{t:g}" for t in tops])
+    a.set_xlabel("bottom-layer density [kg m-3]")
+    a.set_ylabel("top-layer (2 cm) density [kg m-3]")
+    a.set_facecolor("0.9")
+    if grid.size <= 200:
+        for (r, c), v in np.ndenumerate(grid):
+            if np.isfinite(v):
+                a.text(c, r, f"{v:.2f}", ha="center", va="center", fontsize=7)
+    nom = an._parse_two_layer(A.nominal)
+    if nom and nom[0] in tops and nom[1] in bottoms:
+        r, c = list(tops).index(nom[0]), list(bottoms).index(nom[1])
+        a.add_patch(Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, ec="k", lw=2.5))
+    fig.colorbar(im, ax=a, label="night-time median, profile - nominal [K]")
+    a.set_title(f"Crater floor, lat {A.lat:g} deg (nominal outlined)", fontsize=10)
+    fig.savefig(path)
+
+
+def _region_ticks(a, regions):
+    a.set_xticks(range(len(regions)), [r.replace("_", "\n") for r in regions], fontsize=7)
+
+
+def _fig_regions(all_A, path):
+    fig, ax = _figure(1, 1, (10, 4.5))
+    a = ax[0, 0]
+    n = len(all_A)
+    w = 0.8 / n
+    x = np.arange(len(an.REGIONS))
+    for k, A in enumerate(all_A):
+        if A.loose is None:
+            continue
+        st = A.night_stats[A.loose]
+        med = np.array([np.nan if st[r]["median_K"] is None else st[r]["median_K"] for r in an.REGIONS])
+        q1 = np.array([np.nan if st[r]["q1_K"] is None else st[r]["q1_K"] for r in an.REGIONS])
+        q3 = np.array([np.nan if st[r]["q3_K"] is None else st[r]["q3_K"] for r in an.REGIONS])
+        xs = x - 0.4 + w * (k + 0.5)
+        a.bar(xs, med, w, label=f"lat {A.lat:g} deg")
+        a.errorbar(xs, med, yerr=[med - q1, q3 - med], fmt="none", ecolor="k", lw=1)
+    a.axhline(0, color="k", lw=0.5)
+    _region_ticks(a, an.REGIONS)
+    a.set_ylabel("night-time median loose - nominal [K]")
+    a.legend(fontsize=8)
+    a.set_title("By crater region (error bars: quartiles); poleward = pole side of the axis, faces the equator", fontsize=10)
+    fig.savefig(path)
+
+
+def _fig_night_map(all_A, path):
+    from matplotlib.patches import Circle
+    from matplotlib.tri import Triangulation
+
+    n = len(all_A)
+    fig, ax = _figure(1, n, (5.2 * n + 1.0, 5.0))
+    maps = [np.abs(A.night_map[A.loose]) if A.loose else np.full(A.regions.size, np.nan) for A in all_A]
+    vmax = max([float(np.nanmax(m)) for m in maps if np.isfinite(m).any()] + [1e-3])
+    for k, A in enumerate(all_A):
+        a = ax[0, k]
+        v = np.asarray(A.run["mesh_vertices"].values, float) / 1000.0
+        f = np.asarray(A.run["mesh_faces"].values, int)
+        tri = Triangulation(v[:, 0], v[:, 1], f)
+        pc = a.tripcolor(tri, facecolors=np.nan_to_num(maps[k], nan=0.0), cmap="magma", vmin=0, vmax=vmax)
+        for key, ls in (("floor_radius_m", ":"), ("rim_radius_m", "--")):
+            if self_r := A.meta.get(key):
+                a.add_patch(Circle((0, 0), float(self_r) / 1000.0, fill=False, ec="w", ls=ls, lw=0.8))
+        a.set_aspect("equal")
+        a.set_xlabel("east [km]")
+        a.set_ylabel("north [km]")
+        a.set_title(f"lat {A.lat:g} deg (pole side: {'south' if A.lat <= 0 else 'north'})", fontsize=10)
+    fig.colorbar(pc, ax=ax[0, :].tolist(), label="night-time median |loose - nominal| [K]")
+    fig.savefig(path)
+
+
+def _quart(st, r):
+    s = st[r]
+    return [np.nan if s[k] is None else s[k] for k in ("q1_K", "median_K", "q3_K")]
+
+
+def _fig_quartiles(all_A, path):
+    fig, ax = _figure(1, 2, (11, 4.5), sharey=True)
+    if len(all_A) > 1:  # thesis Fig. 7.9: against latitude, one line per region
+        lats = np.array([A.lat for A in all_A])
+        order = np.argsort(lats)
+        for j, when in enumerate(("night", "day")):
+            a = ax[0, j]
+            for r in ("floor", "upper_wall_poleward", "upper_wall_equatorward"):
+                q = np.array([_quart(getattr(all_A[i], f"{when}_stats")[all_A[i].loose], r) for i in order])
+                line, = a.plot(lats[order], q[:, 1], marker="o", label=f"{r} median")
+                a.fill_between(lats[order], q[:, 0], q[:, 2], color=line.get_color(), alpha=0.2)
+            a.set_xlabel("latitude [deg]")
+            a.set_title(f"{when}: median, band = 1st-3rd quartile", fontsize=10)
+            a.legend(fontsize=7)
+    else:
+        A = all_A[0]
+        x = np.arange(len(an.REGIONS))
+        for j, when in enumerate(("night", "day")):
+            a = ax[0, j]
+            if A.loose:
+                q = np.array([_quart(getattr(A, f"{when}_stats")[A.loose], r) for r in an.REGIONS])
+                a.errorbar(x, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], fmt="o", capsize=4,
+                           color="tab:blue" if when == "night" else "tab:orange")
+            a.axhline(0, color="k", lw=0.5)
+            _region_ticks(a, an.REGIONS)
+            a.set_title(f"{when} (lat {A.lat:g} deg): median and quartiles", fontsize=10)
+    ax[0, 0].set_ylabel("loose - nominal [K]")
+    fig.savefig(path)
+
+
+def _fig_detectability(det: dict, instrument: an.Instrument, path):
+    fig, ax = _figure(1, 1, (10, 4.5))
+    a = ax[0, 0]
+    x = np.arange(len(an.REGIONS))
+    dwell = np.array([np.nan if not det.get(r) or det[r]["dwell_time_s"] is None else det[r]["dwell_time_s"]
+                      for r in an.REGIONS])
+    ok = np.isfinite(dwell)
+    bottom = instrument.integration_s / 2
+    a.bar(x[ok], dwell[ok] - bottom, bottom=bottom, color="tab:green", label="detectable: dwell needed")
+    for xi in x[~ok]:
+        a.text(xi, bottom * 1.5, "not\ndetectable", ha="center", va="bottom", fontsize=7, color="tab:red")
+    a.set_yscale("log")
+    a.set_ylim(bottom, max(np.nanmax(dwell) * 3 if ok.any() else 1.0, 1.0))
+    a.axhline(instrument.integration_s, color="k", ls=":", lw=0.8, label=f"one integration ({instrument.integration_s:g} s)")
+    _region_ticks(a, an.REGIONS)
+    a.set_ylabel("dwell time [s]")
+    a.set_title(f"Loose vs nominal at {instrument.k_sigma:g} sigma; NETD {instrument.netd_ref_K:g} K at "
+                f"{instrument.t_ref_K:g} K in {instrument.band_um[0]:g}-{instrument.band_um[1]:g} um; "
+                f"noise floor: {instrument.natural_scatter_K:g} K natural scatter, {instrument.min_temperature_K:g} K minimum", fontsize=9)
+    a.legend(fontsize=8)
+    fig.savefig(path)
+
+
+def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
+    from crater_thermal import viz
+
+    i = int(np.argmax(np.asarray(A.run["sun_direction"].values)[:, 2]))
+    viz.snapshot(A.run, A.T_nom[i], i, "Surface temperature [K]", f"Nominal {A.nominal}",
+                 fig_dir / "map3d_temperature.png", cmap="inferno")
+    out = ["map3d_temperature.png"]
+    if A.loose is not None:
+        m = A.night_map[A.loose]
+        lim = float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else 1.0
+        j = int(np.flatnonzero(A.night)[0]) if A.night.any() else i
+        viz.snapshot(A.run, m, j, "night median dT [K]", f"Night-time median {A.loose} - nominal",
+                     fig_dir / "map3d_night_dT.png", cmap="RdBu_r", clim=(-max(lim, 1e-3), max(lim, 1e-3)))
+        out.append("map3d_night_dT.png")
+    return out
+
+
+# --------------------------------------------------------------------------------------- HTML
+
+
+def _table(rows: List[List[str]], header: List[str]) -> str:
+    h = "".join(f"<th>{html.escape(c)}</th>" for c in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _fmt(v, spec=".2f"):
+    return "-" if v is None else format(v, spec)
+
+
+def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>crater_thermal report</title>",
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:auto;padding:1em}"
+        "img{max-width:100%;border:1px solid #ccc}table{border-collapse:collapse;font-size:90%}"
+        "td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}figure{margin:1.5em 0}</style></head><body>",
+        f"<h1>Crater thermal report: lat {summary['lat_deg']:g} deg, lon {summary['lon_deg']:g} deg</h1>",
+        f"<p>{summary['time_start_utc']} to {summary['time_end_utc']}, {summary['n_times']} samples, "
+        f"{summary['n_facets']} facets (mesh {html.escape(summary['mesh_hash'])}); night fraction "
+        f"{summary['night_fraction']:.2f}. Differences are replayed profile minus nominal "
+        f"({html.escape(summary['nominal_profile'])}); night = Sun's centre below the horizon at the crater centre. "
+        "Regions: floor, lower/upper wall (inner/outer half of the wall in radius), rim (outer flank), surround; "
+        "<i>poleward</i> = on the pole side of the axis (these slopes face the equator and the Sun).</p>",
+    ]
+    loose = summary["loose_profile"]
+    if loose:
+        rows = []
+        for r in summary["regions"]:
+            d = summary["detectability"].get(r, {})
+            rows.append([r, str(summary["region_facet_count"][r]),
+                         _fmt(summary["night_median_T_nominal_K"][r], ".1f"),
+                         _fmt(summary["night_median_dT_K"][loose][r]),
+                         f"{_fmt(summary['night_q1_dT_K'][loose][r])} .. {_fmt(summary['night_q3_dT_K'][loose][r])}",
+                         _fmt(summary["day_median_dT_K"][loose][r]),
+                         _fmt(summary["night_frac_abs_dT_above_threshold"][loose][r]),
+                         _fmt(d.get("netd_K")), _fmt(d.get("dwell_time_s"), ".3g"),
+                         d.get("reason", "")])
+        parts.append(f"<h2>{html.escape(loose)} minus nominal by region</h2>")
+        parts.append(_table(rows, ["region", "facets", "night T nominal [K]", "night median dT [K]",
+                                   "night quartiles [K]", "day median dT [K]",
+                                   f"night frac |dT|>{summary['threshold_K']:g} K", "NETD [K]", "dwell [s]",
+                                   "detectability"]))
+        inst = summary["instrument"]
+        parts.append(
+            f"<p>Instrument model: NETD {inst['netd_ref_K']:g} K at {inst['t_ref_K']:g} K, scaled with the "
+            f"band-integrated Planck derivative over {inst['band_um'][0]:g}-{inst['band_um'][1]:g} um; "
+            f"{inst['integration_s']:g} s integrations averaged as sqrt(n); {inst['k_sigma']:g}-sigma detection; "
+            + (f"the {inst['natural_scatter_K']:g} K natural scatter of regolith temperatures is added in quadrature "
+               f"(never detectable below {inst['k_sigma'] * inst['natural_scatter_K']:.3g} K)"
+               if inst["scatter_in_quadrature"] else
+               f"differences below the {inst['natural_scatter_K']:g} K natural scatter of regolith temperatures")
+            + f"; scenes below {inst['min_temperature_K']:g} K count as not detectable. The absolute calibration "
+            f"offset ({inst['calibration_offset_K']:g} K) cancels in relative differences. Footprint fraction "
+            f"{summary['footprint_fraction']:g} (Eq. 8.2 mixing with nominal).</p>")
+    if summary["snapshot_note"]:
+        parts.append(f"<p><b>Note:</b> {html.escape(summary['snapshot_note'])}</p>")
+    for name in summary["figures"]:
+        data = base64.b64encode((fig_dir / name).read_bytes()).decode("ascii")
+        parts.append(f"<figure><img alt='figures/{name}' src='data:image/png;base64,{data}'>"
+                     f"<figcaption><a href='figures/{name}'>figures/{name}</a>: "
+                     f"{html.escape(captions.get(name, ''))}</figcaption></figure>")
+    parts.append("<h2>summary.json keys</h2><dl>" + "".join(
+        f"<dt><code>{html.escape(k)}</code></dt><dd>{html.escape(v)}</dd>" for k, v in SUMMARY_KEYS.items()) + "</dl>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+# ----------------------------------------------------------------------------------- make_report
+
+
+def _as_list(x) -> list:
+    return list(x) if isinstance(x, (list, tuple)) else [x]
+
+
+def _refuse_existing(out_dir: Path, overwrite: bool) -> None:
+    if overwrite:
+        return
+    for name in ("report.html", "summary.json", "figures"):
+        if (out_dir / name).exists():
+            raise OutputExistsError(f"{out_dir / name} exists; use --overwrite to replace it")
+
+
+def _install(tmp: Path, out_dir: Path) -> None:
+    """Move the finished report from ``tmp`` into ``out_dir``; report.html last."""
+    if not out_dir.exists():
+        os.replace(tmp, out_dir)
+        return
+    old_fig = out_dir / "figures"
+    trash = None
+    if old_fig.exists():
+        trash = Path(tempfile.mkdtemp(prefix=".old-figures-", dir=out_dir))
+        os.replace(old_fig, trash / "figures")
+    os.replace(tmp / "figures", old_fig)
+    os.replace(tmp / "summary.json", out_dir / "summary.json")
+    os.replace(tmp / "report.html", out_dir / "report.html")
+    shutil.rmtree(tmp, ignore_errors=True)
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: Optional[bool] = None,
+                instrument: an.Instrument = an.Instrument(), threshold_K: float = an.NATURAL_SCATTER_K,
+                footprint_fraction: float = 1.0, snapshots: bool = True) -> Path:
+    """Write figures, report.html and summary.json for a run and its replay.
+
+    Parameters
+    ----------
+    run_ds, replay_ds : dataset or path, or equal-length sequences of them (one pair per latitude;
+        the first pair drives the single-crater figures, all pairs the latitude comparisons).
+    out_dir : path
+        Output folder (created).
+    overwrite : bool
+        Replace an existing ``out_dir/report.html``.
+    progress : bool, optional
+        Rich progress bar on stderr; default only when stderr is a terminal.
+    instrument : analysis.Instrument
+        Detector model for the detectability table.
+    threshold_K : float [K]
+        |dT| threshold for the fraction-above statistic (default the 0.94 K natural scatter).
+    footprint_fraction : float [-]
+        Pixel fraction of loose regolith (rest nominal), thesis Eq. 8.2.
+    snapshots : bool
+        Also render 3-D views with pyvista (a note replaces them if rendering fails).
+
+    Returns
+    -------
+    Path of ``report.html``.
+
+    Raises
+    ------
+    FluxFileError
+        The replay does not belong to the run (mesh hash, time axis) or variables are missing.
+    OutputExistsError
+        ``out_dir/report.html`` exists and ``overwrite`` is False.
+    """
+    out_dir = Path(out_dir)
+    _refuse_existing(out_dir, overwrite)
+    if not 0.0 <= footprint_fraction <= 1.0:
+        raise ConfigError(f"footprint_fraction={footprint_fraction} out of range [0, 1]")
+    runs, reps = _as_list(run_ds), _as_list(replay_ds)
+    if len(runs) != len(reps) or not runs:
+        raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
+    opened = []
+    try:
+        runs = [_track(_open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
+        reps = [_track(_open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
+        return _make_report(runs, reps, out_dir, overwrite, progress, instrument, threshold_K,
+                            footprint_fraction, snapshots)
+    finally:
+        for ds in opened:
+            ds.close()
+
+
+def _track(ds, opened: list):
+    opened.append(ds)
+    return ds
+
+
+def _make_report(runs, reps, out_dir: Path, overwrite, progress, instrument, threshold_K, footprint_fraction,
+                 snapshots) -> Path:
+    for run, rep in zip(runs, reps):
+        an.check_run(run, an._RUN_VARS + ("solar_incident", "ir_incident"))
+        an.check_pair(run, rep)
+    n_profiles = sum(len(an.profile_labels(p)) - 1 for p in reps)
+    n_steps = n_profiles + len(FIGURES) + 1
+    with progress_bar("report: profiles, figures", n_steps, progress) as advance:
+        all_A = [_Analysis(r, p, threshold_K, advance) for r, p in zip(runs, reps)]
+        return _write_report(all_A, out_dir, overwrite, advance, instrument, footprint_fraction, snapshots)
+
+
+def _write_report(all_A, out_dir: Path, overwrite, advance, instrument, footprint_fraction, snapshots) -> Path:
+    A = all_A[0]
+
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-tmp-", dir=out_dir.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; the report folder is an ordinary folder
+    try:
+        fig_dir = tmp / "figures"
+        fig_dir.mkdir()
+        jobs = [
+            ("fig7_4_incident_flux.png", lambda p: _fig_fluxes(A, p)),
+            ("fig7_5_temperature.png", lambda p: _fig_temperature(A, p)),
+            ("fig7_6_loose_minus_nominal.png", lambda p: _fig_dT_series(A, p)),
+            ("fig7_7a_density_grid.png", lambda p: _fig_density_grid(A, p)),
+            ("fig7_7b_regions.png", lambda p: _fig_regions(all_A, p)),
+            ("fig7_8_night_map.png", lambda p: _fig_night_map(all_A, p)),
+            ("fig7_9_quartiles.png", lambda p: _fig_quartiles(all_A, p)),
+        ]
+        figures: List[str] = []
+        note = None
+        for name, job in jobs:
+            job(fig_dir / name)
+            figures.append(name)
+            advance()
+        summary = _summary(A, all_A[1:], instrument, footprint_fraction, figures + ["detectability.png"], None)
+        _fig_detectability(summary["detectability"], instrument, fig_dir / "detectability.png")
+        figures.append("detectability.png")
+        advance()
+        if snapshots:
+            try:
+                figures += _snapshots(A, fig_dir)
+            except CraterThermalError:
+                raise
+            except Exception as exc:  # rendering depends on OpenGL; the report must not
+                note = f"3-D snapshots not rendered ({exc.__class__.__name__}: {' '.join(str(exc).split())[:200]})"
+        else:
+            note = "3-D snapshots not requested"
+        advance()
+        summary["figures"] = figures
+        summary["snapshot_note"] = note
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        (tmp / "report.html").write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS}), encoding="utf-8")
+        _refuse_existing(out_dir, overwrite)  # in case one appeared meanwhile
+        _install(tmp, out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir / "report.html"

@@ -1,0 +1,91 @@
+"""Many cases: runs and their replays in parallel local processes, or on a dask.distributed cluster.
+
+Each case ``NAME.toml`` writes ``OUT/NAME/run.nc`` and, when the case lists profiles to replay,
+``OUT/NAME/replay.nc``. A case whose outputs already exist is skipped, so an interrupted sweep
+restarted with the same command finishes only what is missing (a half-finished run resumes from
+its checkpoint).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Sequence
+
+from crater_thermal.errors import ConfigError
+
+
+def case_outputs(case_path, out_dir) -> tuple[Path, Path]:
+    """``(run.nc, replay.nc)`` paths of a case inside the sweep's output folder."""
+    folder = Path(out_dir) / Path(case_path).stem
+    return folder / "run.nc", folder / "replay.nc"
+
+
+def run_one(case_path: str, out_dir: str) -> dict:
+    """Run one case and its replays; skip the parts already written. Returns a summary dict."""
+    from crater_thermal import config, simulate
+
+    t0 = time.perf_counter()
+    case = config.load_case(case_path)
+    run_nc, replay_nc = case_outputs(case_path, out_dir)
+    done = []
+    if not run_nc.exists():
+        ckpt = Path(simulate._checkpoint_path(run_nc))
+        simulate.run_case(case, run_nc, resume=ckpt.exists(), progress=False)
+        done.append("run")
+    labels = list(case.replay.profiles)
+    grid = case.replay.density_grid
+    if (labels or grid) and not replay_nc.exists():
+        simulate.replay_file(run_nc, labels, density_grid=grid, output=replay_nc, progress=False)
+        done.append("replay")
+    return {"case": str(case_path), "run": str(run_nc), "replay": str(replay_nc) if (labels or grid) else None,
+            "done": done, "skipped": not done, "seconds": time.perf_counter() - t0}
+
+
+def sweep(case_paths: Sequence[str], out_dir, *, scheduler: str | None = None, workers: int | None = None,
+          progress: bool | None = None) -> list[dict]:
+    """Run every case (and its replays) into ``out_dir``.
+
+    Parameters
+    ----------
+    scheduler : address of an existing dask.distributed scheduler (``tcp://host:8786``); None runs
+        local processes.
+    workers : local processes (default: the number of cores, at most the number of cases).
+    """
+    from crater_thermal import config
+    from crater_thermal.simulate import progress_bar
+
+    paths = [str(p) for p in case_paths]
+    if not paths:
+        raise ConfigError("sweep: no case files given")
+    names = [Path(p).stem for p in paths]
+    if len(set(names)) != len(names):
+        raise ConfigError("sweep: case file names must be unique (they name the output folders)")
+    for p in paths:  # validate every case before starting any work
+        config.load_case(p)
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    results = []
+    with progress_bar("sweep", len(paths), progress) as update:
+        if scheduler:
+            from distributed import Client, as_completed as dask_completed
+
+            with Client(scheduler) as client:
+                futures = client.map(run_one, paths, [str(out_dir)] * len(paths), pure=False)
+                for fut in dask_completed(futures):
+                    results.append(fut.result())
+                    update(1, info=Path(results[-1]["case"]).stem)
+        else:
+            n = workers or min(len(paths), os.cpu_count() or 1)
+            if n <= 1:
+                for p in paths:
+                    results.append(run_one(p, str(out_dir)))
+                    update(1, info=Path(p).stem)
+            else:
+                with ProcessPoolExecutor(max_workers=n) as pool:
+                    futs = [pool.submit(run_one, p, str(out_dir)) for p in paths]
+                    for fut in as_completed(futs):
+                        results.append(fut.result())
+                        update(1, info=Path(results[-1]["case"]).stem)
+    return sorted(results, key=lambda r: paths.index(r["case"]))

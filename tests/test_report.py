@@ -1,0 +1,195 @@
+"""Tests of crater_thermal.report: the report renders from a small synthetic run/replay, and refuses bad input."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import xarray as xr
+from PIL import Image
+
+from crater_thermal import report as rp
+from crater_thermal.errors import FluxFileError, OutputExistsError
+
+from synthetic import make_replay, make_run
+
+ENV = {**os.environ, "PYTHONPATH": str(rp.Path(rp.__file__).resolve().parents[1]),
+       "VTK_DEFAULT_OPENGL_WINDOW": os.environ.get("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")}
+
+
+def cli(*args):
+    return subprocess.run([sys.executable, "-m", "crater_thermal", *map(str, args)], capture_output=True,
+                          text=True, env=ENV, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("data")
+    run = make_run(lat_deg=-86.0, n_lunar_days=1.5, n_rings=8)
+    rep = make_replay(run)
+    run.to_netcdf(d / "run.nc")
+    rep.to_netcdf(d / "replay.nc")
+    return d, run, rep
+
+
+@pytest.fixture(scope="module")
+def report_dir(files):
+    d, _, _ = files
+    out = d / "rep"
+    path = rp.make_report(d / "run.nc", d / "replay.nc", out, progress=False)
+    assert path == out / "report.html"
+    return out
+
+
+def _strict_json(path):
+    def no_nan(c):
+        raise AssertionError(f"non-JSON constant {c} in {path}")
+
+    return json.loads(path.read_text(), parse_constant=no_nan)
+
+
+def test_summary_has_exactly_the_documented_keys(report_dir):
+    s = _strict_json(report_dir / "summary.json")
+    assert set(s) == set(rp.SUMMARY_KEYS)
+    assert all(isinstance(v, str) and v for v in rp.SUMMARY_KEYS.values())
+    assert s["loose_profile"] == "800/1100" and s["rock_profile"] == "rock"
+    assert set(s["detectability"]) == set(s["regions"])
+
+
+def test_html_is_self_contained_and_references_every_figure(report_dir):
+    s = _strict_json(report_dir / "summary.json")
+    html = (report_dir / "report.html").read_text()
+    on_disk = sorted(p.name for p in (report_dir / "figures").glob("*.png"))
+    assert sorted(s["figures"]) == on_disk
+    assert set(rp.FIGURES) <= set(on_disk)
+    for name in on_disk:
+        assert f"figures/{name}" in html
+    # every image is embedded (readable offline), none loaded from disk
+    assert html.count("<img ") == len(on_disk) == html.count("src='data:image/png;base64,")
+
+
+def test_pngs_are_not_blank(report_dir):
+    for p in (report_dir / "figures").glob("*.png"):
+        assert p.stat().st_size > 1000
+        img = np.asarray(Image.open(p).convert("L"), dtype=float)
+        assert img.var() > 0, p.name
+
+
+def test_snapshots_rendered_here(report_dir):
+    s = _strict_json(report_dir / "summary.json")
+    # this machine renders headless through EGL; the snapshots must then be in the report
+    assert s["snapshot_note"] is None
+    assert {"map3d_temperature.png", "map3d_night_dT.png"} <= set(s["figures"])
+
+
+def test_summary_values_match_an_independent_computation(report_dir, files):
+    _, run, rep = files
+    s = _strict_json(report_dir / "summary.json")
+    meta = json.loads(run.attrs["mesh_meta"])
+    c = run["centroid"].values
+    floor = np.hypot(c[:, 0], c[:, 1]) <= meta["floor_radius_m"]
+    night = run["sun_direction"].values[:, 2] < 0
+    d = (rep["surface_temperature"].sel(profile="800/1100") - rep["surface_temperature"].sel(profile="1300/1800")).values
+    expect = np.median(d[night][:, floor])
+    # same numbers through a different path: agreement to float rounding (1e-9 K)
+    assert s["night_median_dT_K"]["800/1100"]["floor"] == pytest.approx(expect, abs=1e-9)
+    assert s["night_fraction"] == pytest.approx(night.mean())
+    assert s["region_facet_count"]["floor"] == int(floor.sum())
+    grid = s["density_grid_floor_night_median_dT_K"]
+    i, j = grid["rho_top_kg_m3"].index(800.0), grid["rho_bottom_kg_m3"].index(1100.0)
+    assert grid["dT_K"][i][j] == pytest.approx(expect, abs=1e-9)
+    det = s["detectability"]["floor"]
+    assert det["dT_K"] == pytest.approx(expect, abs=1e-9)
+    assert det["detectable"] == (det["dwell_time_s"] is not None)
+
+
+def test_refuses_existing_report_and_overwrites_atomically(report_dir, files):
+    d, run, rep = files
+    with pytest.raises(OutputExistsError, match="overwrite"):
+        rp.make_report(run, rep, report_dir, progress=False, snapshots=False)
+    before = (report_dir / "summary.json").stat().st_mtime_ns
+    rp.make_report(run, rep, report_dir, overwrite=True, progress=False, snapshots=False)
+    s = _strict_json(report_dir / "summary.json")
+    assert (report_dir / "summary.json").stat().st_mtime_ns >= before
+    assert s["snapshot_note"] == "3-D snapshots not requested"
+    assert sorted(p.name for p in (report_dir / "figures").glob("*.png")) == sorted(s["figures"])
+    assert not [p for p in d.iterdir() if p.name.startswith(".")]  # no temporary folders left behind
+
+
+def test_report_survives_a_rendering_failure(files, tmp_path, monkeypatch):
+    _, run, rep = files
+    from crater_thermal import viz
+
+    def broken(*a, **k):
+        raise RuntimeError("no OpenGL context")
+
+    monkeypatch.setattr(viz, "snapshot", broken)
+    rp.make_report(run, rep, tmp_path / "r", progress=False)
+    s = _strict_json(tmp_path / "r" / "summary.json")
+    assert "no OpenGL context" in s["snapshot_note"]
+    assert "no OpenGL context" in (tmp_path / "r" / "report.html").read_text()
+    assert set(rp.FIGURES) == set(s["figures"])
+
+
+def test_several_latitudes(files, tmp_path):
+    _, run, rep = files
+    run2 = make_run(lat_deg=-80.0, n_lunar_days=1.0, n_rings=8)
+    # progress=True: the rich bar must also work (here on a captured, non-terminal stream)
+    rp.make_report([run, run2], [rep, make_replay(run2)], tmp_path / "r", progress=True, snapshots=False)
+    s = _strict_json(tmp_path / "r" / "summary.json")
+    assert set(s["latitude_night_median_dT_K"]) == {"-86", "-80"} == set(s["latitude_dwell_time_s"])
+
+
+def test_cli_report_quiet_when_not_a_terminal(files, tmp_path):
+    d, _, _ = files
+    out = cli("report", d / "run.nc", d / "replay.nc", "-o", tmp_path / "r", "--no-snapshots")
+    assert out.returncode == 0, out.stderr
+    assert out.stderr == ""  # no progress bar on a pipe
+    assert (tmp_path / "r" / "report.html").is_file()
+
+
+@pytest.mark.parametrize("case, match", [
+    ("hash", "mesh_hash"),
+    ("time", "time axis"),
+    ("missing", "sun_direction"),
+    ("nofile", "does not exist"),
+])
+def test_cli_bad_input_one_line_exit_2(files, tmp_path, case, match):
+    d, run, rep = files
+    run_p, rep_p = d / "run.nc", d / "replay.nc"
+    if case == "hash":
+        bad = rep.copy()
+        bad.attrs["mesh_hash"] = "ffffffffffffffff"
+        rep_p = tmp_path / "bad.nc"
+        bad.to_netcdf(rep_p)
+    elif case == "time":
+        rep_p = tmp_path / "bad.nc"
+        rep.isel(time=slice(0, 20)).to_netcdf(rep_p)
+    elif case == "missing":
+        run_p = tmp_path / "bad.nc"
+        run.drop_vars("sun_direction").to_netcdf(run_p)
+    else:
+        run_p = tmp_path / "nothing.nc"
+    out = cli("report", run_p, rep_p, "-o", tmp_path / "r")
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and match in lines[0], out.stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_foreign_replay_raises_flux_file_error(files):
+    _, run, rep = files
+    bad = rep.copy()
+    bad.attrs["mesh_hash"] = "ffffffffffffffff"
+    with pytest.raises(FluxFileError, match="mesh_hash"):
+        rp.make_report(run, bad, "never_written", progress=False)
+    assert not os.path.exists("never_written")
+
+
+def test_analysis_and_report_do_not_import_xarray_or_pyvista():
+    code = ("import sys, crater_thermal.analysis, crater_thermal.report, crater_thermal.viz, crater_thermal.cli;"
+            "bad = [m for m in ('xarray', 'pyvista') if m in sys.modules]; assert not bad, bad")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=60)
+    assert out.returncode == 0, out.stderr
