@@ -520,3 +520,30 @@ def direct_irradiance(
         out[tsel] += block.reshape(tsel.size, nf)
     out *= flux[:, None]
     return out
+
+
+def sun_direction_from_angles(elevation_deg: float, azimuth_deg: float = 180.0) -> np.ndarray:
+    """Unit vector toward the Sun in the crater frame (x east, y north, z up).
+
+    Parameters
+    ----------
+    elevation_deg : float [deg]
+        Elevation above the horizontal plane, in [-90, 90].
+    azimuth_deg : float [deg]
+        Azimuth from north, clockwise (toward east); any finite value (taken modulo 360).
+
+    Returns
+    -------
+    (3,) float [unit]
+    """
+    try:
+        el = float(elevation_deg)
+        az = float(azimuth_deg)
+    except (TypeError, ValueError):
+        raise ConfigError(f"sun elevation/azimuth must be numbers, got {elevation_deg!r}, {azimuth_deg!r}") from None
+    if not np.isfinite(el) or not -90.0 <= el <= 90.0:
+        raise ConfigError(f"sun_elevation_deg = {elevation_deg!r} is outside [-90, 90]")
+    if not np.isfinite(az):
+        raise ConfigError(f"sun_azimuth_deg = {azimuth_deg!r} must be finite (degrees from north, clockwise)")
+    e, a = np.deg2rad(el), np.deg2rad(az % 360.0)
+    return np.array([np.cos(e) * np.sin(a), np.cos(e) * np.cos(a), np.sin(e)])
