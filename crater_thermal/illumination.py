@@ -438,7 +438,7 @@ def direct_irradiance(
     solar_constant: float = SOLAR_CONSTANT,
     disk: SunDisk | None = None,
     progress: bool = False,
-    chunk_rays: int = 4_000_000,
+    chunk_rays: int = 2_000_000,
 ) -> np.ndarray:
     """Direct solar irradiance on every facet at every time.
 
