@@ -84,6 +84,36 @@ def mesh_bowl(
 # ---------------------------------------------------------------- steady (radiosity)
 
 
+@app.command()
+def steady(
+    mesh: Path = typer.Argument(..., help="Mesh file (.ply, .obj, .stl) in the crater frame [m]."),
+    sun_elevation_deg: float = typer.Option(..., "--sun-elevation-deg", help="Sun elevation [deg], [-90, 90]."),
+    sun_azimuth_deg: float = typer.Option(180.0, "--sun-azimuth-deg", help="Sun azimuth [deg] from north, clockwise (east)."),
+    albedo: float = typer.Option(0.12, "--albedo", help="Albedo, [0, 1)."),
+    emissivity: float = typer.Option(0.98, "--emissivity", help="Infrared emissivity, (0, 1]."),
+    solar_constant: float = typer.Option(1361.0, "--solar-constant", help="Solar irradiance at 1 au [W m-2]."),
+    point_sun: bool = typer.Option(False, "--point-sun", help="Point Sun instead of the limb-darkened disk."),
+    limb_darkening: str = typer.Option("linear", "--limb-darkening", help="uniform | linear | quadratic | neckel_labs."),
+    n_rings: int = typer.Option(4, "--sun-rings", help="Rings of the sampled solar disk (1 + 3n(n-1) patches)."),
+    scattering: str = typer.Option("exact", "--scattering", help="exact | bounces."),
+    n_bounces: int = typer.Option(3, "--bounces", help="Reflections kept with --scattering bounces."),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Folder caching view factors by mesh hash."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output netCDF file."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
+) -> None:
+    """Radiative equilibrium (no conduction) of a mesh under a fixed Sun at 1 au."""
+    from crater_thermal import radiosity
+
+    path, res = radiosity.steady_file(
+        mesh, output, sun_elevation_deg, sun_azimuth_deg, albedo=albedo, emissivity=emissivity,
+        solar_constant=solar_constant, point_sun=point_sun, limb_darkening=limb_darkening, n_rings=n_rings,
+        method=scattering, n_bounces=n_bounces, cache_dir=cache_dir, overwrite=overwrite,
+    )
+    T = res["surface_temperature"]
+    typer.echo(f"wrote {path}: {T.size} facets, surface temperature {T.min():.2f} to {T.max():.2f} K")
+
+
+
 # ---------------------------------------------------------------- run / replay (simulate)
 
 

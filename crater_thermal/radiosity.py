@@ -1,0 +1,372 @@
+"""Radiation exchange between facets: scattered sunlight and thermal infrared.
+
+Notation (all per facet, irradiances in W m-2): ``F`` the view-factor matrix
+(``F[i, j]`` = fraction of radiation leaving ``i`` that reaches ``j``;
+irradiance on ``i`` from the exitance ``B`` of the others is ``(F @ B)_i``),
+``A`` the albedo, ``E`` the direct solar irradiance.
+
+* Scattered sunlight (Lambertian): the exitance satisfies ``B = A (E + F B)``,
+  i.e. ``(I - A F) B = A E`` (exact radiosity), and the incident shortwave is
+  ``Q = E + F B``. The thesis truncates the Neumann series after three
+  reflections: ``Q = E + sum_{k=1..n} F (A F)^(k-1) A E``.
+* Infrared: ``Q_ir = F @ (eps sigma T^4)``; infrared is not reflected (the
+  thesis neglects it since ``1 - eps`` is small).
+* Radiative equilibrium (no conduction): ``eps sigma T^4 = (1 - A) Q + eps Q_ir``,
+  i.e. ``u = eps sigma T^4`` solves ``(I - eps F) u = (1 - A) Q``.
+
+:func:`ingersoll_shadow_temperature` gives the analytic temperature in the
+shadow of a spherical bowl (Ingersoll, Svitek & Murray 1992), with and without
+infrared reflection.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from crater_thermal.constants import ALBEDO, AU, EMISSIVITY, SIGMA, SOLAR_CONSTANT
+from crater_thermal.errors import ConfigError
+
+#: Methods for the scattered sunlight.
+SCATTERING_METHODS = ("exact", "bounces")
+#: Thesis default number of reflections for the "bounces" method.
+DEFAULT_BOUNCES = 3
+
+
+#: Above this fill fraction (and below DENSE_MAX_FACETS) linear systems are solved densely.
+DENSE_FILL = 0.1
+DENSE_MAX_FACETS = 8000
+
+
+class _Factorised:
+    """LU factorisation of ``I - diag(c) F``: dense LAPACK when F is dense-ish, else SuperLU."""
+
+    def __init__(self, F: sp.csr_matrix, c: np.ndarray):
+        nf = F.shape[0]
+        self.dense = nf <= DENSE_MAX_FACETS and F.nnz > DENSE_FILL * nf * nf
+        if self.dense:
+            import scipy.linalg as sla
+
+            M = -(c[:, None] * F.toarray())
+            M[np.diag_indices(nf)] += 1.0
+            self._lu = sla.lu_factor(M, check_finite=False)
+            self._sla = sla
+        else:
+            M = sp.identity(nf, format="csc") - sp.diags(c) @ F
+            self._lu = spla.splu(sp.csc_matrix(M))
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        if self.dense:
+            return self._sla.lu_solve(self._lu, rhs, check_finite=False)
+        return self._lu.solve(np.ascontiguousarray(rhs))
+
+
+def _as_sparse(F) -> sp.csr_matrix:
+    if sp.issparse(F):
+        F = sp.csr_matrix(F, dtype=float)
+    else:
+        F = np.asarray(F, dtype=float)
+        if F.ndim != 2:
+            raise ConfigError(f"view-factor matrix has shape {F.shape}; expected (nf, nf)")
+        F = sp.csr_matrix(F)
+    if F.shape[0] != F.shape[1]:
+        raise ConfigError(f"view-factor matrix has shape {F.shape}; expected square (nf, nf)")
+    return F
+
+
+def _per_facet(name: str, value, nf: int, lo: float, hi: float, hi_open: bool) -> np.ndarray:
+    v = np.asarray(value, dtype=float)
+    try:
+        v = np.broadcast_to(v, (nf,)).copy()
+    except ValueError:
+        raise ConfigError(f"{name} has shape {np.shape(value)}; expected a scalar or ({nf},)") from None
+    bad = ~np.isfinite(v) | (v < lo) | ((v >= hi) if hi_open else (v > hi))
+    if np.any(bad):
+        bracket = ")" if hi_open else "]"
+        raise ConfigError(f"{name} = {float(v[bad][0])!r} is outside [{lo:g}, {hi:g}{bracket}")
+    return v
+
+
+class ScatteringSolver:
+    """Direct + multiply scattered sunlight on every facet.
+
+    Parameters
+    ----------
+    F : (nf, nf) sparse or dense float [-]
+        View-factor matrix.
+    albedo : float or (nf,) float [-]
+        Lambertian albedo, in [0, 1).
+    method : {"exact", "bounces"}
+        ``"exact"`` solves ``(I - A F) B = A E`` (LU factorised once: dense LAPACK for
+        dense-ish F, SuperLU otherwise);
+        ``"bounces"`` keeps ``n_bounces`` reflections (thesis: 3).
+    n_bounces : int
+        Number of reflections for ``"bounces"`` (>= 0; 0 = no scattering).
+    """
+
+    def __init__(self, F, albedo=ALBEDO, method: str = "exact", n_bounces: int = DEFAULT_BOUNCES):
+        self.F = _as_sparse(F)
+        nf = self.F.shape[0]
+        self.albedo = _per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
+        if method not in SCATTERING_METHODS:
+            raise ConfigError(f"scattering method = {method!r}; allowed: {', '.join(SCATTERING_METHODS)}")
+        if isinstance(n_bounces, bool) or not isinstance(n_bounces, (int, np.integer)) or not 0 <= n_bounces <= 1000:
+            raise ConfigError(f"n_bounces = {n_bounces!r} must be an integer in [0, 1000]")
+        self.method = method
+        self.n_bounces = int(n_bounces)
+        self._lu = None
+        if method == "exact" and nf:
+            self._lu = _Factorised(self.F, self.albedo)
+
+    @property
+    def n_facets(self) -> int:
+        return self.F.shape[0]
+
+    def exitance(self, E_direct: np.ndarray) -> np.ndarray:
+        """Reflected shortwave exitance ``B`` [W m-2], same shape as ``E_direct`` ((nt, nf) or (nf,))."""
+        E = np.asarray(E_direct, dtype=float)
+        if E.shape[-1] != self.n_facets or E.ndim not in (1, 2):
+            raise ConfigError(f"E_direct has shape {E.shape}; expected ({self.n_facets},) or (nt, {self.n_facets})")
+        rhs = (self.albedo * E).T  # (nf,) or (nf, nt)
+        if self.n_facets == 0:
+            return np.zeros_like(E)
+        if self.method == "exact":
+            B = self._lu.solve(rhs)
+        else:
+            # B = sum_{k=0}^{n-1} (A F)^k A E   (n reflections in total)
+            B = np.zeros_like(rhs)
+            term = rhs
+            for k in range(self.n_bounces):
+                B = B + term
+                if k + 1 < self.n_bounces:
+                    term = (self.F @ term) * (self.albedo if rhs.ndim == 1 else self.albedo[:, None])
+        return np.asarray(B).T
+
+    def solar_incident(self, E_direct: np.ndarray) -> np.ndarray:
+        """Direct + scattered shortwave irradiance [W m-2].
+
+        Parameters
+        ----------
+        E_direct : (nf,) or (nt, nf) float [W m-2]
+
+        Returns
+        -------
+        Q : same shape as ``E_direct`` [W m-2]; ``Q = E + F B``.
+        """
+        E = np.asarray(E_direct, dtype=float)
+        B = self.exitance(E)
+        return E + np.asarray(self.F @ B.T).T
+
+
+def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
+    """Infrared irradiance from the rest of the terrain, ``F @ (eps sigma T^4)``.
+
+    Parameters
+    ----------
+    F : (nf, nf) sparse or dense [-]
+    T : (..., nf) float [K]
+    emissivity : float or (nf,) float [-]
+
+    Returns
+    -------
+    (..., nf) float [W m-2]
+    """
+    F = _as_sparse(F)
+    T = np.asarray(T, dtype=float)
+    nf = F.shape[0]
+    if T.shape[-1] != nf:
+        raise ConfigError(f"temperature has shape {T.shape}; last axis must be {nf} facets")
+    eps = _per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
+    u = eps * SIGMA * T**4
+    flat = u.reshape(-1, nf)
+    return np.asarray(F @ flat.T).T.reshape(T.shape)
+
+
+def equilibrium_temperature(F, solar_incident: np.ndarray, albedo=ALBEDO, emissivity=EMISSIVITY) -> np.ndarray:
+    """Radiative-equilibrium surface temperature (no conduction) [K].
+
+    Solves ``(I - eps F) u = (1 - A) Q`` for ``u = eps sigma T^4`` directly (LU).
+
+    Parameters
+    ----------
+    F : (nf, nf) view factors [-]
+    solar_incident : (nf,) float [W m-2]
+    albedo, emissivity : float or (nf,) float [-]
+
+    Returns
+    -------
+    T : (nf,) float [K]
+    """
+    F = _as_sparse(F)
+    nf = F.shape[0]
+    A = _per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
+    eps = _per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
+    if np.any(eps <= 0):
+        raise ConfigError("emissivity = 0 is outside (0, 1] for a radiative equilibrium")
+    Q = np.asarray(solar_incident, dtype=float)
+    u = _Factorised(F, eps).solve((1.0 - A) * Q)
+    u = np.maximum(u, 0.0)  # round-off only: every term is non-negative
+    return (u / (eps * SIGMA)) ** 0.25
+
+
+def steady_state(
+    mesh,
+    F,
+    tracer,
+    sun_dir,
+    sun_distance_m: float = AU,
+    albedo=ALBEDO,
+    emissivity=EMISSIVITY,
+    solar_constant: float = SOLAR_CONSTANT,
+    disk=None,
+    method: str = "exact",
+    n_bounces: int = DEFAULT_BOUNCES,
+) -> dict:
+    """Radiative equilibrium of a crater under a fixed Sun (no conduction).
+
+    Parameters
+    ----------
+    mesh : geometry.Mesh
+    F : (nf, nf) view factors [-]
+    tracer : raytrace.RayTracer
+    sun_dir : (3,) float [unit]
+        Direction toward the Sun (crater frame: x east, y north, z up).
+    sun_distance_m : float [m]
+    albedo, emissivity : float or (nf,) [-]
+    solar_constant : float [W m-2] at 1 au
+    disk : illumination.SunDisk or None
+        ``None`` = point Sun.
+    method, n_bounces :
+        Scattering method (see :class:`ScatteringSolver`).
+
+    Returns
+    -------
+    dict of (nf,) float arrays: ``surface_temperature`` [K], ``solar_direct``,
+    ``solar_incident``, ``ir_incident`` [W m-2].
+    """
+    from crater_thermal.illumination import direct_irradiance
+
+    s = np.asarray(sun_dir, dtype=float).reshape(1, 3)
+    E = direct_irradiance(mesh, tracer, s, np.array([float(sun_distance_m)]), solar_constant, disk=disk)[0]
+    solver = ScatteringSolver(F, albedo, method=method, n_bounces=n_bounces)
+    Q = solver.solar_incident(E)
+    T = equilibrium_temperature(F, Q, albedo, emissivity)
+    return {
+        "surface_temperature": T,
+        "solar_direct": E,
+        "solar_incident": Q,
+        "ir_incident": ir_incident(F, T, emissivity),
+    }
+
+
+# --------------------------------------------------------------------- Ingersoll bowl
+
+
+def bowl_view_factor(depth_to_diameter: float) -> float:
+    """View factor ``f = 4 gamma^2 / (1 + 4 gamma^2)`` of a spherical bowl onto itself [-]."""
+    g = float(depth_to_diameter)
+    return 4.0 * g * g / (1.0 + 4.0 * g * g)
+
+
+def ingersoll_shadow_temperature(
+    elevation_rad: float,
+    depth_to_diameter: float,
+    albedo: float,
+    emissivity: float,
+    solar_flux: float,
+    ir_reflection: bool = False,
+) -> float:
+    """Radiative-equilibrium temperature in the shadow of a spherical bowl [K].
+
+    Parameters
+    ----------
+    elevation_rad : float [rad]
+        Sun elevation above the horizontal (shadows exist while it is below the
+        bowl's rim slope).
+    depth_to_diameter : float [-]
+    albedo, emissivity : float [-]
+    solar_flux : float [W m-2]
+    ir_reflection : bool
+        ``True``: Ingersoll et al. (1992) Eq. 8, which reflects infrared inside
+        the bowl: ``sigma T^4 = S sin e f (1 - A)/(1 - A f) [1 + A (1 - f)/eps]``.
+        ``False`` (this model, no infrared reflection): the exact bowl solution
+        ``eps sigma T^4 = (1 - A) f E_d /(1 - A f) [A + eps/(1 - eps f)]`` with
+        ``E_d = S sin e (1 - f)`` the bowl-mean direct flux.
+    """
+    f = bowl_view_factor(depth_to_diameter)
+    A, eps, S = float(albedo), float(emissivity), float(solar_flux)
+    if ir_reflection:
+        sT4 = S * np.sin(elevation_rad) * f * (1 - A) / (1 - A * f) * (1 + A * (1 - f) / eps)
+    else:
+        Ed = S * np.sin(elevation_rad) * (1 - f)
+        sT4 = (1 - A) * f * Ed / (1 - A * f) * (A + eps / (1 - eps * f)) / eps
+    return float((sT4 / SIGMA) ** 0.25)
+
+
+# --------------------------------------------------------------------- command-line driver
+
+
+def steady_file(
+    mesh_path,
+    output,
+    sun_elevation_deg: float,
+    sun_azimuth_deg: float = 180.0,
+    albedo: float = ALBEDO,
+    emissivity: float = EMISSIVITY,
+    solar_constant: float = SOLAR_CONSTANT,
+    point_sun: bool = False,
+    limb_darkening: str = "linear",
+    n_rings: int | None = None,
+    method: str = "exact",
+    n_bounces: int = DEFAULT_BOUNCES,
+    cache_dir=None,
+    overwrite: bool = False,
+):
+    """Load a mesh, solve the radiative equilibrium under a fixed Sun at 1 au, write it (``crater-thermal steady``).
+
+    All inputs are checked before any work (ConfigError / MeshError / OutputExistsError).
+
+    Returns
+    -------
+    (path, results) : the written path and the :func:`steady_state` dict.
+    """
+    from pathlib import Path
+
+    from crater_thermal import illumination, io
+    from crater_thermal.errors import OutputExistsError
+    from crater_thermal.geometry import load_mesh
+    from crater_thermal.raytrace import RayTracer
+    from crater_thermal.viewfactors import view_factor_matrix
+
+    sun = illumination.sun_direction_from_angles(sun_elevation_deg, sun_azimuth_deg)
+    _per_facet("albedo", albedo, 1, 0.0, 1.0, hi_open=True)
+    _per_facet("emissivity", emissivity, 1, 0.0, 1.0, hi_open=False)
+    if not emissivity > 0:
+        raise ConfigError(f"emissivity = {emissivity!r} is outside (0, 1]")
+    if not np.isfinite(solar_constant) or solar_constant < 0:
+        raise ConfigError(f"solar_constant = {solar_constant!r} W m-2 must be finite and >= 0")
+    if method not in SCATTERING_METHODS:
+        raise ConfigError(f"scattering method = {method!r}; allowed: {', '.join(SCATTERING_METHODS)}")
+    disk = None if point_sun else illumination.sun_disk(n_rings or illumination.DEFAULT_N_RINGS, limb_darkening)
+    out = Path(output)
+    if out.exists() and not overwrite:
+        raise OutputExistsError(f"output {out} exists; pass --overwrite to replace it")
+    mesh = load_mesh(mesh_path)
+    tracer = RayTracer(mesh)
+    F = view_factor_matrix(mesh, tracer, cache_dir=cache_dir)
+    res = steady_state(mesh, F, tracer, sun, AU, albedo, emissivity, solar_constant, disk, method, n_bounces)
+    attrs = {
+        "albedo": float(albedo),
+        "emissivity": float(emissivity),
+        "solar_constant": float(solar_constant),
+        "sun_elevation_deg": float(sun_elevation_deg),
+        "sun_azimuth_deg": float(sun_azimuth_deg),
+        "sun_distance_au": 1.0,
+        "sun_model": "point" if disk is None else f"disk, {disk.law} limb darkening, {disk.n_patches} patches",
+        "scattering": method if method == "exact" else f"{n_bounces} bounces",
+        "ir_reflection": 0,
+        "conduction": 0,
+    }
+    path = io.write_steady(out, mesh, res, attrs, overwrite=overwrite)
+    return path, res
