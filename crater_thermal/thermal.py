@@ -70,6 +70,8 @@ DEFAULT_GROWTH = 1.2
 GRID_T_REF = 250.0
 
 HAYNE_LABEL = "hayne2017"
+#: time schemes of the kernel
+SCHEMES = {"euler": _k.SCHEME_BE, "trbdf2": _k.SCHEME_TRBDF2}
 
 
 # ----------------------------------------------------------------------------- profiles
@@ -381,8 +383,8 @@ class ColumnSolver:
     grid : Grid, optional (default :func:`make_grid` with a node on every profile interface).
     dt_max : float [s]
         Largest sub-step; each forcing interval is split into equal sub-steps <= dt_max.
-    theta : float
-        Time weighting (1 = backward Euler, the default; 0.5 = Crank-Nicolson, for studies only).
+    scheme : ``"trbdf2"`` (default: TR-BDF2, L-stable, second order) or ``"euler"`` (backward
+        Euler, first order; for studies and the benchmark).
 
     Attributes
     ----------
@@ -392,7 +394,7 @@ class ColumnSolver:
 
     def __init__(self, profiles, property_set="apollo", emissivity: float = EMISSIVITY,
                  geothermal_flux: float = GEOTHERMAL_FLUX, grid: Grid | None = None,
-                 dt_max: float = DEFAULT_DT_MAX, theta: float = 1.0):
+                 dt_max: float = DEFAULT_DT_MAX, scheme: str = "trbdf2"):
         self.profiles = _as_profiles(profiles)
         self.pset = materials.get_property_set(property_set)
         if not (0.0 <= emissivity <= 1.0):
@@ -401,12 +403,12 @@ class ColumnSolver:
             raise ProfileError(f"geothermal_flux={geothermal_flux!r} W/m2 must be finite, |G| < 10")
         if not (np.isfinite(dt_max) and dt_max > 0):
             raise ProfileError(f"dt_max={dt_max!r} s must be > 0")
-        if not (0.5 <= theta <= 1.0):
-            raise ProfileError(f"theta={theta!r} must be in 0.5-1")
+        if scheme not in SCHEMES:
+            raise ProfileError(f"scheme={scheme!r} is unknown; allowed: {sorted(SCHEMES)}")
         self.emissivity = float(emissivity)
         self.geothermal_flux = float(geothermal_flux)
         self.dt_max = float(dt_max)
-        self.theta = float(theta)
+        self.scheme = scheme
         if grid is None:
             ifc = {TOP_LAYER_THICKNESS}
             for p in self.profiles:
@@ -451,6 +453,7 @@ class ColumnSolver:
         self.rock = np.ascontiguousarray(rock[idx])
         self.ccoef = np.asarray(self.pset.c_coeffs, dtype=float)
         self.dz = np.ascontiguousarray(g.dz)
+        self.rdz = 1.0 / self.dz
 
     @property
     def ncol(self) -> int:
@@ -564,8 +567,8 @@ class ColumnSolver:
         status = np.zeros(self.ncol, np.int64)
         fail = np.full(self.ncol, -1, np.int64)
         _k.run_columns(self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.ccoef,
-                       float(self.pset.c_t_min), self.dz, self.emissivity * SIGMA, self.geothermal_flux,
-                       self.theta, self.dt_max, times, a, fidx, out, record, self.acc, status, fail)
+                       float(self.pset.c_t_min), self.rdz, self.emissivity * SIGMA, self.geothermal_flux,
+                       SCHEMES[self.scheme], self.dt_max, times, a, fidx, out, record, self.acc, status, fail)
         if np.any(status != _k.OK):
             c = int(np.flatnonzero(status != _k.OK)[0])
             k = int(fail[c])

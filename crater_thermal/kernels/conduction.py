@@ -50,58 +50,55 @@ def _cpoly(T, ccoef, ctmin):
 
 
 @njit(cache=True)
-def _column_step(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, dz, es, G, theta, dt, q_old, q_new,
-                 K, Cd, p, q):
-    """One theta-method step of one column, in place. Returns (status, T_surface_old).
-
-    T : (nz,) [K]; m : (nz,) [kg m-2]; b0, b3, e0, e1, dz : (nz-1,); K, Cd, p, q : scratch.
-    """
+def _props(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, K, Cc):
+    """Link conductances K [W m-2 K-1] and node heat capacities Cc = m c [J m-2 K-1] at T."""
     nz = T.shape[0]
-    # lagged properties: conductances [W m-2 K-1] and capacities / dt [W m-2 K-1]
     for l in range(nz - 1):
         tl = 0.5 * (T[l] + T[l + 1])
         k = b0[l] + b3[l] * tl * tl * tl
         if rock:
             k += _cpoly(tl, ccoef, ctmin) * (e0[l] + e1[l] / tl)
-        K[l] = k / dz[l]
+        K[l] = k * rdz[l]
     for i in range(nz):
-        Cd[i] = m[i] * _cpoly(T[i], ccoef, ctmin) / dt
-    om = 1.0 - theta
-    # bottom node: geothermal flux in from below
+        Cc[i] = m[i] * _cpoly(T[i], ccoef, ctmin)
+
+
+@njit(cache=True)
+def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q):
+    """Solve (Cc/tau + theta L) X + theta es X0^4 e_0 = R for X (in place), L the conduction
+    operator with conductances K (no-flux ends; boundary fluxes are in R).
+
+    Elimination runs bottom-up (X[i] = p[i] + q[i] X[i-1]) leaving the scalar surface equation
+    alpha x + a4 x^4 = rhs, solved by Newton. Returns a status code.
+    """
+    nz = X.shape[0]
     n1 = nz - 1
-    kb = K[n1 - 1]
-    b = Cd[n1] + theta * kb
-    r = Cd[n1] * T[n1] - om * kb * (T[n1] - T[n1 - 1]) + G
-    p[n1] = r / b
-    q[n1] = theta * kb / b
-    # interior nodes, bottom to top: T[i] = p[i] + q[i] T[i-1]
+    kb = theta * K[n1 - 1]
+    b = Cc[n1] * rtau + kb
+    p[n1] = R[n1] / b
+    q[n1] = kb / b
     for i in range(n1 - 1, 0, -1):
-        ku = K[i - 1]
-        kd = K[i]
-        den = Cd[i] + theta * (ku + kd) - theta * kd * q[i + 1]
-        r = Cd[i] * T[i] + om * (kd * (T[i + 1] - T[i]) - ku * (T[i] - T[i - 1])) + theta * kd * p[i + 1]
-        p[i] = r / den
-        q[i] = theta * ku / den
-    # surface: alpha x + theta es x^4 = rhs
-    t0 = T[0]
-    k0 = K[0]
-    alpha = Cd[0] + theta * k0 * (1.0 - q[1])
-    rhs = (Cd[0] * t0 + om * (k0 * (T[1] - t0) + q_old - es * t0 * t0 * t0 * t0)
-           + theta * q_new + theta * k0 * p[1])
-    a4 = theta * es
+        ku = theta * K[i - 1]
+        kd = theta * K[i]
+        den = Cc[i] * rtau + ku + kd * (1.0 - q[i + 1])
+        p[i] = (R[i] + kd * p[i + 1]) / den
+        q[i] = ku / den
+    k0 = theta * K[0]
+    alpha = Cc[0] * rtau + k0 * (1.0 - q[1])
+    rhs = R[0] + k0 * p[1]
     status = OK
     if a4 == 0.0:
         x = rhs / alpha
     else:
         # f(x) = alpha x + a4 x^4 - rhs is increasing and convex for x > 0: Newton from a point
         # right of the root decreases monotonically onto it.
-        x = t0
-        xr = (rhs / a4) ** 0.25 if rhs > 0.0 else 0.0
+        x = tguess
         xl = rhs / alpha
+        xr = (rhs / a4) ** 0.25 if rhs > 0.0 else 0.0
         if xr < xl:
             xl = xr
         if x < xl:
-            x = xl  # the root lies above min(rhs/alpha, (rhs/a4)^1/4)
+            x = xl
         if not (x > 0.0):
             x = 1.0
         conv = False
@@ -116,18 +113,86 @@ def _column_step(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, dz, es, G, theta, dt,
         if not conv:
             status = NEWTON_FAILED
     if not (x > 0.0 and x < _T_MAX):
-        return NONFINITE, t0
-    T[0] = x
+        return NONFINITE
+    X[0] = x
     for i in range(1, nz):
-        v = p[i] + q[i] * T[i - 1]
+        v = p[i] + q[i] * X[i - 1]
         if not (v > 0.0 and v < _T_MAX):
-            return NONFINITE, t0
-        T[i] = v
-    return status, t0
+            return NONFINITE
+        X[i] = v
+    return status
+
+
+#: TR-BDF2 constants (Bank et al. 1985; Hosea & Shampine 1996): gamma = 2 - sqrt(2)
+TRB_GAMMA = 2.0 - np.sqrt(2.0)
+TRB_W1 = 1.0 / (TRB_GAMMA * (2.0 - TRB_GAMMA))
+TRB_W0 = (1.0 - TRB_GAMMA) ** 2 / (TRB_GAMMA * (2.0 - TRB_GAMMA))
+TRB_BETA = (1.0 - TRB_GAMMA) / (2.0 - TRB_GAMMA)
+#: quadrature weights of f(t_n), f(t_n + gamma dt), f(t_n+1) implied by the scheme
+TRB_QW = (1.0 / (2.0 * (2.0 - TRB_GAMMA)), 1.0 / (2.0 * (2.0 - TRB_GAMMA)), TRB_BETA)
+
+SCHEME_BE = 0
+SCHEME_TRBDF2 = 1
+
+
+@njit(cache=True)
+def _column_step(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt, qa, qb,
+                 K, Cc, R, Tg, p, q):
+    """One time step of one column in place (absorbed flux qa at the start, qb at the end).
+
+    scheme 0: backward Euler. scheme 1: TR-BDF2 (trapezoidal stage to t + gamma dt, then BDF2;
+    L-stable and second order); properties at the start of the step for the first stage and at
+    the stage temperature for the second.
+    Returns (status, absorbed energy, emitted energy) over the step [J m-2].
+    """
+    nz = T.shape[0]
+    n1 = nz - 1
+    t0 = T[0]
+    _props(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, K, Cc)
+    if scheme == SCHEME_BE:
+        rtau = 1.0 / dt
+        for i in range(nz):
+            R[i] = Cc[i] * rtau * T[i]
+            Tg[i] = T[i]
+        R[0] += qb
+        R[n1] += G
+        st = _solve(T, R, K, Cc, rtau, 1.0, es, t0, p, q)
+        return st, dt * qb, dt * es * T[0] ** 4
+    g = TRB_GAMMA
+    qg = qa + g * (qb - qa)
+    # stage 1: trapezoidal rule over gamma dt
+    rtau = 1.0 / (g * dt)
+    for i in range(nz):
+        R[i] = Cc[i] * rtau * T[i]
+    for l in range(nz - 1):
+        fl = 0.5 * K[l] * (T[l + 1] - T[l])
+        R[l] += fl
+        R[l + 1] -= fl
+    em0 = es * t0 * t0 * t0 * t0
+    R[0] += 0.5 * (qa - em0) + 0.5 * qg
+    R[n1] += G
+    for i in range(nz):
+        Tg[i] = T[i]
+    st = _solve(Tg, R, K, Cc, rtau, 0.5, 0.5 * es, t0, p, q)
+    if st != OK:
+        return st, 0.0, 0.0
+    emg = es * Tg[0] ** 4
+    # stage 2: BDF2 from (T, Tg) over beta dt, properties at the stage temperature
+    _props(Tg, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, K, Cc)
+    rtau = 1.0 / (TRB_BETA * dt)
+    for i in range(nz):
+        R[i] = Cc[i] * rtau * (TRB_W1 * Tg[i] - TRB_W0 * T[i])
+    R[0] += qb
+    R[n1] += G
+    st = _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q)
+    em1 = es * T[0] ** 4
+    e_abs = dt * (TRB_QW[0] * qa + TRB_QW[1] * qg + TRB_QW[2] * qb)
+    e_emit = dt * (TRB_QW[0] * em0 + TRB_QW[1] * emg + TRB_QW[2] * em1)
+    return st, e_abs, e_emit
 
 
 @njit(parallel=True, cache=True)
-def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, dz, es, G, theta, dt_max,
+def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
                 times, absorbed, fidx, out, record, acc, status, fail_idx):
     """Advance every column through the forcing samples ``times``.
 
@@ -135,8 +200,8 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, dz, es, G, theta, dt_m
     ----------
     T : (ncol, nz) float64 [K], updated in place.
     m : (ncol, nz) [kg m-2]; b0, b3, e0, e1 : (ncol, nz-1); rock : (ncol,) uint8 (1: rock term).
-    ccoef : (5,); ctmin [K]; dz : (nz-1,) [m]; es = eps sigma [W m-2 K-4]; G [W m-2];
-    theta : 1.0 backward Euler (0.5 Crank-Nicolson); dt_max [s].
+    ccoef : (5,); ctmin [K]; rdz : (nz-1,) inverse link lengths [m-1]; es = eps sigma
+    [W m-2 K-4]; G [W m-2]; scheme : SCHEME_BE or SCHEME_TRBDF2; dt_max [s].
     times : (nt,) [s]; absorbed : (nt, nforce) [W m-2]; fidx : (ncol,) forcing column per column.
     out : (nt, ncol) surface temperatures at the samples (written when ``record``).
     acc : (ncol, N_ACC) accumulators (added to). status, fail_idx : (ncol,) int64 outputs.
@@ -145,7 +210,9 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, dz, es, G, theta, dt_m
     nt = times.shape[0]
     for c in prange(ncol):
         K = np.empty(nz - 1)
-        Cd = np.empty(nz)
+        Cc = np.empty(nz)
+        R = np.empty(nz)
+        Tg = np.empty(nz)
         p = np.empty(nz)
         q = np.empty(nz)
         Tc = T[c].copy()
@@ -164,6 +231,10 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, dz, es, G, theta, dt_m
             span = times[k + 1] - times[k]
             qa = absorbed[k, f]
             qb = absorbed[k + 1, f]
+            if not (np.isfinite(qa) and np.isfinite(qb)):
+                st = NONFINITE
+                fail = k
+                break
             nsub = int(np.ceil(span / dt_max - 1e-9))
             if nsub < 1:
                 nsub = 1
@@ -171,16 +242,14 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, dz, es, G, theta, dt_m
             for s in range(nsub):
                 q_old = qa + (qb - qa) * (s / nsub)
                 q_new = qa + (qb - qa) * ((s + 1) / nsub)
-                if not (np.isfinite(q_old) and np.isfinite(q_new)):
-                    st = NONFINITE
-                    break
-                st, told = _column_step(Tc, m[c], b0[c], b3[c], e0[c], e1[c], isrock, ccoef, ctmin, dz,
-                                        es, G, theta, dt, q_old, q_new, K, Cd, p, q)
+                st, e_abs, e_emit = _column_step(Tc, m[c], b0[c], b3[c], e0[c], e1[c], isrock, ccoef,
+                                                 ctmin, rdz, es, G, scheme, dt, q_old, q_new,
+                                                 K, Cc, R, Tg, p, q)
                 if st != OK:
                     break
                 tn = Tc[0]
-                a_abs += dt * (theta * q_new + (1.0 - theta) * q_old)
-                a_emit += dt * es * (theta * tn ** 4 + (1.0 - theta) * told ** 4)
+                a_abs += e_abs
+                a_emit += e_emit
                 a_h += dt * 4.0 * es * tn * tn * tn
                 a_time += dt
                 nsteps += 1
