@@ -49,79 +49,9 @@ def _cpoly(T, ccoef, ctmin):
     return ccoef[0] + x * (ccoef[1] + x * (ccoef[2] + x * (ccoef[3] + x * ccoef[4])))
 
 
-@njit(cache=True)
-def _props(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, K, Cc):
-    """Link conductances K [W m-2 K-1] and node heat capacities Cc = m c [J m-2 K-1] at T."""
-    nz = T.shape[0]
-    for l in range(nz - 1):
-        tl = 0.5 * (T[l] + T[l + 1])
-        k = b0[l] + b3[l] * tl * tl * tl
-        if rock:
-            k += _cpoly(tl, ccoef, ctmin) * (e0[l] + e1[l] / tl)
-        K[l] = k * rdz[l]
-    for i in range(nz):
-        Cc[i] = m[i] * _cpoly(T[i], ccoef, ctmin)
-
-
-@njit(cache=True)
-def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q):
-    """Solve (Cc/tau + theta L) X + theta es X0^4 e_0 = R for X (in place), L the conduction
-    operator with conductances K (no-flux ends; boundary fluxes are in R).
-
-    Elimination runs bottom-up (X[i] = p[i] + q[i] X[i-1]) leaving the scalar surface equation
-    alpha x + a4 x^4 = rhs, solved by Newton. Returns a status code.
-    """
-    nz = X.shape[0]
-    n1 = nz - 1
-    kb = theta * K[n1 - 1]
-    b = Cc[n1] * rtau + kb
-    p[n1] = R[n1] / b
-    q[n1] = kb / b
-    for i in range(n1 - 1, 0, -1):
-        ku = theta * K[i - 1]
-        kd = theta * K[i]
-        den = Cc[i] * rtau + ku + kd * (1.0 - q[i + 1])
-        p[i] = (R[i] + kd * p[i + 1]) / den
-        q[i] = ku / den
-    k0 = theta * K[0]
-    alpha = Cc[0] * rtau + k0 * (1.0 - q[1])
-    rhs = R[0] + k0 * p[1]
-    status = OK
-    if a4 == 0.0:
-        x = rhs / alpha
-    else:
-        # f(x) = alpha x + a4 x^4 - rhs is increasing and convex for x > 0: Newton from a point
-        # right of the root decreases monotonically onto it.
-        x = tguess
-        xl = rhs / alpha
-        xr = (rhs / a4) ** 0.25 if rhs > 0.0 else 0.0
-        if xr < xl:
-            xl = xr
-        if x < xl:
-            x = xl
-        if not (x > 0.0):
-            x = 1.0
-        conv = False
-        for _ in range(_NEWTON_MAXIT):
-            x3 = x * x * x
-            f = alpha * x + a4 * x3 * x - rhs
-            dx = f / (alpha + 4.0 * a4 * x3)
-            x -= dx
-            if abs(dx) <= _NEWTON_RTOL * abs(x) + 1e-300:
-                conv = True
-                break
-        if not conv:
-            status = NEWTON_FAILED
-    if not (x > 0.0 and x < _T_MAX):
-        return NONFINITE
-    X[0] = x
-    for i in range(1, nz):
-        v = p[i] + q[i] * X[i - 1]
-        if not (v > 0.0 and v < _T_MAX):
-            return NONFINITE
-        X[i] = v
-    return status
-
+#: Columns advanced together in one thread (interleaved so that the serial Thomas recurrences
+#: of different columns overlap and the inner loops vectorise).
+LANES = 16
 
 #: TR-BDF2 constants (Bank et al. 1985; Hosea & Shampine 1996): gamma = 2 - sqrt(2)
 TRB_GAMMA = 2.0 - np.sqrt(2.0)
@@ -129,66 +59,191 @@ TRB_W1 = 1.0 / (TRB_GAMMA * (2.0 - TRB_GAMMA))
 TRB_W0 = (1.0 - TRB_GAMMA) ** 2 / (TRB_GAMMA * (2.0 - TRB_GAMMA))
 TRB_BETA = (1.0 - TRB_GAMMA) / (2.0 - TRB_GAMMA)
 #: quadrature weights of f(t_n), f(t_n + gamma dt), f(t_n+1) implied by the scheme
-TRB_QW = (1.0 / (2.0 * (2.0 - TRB_GAMMA)), 1.0 / (2.0 * (2.0 - TRB_GAMMA)), TRB_BETA)
+TRB_QW0 = 1.0 / (2.0 * (2.0 - TRB_GAMMA))
+TRB_QW1 = TRB_BETA
 
 SCHEME_BE = 0
 SCHEME_TRBDF2 = 1
 
 
 @njit(cache=True)
-def _column_step(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt, qa, qb,
-                 K, Cc, R, Tg, p, q):
-    """One time step of one column in place (absorbed flux qa at the start, qb at the end).
+def _props(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc):
+    """Link conductances K [W m-2 K-1] and node heat capacities Cc = m c [J m-2 K-1] at T.
+
+    All arrays (n, LANES) (links: nz-1 rows).
+    """
+    nz, nl = T.shape
+    c0, c1, c2, c3, c4 = ccoef[0], ccoef[1], ccoef[2], ccoef[3], ccoef[4]
+    for l in range(nz - 1):
+        r = rdz[l]
+        for j in range(nl):
+            tl = 0.5 * (T[l, j] + T[l + 1, j])
+            K[l, j] = (b0[l, j] + b3[l, j] * tl * tl * tl) * r
+    if anyrock:
+        for l in range(nz - 1):
+            r = rdz[l]
+            for j in range(nl):
+                tl = 0.5 * (T[l, j] + T[l + 1, j])
+                x = max(tl, ctmin)
+                c = c0 + x * (c1 + x * (c2 + x * (c3 + x * c4)))
+                K[l, j] += c * (e0[l, j] + e1[l, j] / tl) * r
+    for i in range(nz):
+        for j in range(nl):
+            x = max(T[i, j], ctmin)
+            Cc[i, j] = m[i, j] * (c0 + x * (c1 + x * (c2 + x * (c3 + x * c4))))
+
+
+@njit(cache=True)
+def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q, st, alt_add, alt_used):
+    """Solve (Cc/tau + theta L) X + a4 X0^4 e_0 = R for X (in place), lane by lane; L is the
+    conduction operator with conductances K (no-flux ends: boundary fluxes are in R).
+
+    Elimination runs bottom-up (X[i] = p[i] + q[i] X[i-1]) leaving the scalar surface equation
+    alpha x + a4 x^4 = rhs per lane, solved by Newton. Lanes whose status ``st`` is already
+    nonzero are skipped; failures set ``st``.
+
+    Fallback (TR stage only, ``alt_add`` non-empty): where the trapezoidal treatment of the
+    emission has no physical root (rhs <= 0) or drops the surface below half its start value
+    (an extreme cooling transient, e.g. a hot uniform start), the lane's emission is taken
+    implicit instead (a4 -> 2 a4, rhs -> rhs + alt_add[j]) and ``alt_used[j]`` is set to 1.
+    """
+    nz, nl = X.shape
+    n1 = nz - 1
+    for j in range(nl):
+        kb = theta * K[n1 - 1, j]
+        inv = 1.0 / (Cc[n1, j] * rtau + kb)
+        p[n1, j] = R[n1, j] * inv
+        q[n1, j] = kb * inv
+    for i in range(n1 - 1, 0, -1):
+        for j in range(nl):
+            ku = theta * K[i - 1, j]
+            kd = theta * K[i, j]
+            inv = 1.0 / (Cc[i, j] * rtau + ku + kd * (1.0 - q[i + 1, j]))
+            p[i, j] = (R[i, j] + kd * p[i + 1, j]) * inv
+            q[i, j] = ku * inv
+    for j in range(nl):
+        if st[j] != OK:
+            continue
+        k0 = theta * K[0, j]
+        alpha = Cc[0, j] * rtau + k0 * (1.0 - q[1, j])
+        rhs = R[0, j] + k0 * p[1, j]
+        a4j = a4
+        if alt_add.shape[0] > 0:
+            alt_used[j] = 0
+            if rhs <= 0.0 or _newton(alpha, a4, rhs, tguess[j], st, j) < 0.5 * tguess[j]:
+                a4j = 2.0 * a4
+                rhs += alt_add[j]
+                alt_used[j] = 1
+                st[j] = OK
+        if a4j == 0.0:
+            x = rhs / alpha
+        else:
+            x = _newton(alpha, a4j, rhs, tguess[j], st, j)
+        if not (x > 0.0 and x < _T_MAX):
+            st[j] = NONFINITE
+            x = 1.0
+        X[0, j] = x
+    for i in range(1, nz):
+        for j in range(nl):
+            X[i, j] = p[i, j] + q[i, j] * X[i - 1, j]
+
+
+@njit(cache=True)
+def _newton(alpha, a4, rhs, tguess, st, j):
+    """Positive root of alpha x + a4 x^4 = rhs (a4 > 0); sets st[j] = NEWTON_FAILED if not converged.
+
+    f(x) = alpha x + a4 x^4 - rhs is increasing and convex for x > 0: Newton from a point right
+    of the root decreases monotonically onto it; the root lies above min(rhs/alpha, (rhs/a4)^1/4).
+    """
+    x = tguess
+    xl = rhs / alpha
+    xr = (rhs / a4) ** 0.25 if rhs > 0.0 else 0.0
+    if xr < xl:
+        xl = xr
+    if x < xl:
+        x = xl
+    if not (x > 0.0):
+        x = 1.0
+    for _ in range(_NEWTON_MAXIT):
+        x3 = x * x * x
+        f = alpha * x + a4 * x3 * x - rhs
+        dx = f / (alpha + 4.0 * a4 * x3)
+        x -= dx
+        if abs(dx) <= _NEWTON_RTOL * abs(x) + 1e-300:
+            return x
+    st[j] = NEWTON_FAILED
+    return x
+
+
+@njit(cache=True)
+def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, qa, qb,
+          K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used):
+    """One time step of a batch of columns (T: (nz, LANES)) in place; absorbed flux qa (LANES,)
+    at the start, qb at the end. Adds the step's absorbed / emitted energy [J m-2] (with the
+    scheme's quadrature) to e_abs, e_emit.
 
     scheme 0: backward Euler. scheme 1: TR-BDF2 (trapezoidal stage to t + gamma dt, then BDF2;
     L-stable and second order); properties at the start of the step for the first stage and at
     the stage temperature for the second.
-    Returns (status, absorbed energy, emitted energy) over the step [J m-2].
     """
-    nz = T.shape[0]
+    nz, nl = T.shape
     n1 = nz - 1
-    t0 = T[0]
-    _props(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, K, Cc)
+    _props(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc)
     if scheme == SCHEME_BE:
         rtau = 1.0 / dt
         for i in range(nz):
-            R[i] = Cc[i] * rtau * T[i]
-            Tg[i] = T[i]
-        R[0] += qb
-        R[n1] += G
-        st = _solve(T, R, K, Cc, rtau, 1.0, es, t0, p, q)
-        return st, dt * qb, dt * es * T[0] ** 4
+            for j in range(nl):
+                R[i, j] = Cc[i, j] * rtau * T[i, j]
+        for j in range(nl):
+            Tg[0, j] = T[0, j]
+            R[0, j] += qb[j]
+            R[n1, j] += G
+        _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q, st, alt_add[:0], alt_used)
+        for j in range(nl):
+            e_abs[j] += dt * qb[j]
+            e_emit[j] += dt * es * T[0, j] ** 4
+        return
     g = TRB_GAMMA
-    qg = qa + g * (qb - qa)
     # stage 1: trapezoidal rule over gamma dt
     rtau = 1.0 / (g * dt)
     for i in range(nz):
-        R[i] = Cc[i] * rtau * T[i]
+        for j in range(nl):
+            R[i, j] = Cc[i, j] * rtau * T[i, j]
+            Tg[i, j] = T[i, j]
     for l in range(nz - 1):
-        fl = 0.5 * K[l] * (T[l + 1] - T[l])
-        R[l] += fl
-        R[l + 1] -= fl
-    em0 = es * t0 * t0 * t0 * t0
-    R[0] += 0.5 * (qa - em0) + 0.5 * qg
-    R[n1] += G
-    for i in range(nz):
-        Tg[i] = T[i]
-    st = _solve(Tg, R, K, Cc, rtau, 0.5, 0.5 * es, t0, p, q)
-    if st != OK:
-        return st, 0.0, 0.0
-    emg = es * Tg[0] ** 4
+        for j in range(nl):
+            fl = 0.5 * K[l, j] * (T[l + 1, j] - T[l, j])
+            R[l, j] += fl
+            R[l + 1, j] -= fl
+    for j in range(nl):
+        t0 = T[0, j]
+        em0 = es * t0 * t0 * t0 * t0
+        qg = qa[j] + g * (qb[j] - qa[j])
+        R[0, j] += 0.5 * (qa[j] - em0) + 0.5 * qg
+        R[n1, j] += G
+        e_abs[j] += dt * (TRB_QW0 * (qa[j] + qg) + TRB_QW1 * qb[j])
+        alt_add[j] = 0.5 * em0
+    _solve(Tg, R, K, Cc, rtau, 0.5, 0.5 * es, T[0], p, q, st, alt_add, alt_used)
+    for j in range(nl):
+        tg = Tg[0, j]
+        emg = es * tg * tg * tg * tg
+        if alt_used[j]:
+            e_emit[j] += dt * 2.0 * TRB_QW0 * emg
+        else:
+            e_emit[j] += dt * TRB_QW0 * (2.0 * alt_add[j] + emg)
     # stage 2: BDF2 from (T, Tg) over beta dt, properties at the stage temperature
-    _props(Tg, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, K, Cc)
+    _props(Tg, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc)
     rtau = 1.0 / (TRB_BETA * dt)
     for i in range(nz):
-        R[i] = Cc[i] * rtau * (TRB_W1 * Tg[i] - TRB_W0 * T[i])
-    R[0] += qb
-    R[n1] += G
-    st = _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q)
-    em1 = es * T[0] ** 4
-    e_abs = dt * (TRB_QW[0] * qa + TRB_QW[1] * qg + TRB_QW[2] * qb)
-    e_emit = dt * (TRB_QW[0] * em0 + TRB_QW[1] * emg + TRB_QW[2] * em1)
-    return st, e_abs, e_emit
+        for j in range(nl):
+            R[i, j] = Cc[i, j] * rtau * (TRB_W1 * Tg[i, j] - TRB_W0 * T[i, j])
+    for j in range(nl):
+        R[0, j] += qb[j]
+        R[n1, j] += G
+    _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q, st, alt_add[:0], alt_used)
+    for j in range(nl):
+        t1 = T[0, j]
+        e_emit[j] += dt * es * TRB_QW1 * t1 * t1 * t1 * t1
 
 
 @njit(parallel=True, cache=True)
@@ -204,68 +259,102 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt
     [W m-2 K-4]; G [W m-2]; scheme : SCHEME_BE or SCHEME_TRBDF2; dt_max [s].
     times : (nt,) [s]; absorbed : (nt, nforce) [W m-2]; fidx : (ncol,) forcing column per column.
     out : (nt, ncol) surface temperatures at the samples (written when ``record``).
-    acc : (ncol, N_ACC) accumulators (added to). status, fail_idx : (ncol,) int64 outputs.
+    acc : (ncol, N_ACC) accumulators (added to). status, fail_idx : (ncol,) int64 outputs
+    (status code, index of the forcing interval where the column failed or -1).
     """
     ncol, nz = T.shape
     nt = times.shape[0]
-    for c in prange(ncol):
-        K = np.empty(nz - 1)
-        Cc = np.empty(nz)
-        R = np.empty(nz)
-        Tg = np.empty(nz)
-        p = np.empty(nz)
-        q = np.empty(nz)
-        Tc = T[c].copy()
-        f = fidx[c]
-        isrock = rock[c] != 0
-        a_abs = 0.0
-        a_emit = 0.0
-        a_h = 0.0
+    nb = (ncol + LANES - 1) // LANES
+    for bi in prange(nb):
+        c0 = bi * LANES
+        nl = min(LANES, ncol - c0)
+        Tb = np.empty((nz, nl))
+        mb = np.empty((nz, nl))
+        b0b = np.empty((nz - 1, nl))
+        b3b = np.empty((nz - 1, nl))
+        e0b = np.empty((nz - 1, nl))
+        e1b = np.empty((nz - 1, nl))
+        anyrock = False
+        for j in range(nl):
+            if rock[c0 + j] != 0:
+                anyrock = True
+            for i in range(nz):
+                Tb[i, j] = T[c0 + j, i]
+                mb[i, j] = m[c0 + j, i]
+            for i in range(nz - 1):
+                b0b[i, j] = b0[c0 + j, i]
+                b3b[i, j] = b3[c0 + j, i]
+                e0b[i, j] = e0[c0 + j, i]
+                e1b[i, j] = e1[c0 + j, i]
+        K = np.empty((nz - 1, nl))
+        Cc = np.empty((nz, nl))
+        R = np.empty((nz, nl))
+        Tg = np.empty((nz, nl))
+        p = np.empty((nz, nl))
+        q = np.empty((nz, nl))
+        qa = np.empty(nl)
+        qb = np.empty(nl)
+        alt_add = np.zeros(nl)
+        alt_used = np.zeros(nl, np.int64)
+        st = np.zeros(nl, np.int64)
+        fail = np.full(nl, -1, np.int64)
+        e_abs = np.zeros(nl)
+        e_emit = np.zeros(nl)
+        a_h = np.zeros(nl)
         a_time = 0.0
         nsteps = 0
-        st = OK
-        fail = -1
         if record:
-            out[0, c] = Tc[0]
+            for j in range(nl):
+                out[0, c0 + j] = Tb[0, j]
         for k in range(nt - 1):
             span = times[k + 1] - times[k]
-            qa = absorbed[k, f]
-            qb = absorbed[k + 1, f]
-            if not (np.isfinite(qa) and np.isfinite(qb)):
-                st = NONFINITE
-                fail = k
-                break
             nsub = int(np.ceil(span / dt_max - 1e-9))
             if nsub < 1:
                 nsub = 1
             dt = span / nsub
             for s in range(nsub):
-                q_old = qa + (qb - qa) * (s / nsub)
-                q_new = qa + (qb - qa) * ((s + 1) / nsub)
-                st, e_abs, e_emit = _column_step(Tc, m[c], b0[c], b3[c], e0[c], e1[c], isrock, ccoef,
-                                                 ctmin, rdz, es, G, scheme, dt, q_old, q_new,
-                                                 K, Cc, R, Tg, p, q)
-                if st != OK:
-                    break
-                tn = Tc[0]
-                a_abs += e_abs
-                a_emit += e_emit
-                a_h += dt * 4.0 * es * tn * tn * tn
+                for j in range(nl):
+                    fa = absorbed[k, fidx[c0 + j]]
+                    fb = absorbed[k + 1, fidx[c0 + j]]
+                    qa[j] = fa + (fb - fa) * (s / nsub)
+                    qb[j] = fa + (fb - fa) * ((s + 1) / nsub)
+                    if not (np.isfinite(fa) and np.isfinite(fb)) and st[j] == OK:
+                        st[j] = NONFINITE
+                _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt,
+                      qa, qb, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used)
+                for j in range(nl):
+                    t0 = Tb[0, j]
+                    a_h[j] += dt * 4.0 * es * t0 * t0 * t0
                 a_time += dt
                 nsteps += 1
-            if st != OK:
-                fail = k
+            bad = False
+            for j in range(nl):
+                if st[j] == OK:
+                    for i in range(nz):
+                        v = Tb[i, j]
+                        if not (v > 0.0 and v < _T_MAX):
+                            st[j] = NONFINITE
+                if st[j] != OK:
+                    bad = True
+                    if fail[j] < 0:
+                        fail[j] = k
+            if bad:
                 break
             if record:
-                out[k + 1, c] = Tc[0]
-        T[c, :] = Tc
-        status[c] = st
-        fail_idx[c] = fail
-        acc[c, 0] += a_abs
-        acc[c, 1] += a_emit
-        acc[c, 2] += a_h
-        acc[c, 3] += a_time
-        acc[c, 4] += nsteps
+                for j in range(nl):
+                    out[k + 1, c0 + j] = Tb[0, j]
+        for j in range(nl):
+            c = c0 + j
+            if st[j] == OK:
+                for i in range(nz):
+                    T[c, i] = Tb[i, j]
+            status[c] = st[j]
+            fail_idx[c] = fail[j]
+            acc[c, 0] += e_abs[j]
+            acc[c, 1] += e_emit[j]
+            acc[c, 2] += a_h[j]
+            acc[c, 3] += a_time
+            acc[c, 4] += nsteps
 
 
 @njit(parallel=True, cache=True)
