@@ -226,7 +226,7 @@ def conductivity_coefficients(rho, material: str = "regolith",
         return z, z, rho * ROCK_D0, rho * ROCK_D1
     if material != "regolith":
         raise ProfileError(f"material={material!r} is unknown; allowed: 'regolith', 'rock'")
-    check_density(rho, warn=warn)
+    check_density(rho, warn=warn and ps.regolith_model == "table72")
     if ps.regolith_model == "hayne2017":
         kc = hayne_kc(rho)
         return kc, kc * HAYNE_CHI / HAYNE_T_REF**3, z, z
@@ -238,8 +238,9 @@ def regolith_conductivity(rho, T, property_set: str | PropertySet = "apollo"):
     """Regolith thermal conductivity k(rho, T) [W m-1 K-1].
 
     ``"apollo"``: thesis Eq. 7.4, ``b0(rho) + b3(rho) T^3`` (Table 7.2, piecewise linear in
-    density, extrapolated linearly with a :class:`DensityExtrapolationWarning` outside 1300-1970;
-    ProfileError outside 500-3500). ``"hayne2017"``: ``kc(rho) (1 + 2.7 (T/350)^3)``.
+    density, extrapolated linearly with a :class:`DensityExtrapolationWarning` outside 1300-1970).
+    ``"hayne2017"``: ``kc(rho) (1 + 2.7 (T/350)^3)`` (no Table 7.2 warning).
+    Both: ProfileError outside 500-3500 kg m-3.
 
     Parameters
     ----------

@@ -357,6 +357,8 @@ def _as_profiles(profiles) -> list:
     cache = {}
     for p in profiles:
         if isinstance(p, Profile):
+            if id(p) not in cache:  # ranges only: inverted profiles were allowed (or not) upstream
+                cache[id(p)] = _check_profile(p, allow_inverted=True, warn=False)
             out.append(p)
         else:
             key = str(p)

@@ -43,7 +43,7 @@ _NEWTON_RTOL = 1e-12
 _T_MAX = 1.0e5
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _cpoly(T, ccoef, ctmin):
     x = T if T > ctmin else ctmin
     return ccoef[0] + x * (ccoef[1] + x * (ccoef[2] + x * (ccoef[3] + x * ccoef[4])))
@@ -66,7 +66,7 @@ SCHEME_BE = 0
 SCHEME_TRBDF2 = 1
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _props(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc):
     """Link conductances K [W m-2 K-1] and node heat capacities Cc = m c [J m-2 K-1] at T.
 
@@ -93,7 +93,7 @@ def _props(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc):
             Cc[i, j] = m[i, j] * (c0 + x * (c1 + x * (c2 + x * (c3 + x * c4))))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q, st, alt_add, alt_used):
     """Solve (Cc/tau + theta L) X + a4 X0^4 e_0 = R for X (in place), lane by lane; L is the
     conduction operator with conductances K (no-flux ends: boundary fluxes are in R).
@@ -128,7 +128,7 @@ def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q, st, alt_add, alt_used):
         alpha = Cc[0, j] * rtau + k0 * (1.0 - q[1, j])
         rhs = R[0, j] + k0 * p[1, j]
         a4j = a4
-        if alt_add.shape[0] > 0:
+        if alt_add.shape[0] > 0 and a4 > 0.0:
             alt_used[j] = 0
             if rhs <= 0.0 or _newton(alpha, a4, rhs, tguess[j], st, j) < 0.5 * tguess[j]:
                 a4j = 2.0 * a4
@@ -148,7 +148,7 @@ def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q, st, alt_add, alt_used):
             X[i, j] = p[i, j] + q[i, j] * X[i - 1, j]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _newton(alpha, a4, rhs, tguess, st, j):
     """Positive root of alpha x + a4 x^4 = rhs (a4 > 0); sets st[j] = NEWTON_FAILED if not converged.
 
@@ -175,7 +175,7 @@ def _newton(alpha, a4, rhs, tguess, st, j):
     return x
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, qa, qb,
           K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used):
     """One time step of a batch of columns (T: (nz, LANES)) in place; absorbed flux qa (LANES,)
@@ -246,7 +246,7 @@ def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, q
         e_emit[j] += dt * es * TRB_QW1 * t1 * t1 * t1 * t1
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
                 times, absorbed, fidx, out, record, acc, status, fail_idx):
     """Advance every column through the forcing samples ``times``.
@@ -357,7 +357,7 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt
             acc[c, 4] += nsteps
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def linear_sweeps(T, a, b, cc, h, Cd, nsteps, forcing):
     """Benchmark reference: ``nsteps`` backward-Euler steps of a *linear* constant-coefficient
     column (surface conductance ``h`` to a 0 K sink plus forcing), one plain Thomas sweep per step.
