@@ -246,6 +246,103 @@ def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, q
         e_emit[j] += dt * es * TRB_QW1 * t1 * t1 * t1 * t1
 
 
+@njit(cache=True, error_model="numpy")
+def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
+               times, absorbed, fidx, out, record, acc, status, fail_idx):
+    """Advance columns bi*LANES ... (bi+1)*LANES-1 (see :func:`run_columns`)."""
+    ncol, nz = T.shape
+    nt = times.shape[0]
+    c0 = bi * LANES
+    nl = min(LANES, ncol - c0)
+    Tb = np.empty((nz, nl))
+    mb = np.empty((nz, nl))
+    b0b = np.empty((nz - 1, nl))
+    b3b = np.empty((nz - 1, nl))
+    e0b = np.empty((nz - 1, nl))
+    e1b = np.empty((nz - 1, nl))
+    anyrock = False
+    for j in range(nl):
+        if rock[c0 + j] != 0:
+            anyrock = True
+        for i in range(nz):
+            Tb[i, j] = T[c0 + j, i]
+            mb[i, j] = m[c0 + j, i]
+        for i in range(nz - 1):
+            b0b[i, j] = b0[c0 + j, i]
+            b3b[i, j] = b3[c0 + j, i]
+            e0b[i, j] = e0[c0 + j, i]
+            e1b[i, j] = e1[c0 + j, i]
+    K = np.empty((nz - 1, nl))
+    Cc = np.empty((nz, nl))
+    R = np.empty((nz, nl))
+    Tg = np.empty((nz, nl))
+    p = np.empty((nz, nl))
+    q = np.empty((nz, nl))
+    qa = np.empty(nl)
+    qb = np.empty(nl)
+    alt_add = np.zeros(nl)
+    alt_used = np.zeros(nl, np.int64)
+    st = np.zeros(nl, np.int64)
+    fail = np.full(nl, -1, np.int64)
+    e_abs = np.zeros(nl)
+    e_emit = np.zeros(nl)
+    a_h = np.zeros(nl)
+    a_time = 0.0
+    nsteps = 0
+    if record:
+        for j in range(nl):
+            out[0, c0 + j] = Tb[0, j]
+    for k in range(nt - 1):
+        span = times[k + 1] - times[k]
+        nsub = int(np.ceil(span / dt_max - 1e-9))
+        if nsub < 1:
+            nsub = 1
+        dt = span / nsub
+        for s in range(nsub):
+            for j in range(nl):
+                fa = absorbed[k, fidx[c0 + j]]
+                fb = absorbed[k + 1, fidx[c0 + j]]
+                qa[j] = fa + (fb - fa) * (s / nsub)
+                qb[j] = fa + (fb - fa) * ((s + 1) / nsub)
+                if not (np.isfinite(fa) and np.isfinite(fb)) and st[j] == OK:
+                    st[j] = NONFINITE
+            _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt,
+                  qa, qb, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used)
+            for j in range(nl):
+                t0 = Tb[0, j]
+                a_h[j] += dt * 4.0 * es * t0 * t0 * t0
+            a_time += dt
+            nsteps += 1
+        bad = False
+        for j in range(nl):
+            if st[j] == OK:
+                for i in range(nz):
+                    v = Tb[i, j]
+                    if not (v > 0.0 and v < _T_MAX):
+                        st[j] = NONFINITE
+            if st[j] != OK:
+                bad = True
+                if fail[j] < 0:
+                    fail[j] = k
+        if bad:
+            break
+        if record:
+            for j in range(nl):
+                out[k + 1, c0 + j] = Tb[0, j]
+    for j in range(nl):
+        c = c0 + j
+        if st[j] == OK:
+            for i in range(nz):
+                T[c, i] = Tb[i, j]
+        status[c] = st[j]
+        fail_idx[c] = fail[j]
+        acc[c, 0] += e_abs[j]
+        acc[c, 1] += e_emit[j]
+        acc[c, 2] += a_h[j]
+        acc[c, 3] += a_time
+        acc[c, 4] += nsteps
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
                 times, absorbed, fidx, out, record, acc, status, fail_idx):
@@ -262,99 +359,21 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt
     acc : (ncol, N_ACC) accumulators (added to). status, fail_idx : (ncol,) int64 outputs
     (status code, index of the forcing interval where the column failed or -1).
     """
-    ncol, nz = T.shape
-    nt = times.shape[0]
-    nb = (ncol + LANES - 1) // LANES
+    nb = (T.shape[0] + LANES - 1) // LANES
     for bi in prange(nb):
-        c0 = bi * LANES
-        nl = min(LANES, ncol - c0)
-        Tb = np.empty((nz, nl))
-        mb = np.empty((nz, nl))
-        b0b = np.empty((nz - 1, nl))
-        b3b = np.empty((nz - 1, nl))
-        e0b = np.empty((nz - 1, nl))
-        e1b = np.empty((nz - 1, nl))
-        anyrock = False
-        for j in range(nl):
-            if rock[c0 + j] != 0:
-                anyrock = True
-            for i in range(nz):
-                Tb[i, j] = T[c0 + j, i]
-                mb[i, j] = m[c0 + j, i]
-            for i in range(nz - 1):
-                b0b[i, j] = b0[c0 + j, i]
-                b3b[i, j] = b3[c0 + j, i]
-                e0b[i, j] = e0[c0 + j, i]
-                e1b[i, j] = e1[c0 + j, i]
-        K = np.empty((nz - 1, nl))
-        Cc = np.empty((nz, nl))
-        R = np.empty((nz, nl))
-        Tg = np.empty((nz, nl))
-        p = np.empty((nz, nl))
-        q = np.empty((nz, nl))
-        qa = np.empty(nl)
-        qb = np.empty(nl)
-        alt_add = np.zeros(nl)
-        alt_used = np.zeros(nl, np.int64)
-        st = np.zeros(nl, np.int64)
-        fail = np.full(nl, -1, np.int64)
-        e_abs = np.zeros(nl)
-        e_emit = np.zeros(nl)
-        a_h = np.zeros(nl)
-        a_time = 0.0
-        nsteps = 0
-        if record:
-            for j in range(nl):
-                out[0, c0 + j] = Tb[0, j]
-        for k in range(nt - 1):
-            span = times[k + 1] - times[k]
-            nsub = int(np.ceil(span / dt_max - 1e-9))
-            if nsub < 1:
-                nsub = 1
-            dt = span / nsub
-            for s in range(nsub):
-                for j in range(nl):
-                    fa = absorbed[k, fidx[c0 + j]]
-                    fb = absorbed[k + 1, fidx[c0 + j]]
-                    qa[j] = fa + (fb - fa) * (s / nsub)
-                    qb[j] = fa + (fb - fa) * ((s + 1) / nsub)
-                    if not (np.isfinite(fa) and np.isfinite(fb)) and st[j] == OK:
-                        st[j] = NONFINITE
-                _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt,
-                      qa, qb, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used)
-                for j in range(nl):
-                    t0 = Tb[0, j]
-                    a_h[j] += dt * 4.0 * es * t0 * t0 * t0
-                a_time += dt
-                nsteps += 1
-            bad = False
-            for j in range(nl):
-                if st[j] == OK:
-                    for i in range(nz):
-                        v = Tb[i, j]
-                        if not (v > 0.0 and v < _T_MAX):
-                            st[j] = NONFINITE
-                if st[j] != OK:
-                    bad = True
-                    if fail[j] < 0:
-                        fail[j] = k
-            if bad:
-                break
-            if record:
-                for j in range(nl):
-                    out[k + 1, c0 + j] = Tb[0, j]
-        for j in range(nl):
-            c = c0 + j
-            if st[j] == OK:
-                for i in range(nz):
-                    T[c, i] = Tb[i, j]
-            status[c] = st[j]
-            fail_idx[c] = fail[j]
-            acc[c, 0] += e_abs[j]
-            acc[c, 1] += e_emit[j]
-            acc[c, 2] += a_h[j]
-            acc[c, 3] += a_time
-            acc[c, 4] += nsteps
+        _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
+                   times, absorbed, fidx, out, record, acc, status, fail_idx)
+
+
+@njit(cache=True, error_model="numpy")
+def run_columns_serial(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
+                       times, absorbed, fidx, out, record, acc, status, fail_idx):
+    """As :func:`run_columns` in the calling thread (no thread-pool start-up: for few columns,
+    e.g. the per-step calls of a small coupled run on a busy machine)."""
+    nb = (T.shape[0] + LANES - 1) // LANES
+    for bi in range(nb):
+        _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
+                   times, absorbed, fidx, out, record, acc, status, fail_idx)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
