@@ -77,7 +77,7 @@ DEFAULT_DT_MAX = 14_400.0
 #: Default first-layer thickness as a fraction of the diurnal skin depth [-] (convergence study).
 DEFAULT_SKIN_FRACTION = 0.1
 #: Default geometric growth factor of layer thickness with depth [-] (convergence study).
-DEFAULT_GROWTH = 1.2
+DEFAULT_GROWTH = 1.15
 #: Temperature [K] at which the nominal top-layer properties set the skin depth for the grid.
 GRID_T_REF = 250.0
 
