@@ -183,8 +183,10 @@ def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, q
     scheme's quadrature) to e_abs, e_emit.
 
     scheme 0: backward Euler. scheme 1: TR-BDF2 (trapezoidal stage to t + gamma dt, then BDF2;
-    L-stable and second order); properties at the start of the step for the first stage and at
-    the stage temperature for the second.
+    L-stable and second order); properties at the start of the step for the first stage and,
+    for the BDF2 stage (implicit at t + dt), at the end-of-step temperature predicted by linear
+    extrapolation through T(t) and T(t + gamma dt) (floored at half the stage value). Against
+    properties at the stage value this halves the settled night-time error on walls (measured).
     """
     nz, nl = T.shape
     n1 = nz - 1
@@ -231,8 +233,15 @@ def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, q
             e_emit[j] += dt * 2.0 * TRB_QW0 * emg
         else:
             e_emit[j] += dt * TRB_QW0 * (2.0 * alt_add[j] + emg)
-    # stage 2: BDF2 from (T, Tg) over beta dt, properties at the stage temperature
-    _props(Tg, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc)
+    # stage 2: BDF2 from (T, Tg) over beta dt, properties at the predicted end temperature
+    # (p is free scratch here: _solve overwrites it)
+    xf = (1.0 - g) / g
+    for i in range(nz):
+        for j in range(nl):
+            v = Tg[i, j] + xf * (Tg[i, j] - T[i, j])
+            lo = 0.5 * Tg[i, j]
+            p[i, j] = v if v > lo else lo
+    _props(p, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc)
     rtau = 1.0 / (TRB_BETA * dt)
     for i in range(nz):
         for j in range(nl):
