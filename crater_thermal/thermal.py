@@ -580,9 +580,10 @@ class ColumnSolver:
         self.T = self.equilibrium_profile(absorbed)
 
     # -- time stepping -----------------------------------------------------------------------
-    def _run(self, times, a, fidx, record, t_offset):
+    def _run(self, times, a, fidx, record, t_offset, out=None):
         nt = times.shape[0]
-        out = np.empty((nt, self.ncol)) if record else np.empty((1, 1))
+        if out is None:
+            out = np.empty((nt, self.ncol)) if record else np.empty((1, 1))
         status = np.zeros(self.ncol, np.int64)
         fail = np.full(self.ncol, -1, np.int64)
         nb = -(-self.ncol // _k.LANES)
@@ -616,7 +617,7 @@ class ColumnSolver:
         self.time_s += float(duration_s)
         return self.T[:, 0].copy()
 
-    def run_series(self, times_s, absorbed, record: bool = True):
+    def run_series(self, times_s, absorbed, record: bool = True, out=None):
         """Run through forcing samples from the current state (taken to be at ``times_s[0]``).
 
         Parameters
@@ -624,6 +625,8 @@ class ColumnSolver:
         times_s : (nt,) increasing [s]
         absorbed : (nt, ncol) [W m-2], or (nt, n) with ncol a multiple of n (column j uses j % n)
         record : return the surface temperatures at every sample (first row: current state).
+        out : optional preallocated (nt, ncol) C-contiguous float32 or float64 array for them
+            (float32 halves the memory of a 45,682-column year: 400 MB instead of 800 MB).
 
         Returns
         -------
@@ -633,7 +636,13 @@ class ColumnSolver:
         if times.ndim != 1 or times.size < 1 or np.any(np.diff(times) <= 0):
             raise SolverError("times_s must be a 1-D strictly increasing array")
         a, fidx = self._forcing(absorbed, times.size)
-        out = self._run(times, a, fidx, record, self.time_s - times[0])
+        if out is not None:
+            if (not isinstance(out, np.ndarray) or out.shape != (times.size, self.ncol)
+                    or out.dtype not in (np.float32, np.float64) or not out.flags.c_contiguous):
+                raise SolverError(f"out must be a C-contiguous float32/float64 array of shape "
+                                  f"{(times.size, self.ncol)}")
+            record = True
+        out = self._run(times, a, fidx, record, self.time_s - times[0], out)
         self.time_s += float(times[-1] - times[0])
         return out
 

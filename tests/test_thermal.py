@@ -273,6 +273,20 @@ def test_forcing_shared_by_profiles():
     np.testing.assert_array_equal(a.run_series(t, Q), b.run_series(t, np.tile(Q, (1, 2))))
 
 
+def test_float32_output_buffer():
+    t = np.arange(0.0, 20 * FLUX_STEP, FLUX_STEP)
+    Q = forcing("wall", t)[:, None]
+    a = th.ColumnSolver(["1300/1800"] * 3)
+    b = th.ColumnSolver(["1300/1800"] * 3)
+    a.set_uniform(150.0)
+    b.set_uniform(150.0)
+    buf = np.empty((t.size, 3), np.float32)
+    assert a.run_series(t, Q, out=buf) is buf
+    np.testing.assert_array_equal(buf, b.run_series(t, Q).astype(np.float32))
+    with pytest.raises(SolverError, match="out must be"):
+        a.run_series(t, Q, out=np.empty((t.size, 2)))
+
+
 def test_nan_forcing_names_column_and_time():
     s = th.ColumnSolver(["1300/1800"] * 20)
     s.set_uniform(100.0)
