@@ -215,7 +215,8 @@ def conductivity_coefficients(rho, material: str = "regolith",
 
     Returns
     -------
-    b0 [W m-1 K-1], b3 [W m-1 K-4], e0 [kg m-1 s-1... = rho d0], e1 [rho d1] : arrays like ``rho``
+    b0 [W m-1 K-1], b3 [W m-1 K-4], e0 = rho d0 [kg m-1 s-1], e1 = rho d1 [kg m-1 s-1 K] :
+    arrays like ``rho`` (e0, e1 nonzero for rock only; times c(T) [J kg-1 K-1] they give W m-1 K-1)
     """
     ps = get_property_set(property_set)
     rho = np.asarray(rho, dtype=float)

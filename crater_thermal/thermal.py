@@ -405,6 +405,10 @@ class ColumnSolver:
     scheme : ``"trbdf2"`` (default: TR-BDF2, L-stable, second order) or ``"euler"`` (backward
         Euler, first order; for studies and the benchmark).
 
+    Initial state: :meth:`set_uniform`, :meth:`set_equilibrium` or :meth:`set_state`; when none
+    was called, the first :meth:`run_series` / :meth:`advance` / :meth:`periodic_start` starts
+    from :meth:`set_equilibrium` of its own forcing (the default start).
+
     Attributes
     ----------
     T : (ncol, nz) float [K] the state; ``grid.z`` gives the node depths.
@@ -437,6 +441,7 @@ class ColumnSolver:
         self.grid = grid
         self._build_coefficients()
         self.T = np.full((self.ncol, self.nz), 200.0)
+        self._initialised = False
         self.time_s = 0.0
         self.acc = np.zeros((self.ncol, _k.N_ACC))
         self._snap = None
@@ -530,12 +535,14 @@ class ColumnSolver:
             self.acc[:] = self._snap[1]
             self.time_s = self._snap[2]
         self.T = np.ascontiguousarray(T.copy())
+        self._initialised = True
 
     def set_uniform(self, T0: float) -> None:
         """Uniform start temperature ``T0`` [K]."""
         if not (np.isfinite(T0) and 0 < T0 < 2000):
             raise SolverError(f"initial temperature T0={T0!r} K must be in (0, 2000) K")
         self.T = np.full((self.ncol, self.nz), float(T0))
+        self._initialised = True
 
     def _forcing(self, absorbed, nt_expected=None):
         a = np.asarray(absorbed, dtype=np.float64)
@@ -578,6 +585,7 @@ class ColumnSolver:
     def set_equilibrium(self, absorbed) -> None:
         """Start from :meth:`equilibrium_profile` of the forcing series (the default start)."""
         self.T = self.equilibrium_profile(absorbed)
+        self._initialised = True
 
     # -- time stepping -----------------------------------------------------------------------
     def _run(self, times, a, fidx, record, t_offset, out=None):
@@ -612,6 +620,8 @@ class ColumnSolver:
         a = np.empty((2, self.ncol))
         a[0] = absorbed_start
         a[1] = absorbed_end
+        if not self._initialised:
+            self.set_equilibrium(a)
         times = np.array([0.0, float(duration_s)])
         self._run(times, a, np.arange(self.ncol, dtype=np.int64), False, self.time_s)
         self.time_s += float(duration_s)
@@ -636,6 +646,8 @@ class ColumnSolver:
         if times.ndim != 1 or times.size < 1 or np.any(np.diff(times) <= 0):
             raise SolverError("times_s must be a 1-D strictly increasing array")
         a, fidx = self._forcing(absorbed, times.size)
+        if not self._initialised:
+            self.set_equilibrium(a)
         if out is not None:
             if (not isinstance(out, np.ndarray) or out.shape != (times.size, self.ncol)
                     or out.dtype not in (np.float32, np.float64) or not out.flags.c_contiguous):
@@ -651,11 +663,12 @@ class ColumnSolver:
         """Set the state to the periodic steady state of an uncoupled forcing period.
 
         The period is ``times_s[0] .. times_s[-1]`` (the forcing should be periodic over it).
-        Starts from the current state, or ``start="equilibrium"``. Returns :func:`periodic_state`'s info.
+        Starts from the current state, or from :meth:`set_equilibrium` with ``start="equilibrium"``
+        or when no state was set. Returns :func:`periodic_state`'s info.
         """
         times = np.asarray(times_s, dtype=np.float64)
         a, _ = self._forcing(absorbed, times.size)
-        if start == "equilibrium":
+        if start == "equilibrium" or not self._initialised:
             self.set_equilibrium(a)
 
         def period_map(x):
@@ -735,9 +748,12 @@ def periodic_state(solver: ColumnSolver, period_map: Callable, tol_K: float = 0.
     dict: ``iterations`` (period maps run), ``converged`` (bool), ``residual_K`` (ncol,)
     max |Phi(x) - x| per column of the last map, ``history_K`` (list of max residuals),
     ``step_K`` (ncol,) the last quasi-Newton step, ``step_history_K``.
-    The solver is left in Phi(x) (the state one period after the converged start).
+    The solver is left in Phi(x) (the state one period after the converged start, i.e. the
+    periodic state at the start of the period), its clock reset to its value at the call and its
+    accumulators holding the last period's energies.
     """
-    x = solver.state()
+    x = solver.T.copy()  # (not state(): no snapshot that the period map's set_state would rewind)
+    t_start = solver.time_s
     history = []
     step_hist = []
     prev = None
@@ -790,5 +806,6 @@ def periodic_state(solver: ColumnSolver, period_map: Callable, tol_K: float = 0.
         prev = (x, dx)
         x = np.maximum(x_new, 2.0)
     solver.set_state(y)
+    solver.time_s = t_start
     return {"iterations": it, "converged": converged, "residual_K": res, "history_K": history,
             "step_K": step, "step_history_K": step_hist}

@@ -159,3 +159,17 @@ def test_hayne2017_equator_validation():
     noon_to_midnight = np.argmin(np.abs(t - LUNAR_DAY / 2))
     assert abs(T[noon_to_midnight] - 100.2) < 1.0
     assert abs(T[night].min() - 93.7) < 1.0
+
+
+def test_periodic_after_previous_runs_keeps_clock(periodic):
+    """A solver that has already run (clock and accumulators non-zero) reaches the same periodic
+    state, and its clock is back where it was."""
+    start, _, _ = periodic
+    s = solver()
+    s.set_uniform(150.0)
+    s.run_series(T_S[:50], Q[:50], record=False)
+    s.state()
+    t_before = s.time_s
+    info = s.periodic_start(T_S, Q)
+    assert info["converged"] and s.time_s == t_before
+    np.testing.assert_allclose(s.T, start, atol=0.05)

@@ -314,3 +314,18 @@ def test_bad_solver_inputs():
         th.ColumnSolver(["1300/1800"], scheme="rk4")
     with pytest.raises(ProfileError, match="500-3500"):
         th.ColumnSolver([th.Profile("x", ((0.02, 1800.0), (2.0, 4000.0)))])
+
+
+def test_default_start_is_equilibrium():
+    t = np.arange(0.0, 5 * FLUX_STEP, FLUX_STEP)
+    Q = np.column_stack([forcing("wall", t), forcing("floor", t)])
+    a = th.ColumnSolver(["1300/1800"] * 2)
+    b = th.ColumnSolver(["1300/1800"] * 2)
+    b.set_equilibrium(Q)
+    np.testing.assert_array_equal(a.run_series(t, Q), b.run_series(t, Q))
+    # the equilibrium estimate: mean radiative-equilibrium surface, steady geothermal gradient below
+    eq = b.equilibrium_profile(Q)
+    Ts = np.mean(((Q + 0.033) / (0.98 * SIGMA)) ** 0.25, axis=0)
+    np.testing.assert_allclose(eq[:, 0], Ts, rtol=1e-12)
+    k = b.conductivity(eq)
+    np.testing.assert_allclose(k * np.diff(eq, axis=1) / b.dz, 0.033, rtol=1e-3)

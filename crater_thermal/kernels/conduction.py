@@ -17,13 +17,14 @@ length ``dz[l]``) the conductivity coefficients of
 evaluated at the link's mean temperature. c(T) is the polynomial ``ccoef`` (ascending powers)
 evaluated at ``max(T, ctmin)``.
 
-Time stepping: the theta method (``theta = 1``: backward Euler, the default; L-stable, which
-matters because rock columns have kappa dt / dz^2 ~ 1e3 at the surface), properties
-(k, c) lagged to the start of each sub-step, the nonlinear surface emission ``eps sigma T^4``
-treated implicitly (weight theta) and solved exactly by a scalar Newton iteration after
-eliminating the tridiagonal system from the bottom up (Thomas algorithm run bottom-to-top, so
-that the only unknown left is the surface temperature). The absorbed flux is linear in time
-between samples; the geothermal flux ``G`` enters the bottom half cell.
+Time stepping: TR-BDF2 (default) or backward Euler, both L-stable (rock columns have
+kappa dt / dz^2 ~ 1e3 at the surface); properties (k, c) lagged within each stage; the
+nonlinear surface emission ``eps sigma T^4`` implicit and solved exactly by a scalar Newton
+iteration after eliminating the tridiagonal system from the bottom up (Thomas algorithm run
+bottom-to-top, so that the only unknown left is the surface temperature). The absorbed flux is
+linear in time between samples; the geothermal flux ``G`` enters the bottom half cell.
+:data:`LANES` columns are advanced together per thread, interleaved, so that the serial Thomas
+recurrences of different columns overlap and the inner loops vectorise.
 """
 
 import numpy as np
