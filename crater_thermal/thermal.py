@@ -567,7 +567,7 @@ class ColumnSolver:
         """
         a, fidx = self._forcing(absorbed)
         es = max(self.emissivity, 1e-3) * SIGMA
-        ts = np.mean((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es, axis=0) ** 0.25
+        ts = np.mean(((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es) ** 0.25, axis=0)
         ts = np.maximum(ts[fidx], 10.0)
         T = np.empty((self.ncol, self.nz))
         T[:, 0] = ts
