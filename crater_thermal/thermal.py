@@ -28,11 +28,12 @@ Discretisation
   the dark) takes the emission implicit for that stage instead.
   Accuracy at the defaults (dt = 4 h, 35 nodes), against a fine reference (dt = 450 s, first
   layer / 4, growth 1.03), half a year of synthetic forcing: settled nights (Sun, or for the
-  floor the lit walls' IR, down >= 1 day) within 0.03 K on regolith floors and walls, 0.07 K on
-  sunlit rock; in the first day after sunset on sunlit walls up to 0.6 K (the surface cools by
-  tens of K per 4 h step there); Hayne 2017 equator validation (tests/test_periodic.py):
+  floor the lit walls' IR, down >= 1 day) within 0.03 K on regolith floors and walls, 0.08 K on
+  sunlit rock; in the first day after sunset on sunlit walls up to 0.2 K (0.6 K without the
+  adaptive refinement of the kink steps, :data:`DEFAULT_ADAPT_K`, which costs ~3.5% more
+  sub-steps in batches with sunlit walls, none in shadow); Hayne 2017 equator validation (tests/test_periodic.py):
   385.2 / 100.3 / 93.8 K vs heat1d 388.5 / 100.2 / 93.7 K (noon / midnight / night minimum).
-  Backward Euler at 4 h: 0.14-0.3 K in settled nights.
+  Backward Euler at 4 h: 0.16-0.48 K in settled nights.
   The scheme conserves energy exactly for its lagged capacities; against the true enthalpy
   (:meth:`ColumnSolver.stored_heat`) the defect is O(c' dT^2) per step: <= 5e-4 of the absorbed
   energy over a year (sunlit rock), ~1e-4 on regolith walls.
@@ -79,6 +80,10 @@ __all__ = [
 
 #: Default maximum conduction sub-step [s]: the thesis's 4-hour flux step (convergence study).
 DEFAULT_DT_MAX = 14_400.0
+#: Default local-error threshold [K] of the adaptive sub-step refinement (kernel ``run_columns``):
+#: at 1 K it splits ~3.5% of the steps of a batch with sunlit walls (the sunrise / sunset kinks) and
+#: cuts the first-day-after-sunset error from 0.6 to 0.2 K (bench/conduction_accuracy.py).
+DEFAULT_ADAPT_K = 1.0
 #: Default first-layer thickness as a fraction of the diurnal skin depth [-] (convergence study).
 DEFAULT_SKIN_FRACTION = 0.1
 #: Default geometric growth factor of layer thickness with depth [-] (convergence study).
@@ -404,6 +409,10 @@ class ColumnSolver:
         Largest sub-step; each forcing interval is split into equal sub-steps <= dt_max.
     scheme : ``"trbdf2"`` (default: TR-BDF2, L-stable, second order) or ``"euler"`` (backward
         Euler, first order; for studies and the benchmark).
+    adapt_K : float [K]
+        Local-error threshold of the adaptive refinement: a sub-step whose surface curvature
+        indicator exceeds it is redone in up to 16 parts (0: off). In practice only the
+        sunrise / sunset steps of sunlit facets are split.
 
     Initial state: :meth:`set_uniform`, :meth:`set_equilibrium` or :meth:`set_state`; when none
     was called, the first :meth:`run_series` / :meth:`advance` / :meth:`periodic_start` starts
@@ -417,7 +426,8 @@ class ColumnSolver:
 
     def __init__(self, profiles, property_set="apollo", emissivity: float = EMISSIVITY,
                  geothermal_flux: float = GEOTHERMAL_FLUX, grid: Grid | None = None,
-                 dt_max: float = DEFAULT_DT_MAX, scheme: str = "trbdf2"):
+                 dt_max: float = DEFAULT_DT_MAX, scheme: str = "trbdf2",
+                 adapt_K: float = DEFAULT_ADAPT_K):
         self.profiles = _as_profiles(profiles)
         self.pset = materials.get_property_set(property_set)
         if not (0.0 <= emissivity <= 1.0):
@@ -432,6 +442,9 @@ class ColumnSolver:
         self.geothermal_flux = float(geothermal_flux)
         self.dt_max = float(dt_max)
         self.scheme = scheme
+        if not (np.isfinite(adapt_K) and adapt_K >= 0):
+            raise ProfileError(f"adapt_K={adapt_K!r} K must be >= 0 (0: no adaptive refinement)")
+        self.adapt_K = float(adapt_K)
         if grid is None:
             ifc = {TOP_LAYER_THICKNESS}
             for p in self.profiles:
@@ -598,7 +611,7 @@ class ColumnSolver:
         kern = _k.run_columns if nb >= 2 * numba.get_num_threads() else _k.run_columns_serial
         kern(self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.ccoef,
                        float(self.pset.c_t_min), self.rdz, self.emissivity * SIGMA, self.geothermal_flux,
-                       SCHEMES[self.scheme], self.dt_max, times, a, fidx, out, record, self.acc, status, fail)
+                       SCHEMES[self.scheme], self.dt_max, self.adapt_K, times, a, fidx, out, record, self.acc, status, fail)
         if np.any(status != _k.OK):
             c = int(np.flatnonzero(status != _k.OK)[0])
             k = int(fail[c])

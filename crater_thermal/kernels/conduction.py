@@ -53,6 +53,8 @@ def _cpoly(T, ccoef, ctmin):
 #: Columns advanced together in one thread (interleaved so that the serial Thomas recurrences
 #: of different columns overlap and the inner loops vectorise).
 LANES = 16
+#: Largest number of parts an adaptive sub-step is split into.
+MAX_REFINE = 16
 
 #: TR-BDF2 constants (Bank et al. 1985; Hosea & Shampine 1996): gamma = 2 - sqrt(2)
 TRB_GAMMA = 2.0 - np.sqrt(2.0)
@@ -257,7 +259,7 @@ def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, q
 
 
 @njit(cache=True, error_model="numpy")
-def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
+def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max, adapt_K,
                times, absorbed, fidx, out, record, acc, status, fail_idx):
     """Advance columns bi*LANES ... (bi+1)*LANES-1 (see :func:`run_columns`)."""
     ncol, nz = T.shape
@@ -292,6 +294,12 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
     qb = np.empty(nl)
     alt_add = np.zeros(nl)
     alt_used = np.zeros(nl, np.int64)
+    Ts = np.empty((nz, nl))
+    ea_s = np.empty(nl)
+    ee_s = np.empty(nl)
+    st_s = np.empty(nl, np.int64)
+    q2a = np.empty(nl)
+    q2b = np.empty(nl)
     st = np.zeros(nl, np.int64)
     fail = np.full(nl, -1, np.int64)
     e_abs = np.zeros(nl)
@@ -316,13 +324,53 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
                 qb[j] = fa + (fb - fa) * ((s + 1) / nsub)
                 if not (np.isfinite(fa) and np.isfinite(fb)) and st[j] == OK:
                     st[j] = NONFINITE
+            if adapt_K > 0.0 and scheme == SCHEME_TRBDF2:
+                for i in range(nz):
+                    for j in range(nl):
+                        Ts[i, j] = Tb[i, j]
+                for j in range(nl):
+                    ea_s[j] = e_abs[j]
+                    ee_s[j] = e_emit[j]
+                    st_s[j] = st[j]
             _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt,
                   qa, qb, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used)
-            for j in range(nl):
-                t0 = Tb[0, j]
-                a_h[j] += dt * 4.0 * es * t0 * t0 * t0
+            nr = 1
+            if adapt_K > 0.0 and scheme == SCHEME_TRBDF2:
+                # adaptive refinement: where the surface of any lane curved strongly within this
+                # sub-step (the kinks of sunrise / sunset), redo it in nr equal parts
+                dmax = 0.0
+                for j in range(nl):
+                    # curvature estimate: the TR stage value against the chord through the
+                    # step's end points, ~ gamma (1 - gamma) dt^2 T'' / 2
+                    d = abs(Tg[0, j] - (Ts[0, j] + TRB_GAMMA * (Tb[0, j] - Ts[0, j])))
+                    if not (d <= dmax):  # also catches NaN
+                        dmax = d if d == d else 1e30
+                while nr < MAX_REFINE and dmax > adapt_K * nr * nr:
+                    nr *= 2
+                if nr > 1:
+                    for i in range(nz):
+                        for j in range(nl):
+                            Tb[i, j] = Ts[i, j]
+                    for j in range(nl):
+                        e_abs[j] = ea_s[j]
+                        e_emit[j] = ee_s[j]
+                        st[j] = st_s[j]
+                    for r in range(nr):
+                        for j in range(nl):
+                            q2a[j] = qa[j] + (qb[j] - qa[j]) * (r / nr)
+                            q2b[j] = qa[j] + (qb[j] - qa[j]) * ((r + 1) / nr)
+                        _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme,
+                              dt / nr, q2a, q2b, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add,
+                              alt_used)
+                        for j in range(nl):
+                            t0 = Tb[0, j]
+                            a_h[j] += dt / nr * 4.0 * es * t0 * t0 * t0
+            if nr == 1:
+                for j in range(nl):
+                    t0 = Tb[0, j]
+                    a_h[j] += dt * 4.0 * es * t0 * t0 * t0
             a_time += dt
-            nsteps += 1
+            nsteps += nr
         bad = False
         for j in range(nl):
             if st[j] == OK:
@@ -354,7 +402,7 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
+def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max, adapt_K,
                 times, absorbed, fidx, out, record, acc, status, fail_idx):
     """Advance every column through the forcing samples ``times``.
 
@@ -363,7 +411,12 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt
     T : (ncol, nz) float64 [K], updated in place.
     m : (ncol, nz) [kg m-2]; b0, b3, e0, e1 : (ncol, nz-1); rock : (ncol,) uint8 (1: rock term).
     ccoef : (5,); ctmin [K]; rdz : (nz-1,) inverse link lengths [m-1]; es = eps sigma
-    [W m-2 K-4]; G [W m-2]; scheme : SCHEME_BE or SCHEME_TRBDF2; dt_max [s].
+    [W m-2 K-4]; G [W m-2]; scheme : SCHEME_BE or SCHEME_TRBDF2; dt_max [s];
+    adapt_K [K]: local-error threshold. After each sub-step the surface's curvature indicator
+    |T_stage - chord through the step's end points| ~ gamma (1 - gamma) dt^2 T'' / 2 (TR-BDF2
+    only; backward Euler is never refined) is compared with adapt_K; if any column of the LANES
+    batch exceeds it, the sub-step is redone in nr = 2, 4, ... MAX_REFINE equal parts, the
+    smallest with indicator <= adapt_K nr^2 (errors scale as dt^2). 0 disables.
     times : (nt,) [s]; absorbed : (nt, nforce) [W m-2]; fidx : (ncol,) forcing column per column.
     out : (nt, ncol) surface temperatures at the samples (written when ``record``).
     acc : (ncol, N_ACC) accumulators (added to). status, fail_idx : (ncol,) int64 outputs
@@ -372,18 +425,18 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt
     nb = (T.shape[0] + LANES - 1) // LANES
     for bi in prange(nb):
         _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
-                   times, absorbed, fidx, out, record, acc, status, fail_idx)
+                   adapt_K, times, absorbed, fidx, out, record, acc, status, fail_idx)
 
 
 @njit(cache=True, error_model="numpy")
 def run_columns_serial(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
-                       times, absorbed, fidx, out, record, acc, status, fail_idx):
+                       adapt_K, times, absorbed, fidx, out, record, acc, status, fail_idx):
     """As :func:`run_columns` in the calling thread (no thread-pool start-up: for few columns,
     e.g. the per-step calls of a small coupled run on a busy machine)."""
     nb = (T.shape[0] + LANES - 1) // LANES
     for bi in range(nb):
         _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
-                   times, absorbed, fidx, out, record, acc, status, fail_idx)
+                   adapt_K, times, absorbed, fidx, out, record, acc, status, fail_idx)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
