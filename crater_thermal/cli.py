@@ -138,7 +138,8 @@ def replay(
     flux: Path = typer.Argument(..., help="Run or flux dataset (netCDF) with solar_incident and ir_incident."),
     profile: List[str] = typer.Option([], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
     density_grid: Optional[str] = typer.Option(None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
-    initial_temperature: Optional[float] = typer.Option(None, "--initial-temperature", help="Uniform start [K] instead of the periodic steady state."),
+    initial_temperature: Optional[float] = typer.Option(None, "--initial-temperature", help="Uniform start [K], then the saved spin-up window once (thesis procedure), instead of the periodic steady state."),
+    fixed_spinup: bool = typer.Option(False, "--fixed-spinup", help="Equilibrium-estimate start, then the saved spin-up window once (as a run with spinup = 'fixed')."),
     property_set: Optional[str] = typer.Option(None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
     allow_inverted: bool = typer.Option(False, "--allow-inverted", help="Allow top density > bottom density."),
     output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
@@ -149,6 +150,7 @@ def replay(
     from crater_thermal import simulate
 
     path = simulate.replay_file(flux, profile, density_grid=density_grid, initial_temperature=initial_temperature,
+                                fixed_spinup=fixed_spinup,
                                 property_set=property_set, allow_inverted=allow_inverted, output=output,
                                 overwrite=overwrite, progress=progress)
     typer.echo(f"wrote {path}")

@@ -152,7 +152,8 @@ def seconds_since(times: np.ndarray, t0: np.datetime64) -> np.ndarray:
 
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
-                  chunk_columns: int = 50_000, progress: bool | None = None, tol_K: float = 0.01):
+                  fixed_spinup: bool = False, chunk_columns: int = 50_000, progress: bool | None = None,
+                  tol_K: float = 0.01):
     """Replay saved fluxes against several density profiles (no coupling: the IR is the saved one).
 
     Parameters
@@ -162,6 +163,8 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     initial_temperature : [K] uniform start, then the spin-up window's fluxes if the file has them
         (the thesis procedure). None (default): periodic steady state over the spin-up window (or over
         the record itself when the file has no spin-up fluxes).
+    fixed_spinup : with no ``initial_temperature``: start from the equilibrium estimate and run the
+        spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
 
     Returns
     -------
@@ -186,7 +189,10 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     n_prof = len(profiles)
     out = np.empty((n_prof, nt, nf), np.float32)
     per_chunk = max(1, chunk_columns // nf)
-    info = {"start": "uniform" if initial_temperature is not None else "periodic",
+    fixed = initial_temperature is not None or fixed_spinup
+    start = ("uniform" if initial_temperature is not None else "equilibrium") + " + fixed spin-up" if fixed \
+        else "periodic"
+    info = {"start": start,
             "periodic_iterations": [], "periodic_residual_K": []}
     with progress_bar("replay", n_prof, progress) as update:
         for p0 in range(0, n_prof, per_chunk):
@@ -195,10 +201,13 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
             solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
             spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
             spin_a = np.tile(spin_a, (1, len(chunk)))
-            if initial_temperature is not None:
-                solver.set_uniform(float(initial_temperature))
+            if fixed:
+                if initial_temperature is not None:
+                    solver.set_uniform(float(initial_temperature))
+                else:
+                    solver.set_equilibrium(spin_a)
                 if has_spin:
-                    solver.run_series(spin_t, spin_a)
+                    solver.run_series(spin_t, spin_a, record=False)
             else:
                 solver.set_equilibrium(spin_a)
                 pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
@@ -268,7 +277,8 @@ def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, all
 
 
 def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_temperature=None,
-                property_set=None, allow_inverted=False, output, overwrite=False, progress=None):
+                fixed_spinup=False, property_set=None, allow_inverted=False, output, overwrite=False,
+                progress=None):
     """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically."""
     from crater_thermal import io
 
@@ -278,7 +288,7 @@ def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_
     profiles = resolve_profiles(labels, density_grid, allow_inverted)
     ds = io.read_flux_dataset(flux_path)
     T, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
-                            progress=progress)
+                            fixed_spinup=fixed_spinup, progress=progress)
     tops, bottoms = zip(*(profile_densities(p) for p in profiles))
     out = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, T,
                             attrs={"replay_start": info["start"],

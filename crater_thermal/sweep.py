@@ -38,7 +38,10 @@ def run_one(case_path: str, out_dir: str) -> dict:
     labels = list(case.replay.profiles)
     grid = case.replay.density_grid
     if (labels or grid) and not replay_nc.exists():
-        simulate.replay_file(run_nc, labels, density_grid=grid, output=replay_nc, progress=False)
+        fixed = case.period.spinup == "fixed"  # replay as the run started (thesis procedure)
+        simulate.replay_file(run_nc, labels, density_grid=grid, output=replay_nc, progress=False,
+                             initial_temperature=case.period.initial_temperature_K if fixed else None,
+                             fixed_spinup=fixed)
         done.append("replay")
     return {"case": str(case_path), "run": str(run_nc), "replay": str(replay_nc) if (labels or grid) else None,
             "done": done, "skipped": not done, "seconds": time.perf_counter() - t0}
