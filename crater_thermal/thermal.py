@@ -70,7 +70,7 @@ import numpy as np  # noqa: E402
 from crater_thermal import materials
 from crater_thermal.constants import (COLUMN_DEPTH, EMISSIVITY, GEOTHERMAL_FLUX, LUNAR_DAY,
                                       ROCK_DENSITY, SIGMA, TOP_LAYER_THICKNESS)
-from crater_thermal.errors import ProfileError, SolverError
+from crater_thermal.errors import ConfigError, ProfileError, SolverError
 from crater_thermal.kernels import conduction as _k
 
 __all__ = [
@@ -346,11 +346,11 @@ def make_grid(first_layer_m: float | None = None, growth: float = DEFAULT_GROWTH
     if first_layer_m is None:
         first_layer_m = skin_fraction * skin_depth(1300.0, GRID_T_REF, property_set)
     if not (first_layer_m > 0 and first_layer_m < depth_m):
-        raise ProfileError(f"first_layer_m={first_layer_m!r} must be in (0, {depth_m}) m")
+        raise ConfigError(f"first_layer_m={first_layer_m!r} must be in (0, {depth_m}) m")
     if not (1.0 <= growth <= 3.0):
-        raise ProfileError(f"growth={growth!r} must be in 1-3")
+        raise ConfigError(f"growth={growth!r} must be in 1-3")
     if not (depth_m > 0):
-        raise ProfileError(f"depth_m={depth_m!r} must be > 0")
+        raise ConfigError(f"depth_m={depth_m!r} must be > 0")
     ifc = sorted({float(d) for d in interfaces if 0.0 < float(d) < depth_m})
     bounds = [0.0] + ifc + [float(depth_m)]
     z = [0.0]
@@ -404,7 +404,8 @@ class ColumnSolver:
         (e.g. :func:`materials.constant_set` for analytic tests).
     emissivity : [-]
     geothermal_flux : [W m-2], entering at the bottom.
-    grid : Grid, optional (default :func:`make_grid` with a node on every profile interface).
+    grid : Grid, optional (default :func:`make_grid` with a node on every profile interface; with
+        a user grid, a link that straddles an interface uses its mean density).
     dt_max : float [s]
         Largest sub-step; each forcing interval is split into equal sub-steps <= dt_max.
     scheme : ``"trbdf2"`` (default: TR-BDF2, L-stable, second order) or ``"euler"`` (backward
@@ -431,19 +432,19 @@ class ColumnSolver:
         self.profiles = _as_profiles(profiles)
         self.pset = materials.get_property_set(property_set)
         if not (0.0 <= emissivity <= 1.0):
-            raise ProfileError(f"emissivity={emissivity!r} must be in 0-1")
+            raise ConfigError(f"emissivity={emissivity!r} must be in 0-1")
         if not (np.isfinite(geothermal_flux) and abs(geothermal_flux) < 10):
-            raise ProfileError(f"geothermal_flux={geothermal_flux!r} W/m2 must be finite, |G| < 10")
+            raise ConfigError(f"geothermal_flux={geothermal_flux!r} W/m2 must be finite, |G| < 10")
         if not (np.isfinite(dt_max) and dt_max > 0):
-            raise ProfileError(f"dt_max={dt_max!r} s must be > 0")
+            raise ConfigError(f"dt_max={dt_max!r} s must be > 0")
         if scheme not in SCHEMES:
-            raise ProfileError(f"scheme={scheme!r} is unknown; allowed: {sorted(SCHEMES)}")
+            raise ConfigError(f"scheme={scheme!r} is unknown; allowed: {sorted(SCHEMES)}")
         self.emissivity = float(emissivity)
         self.geothermal_flux = float(geothermal_flux)
         self.dt_max = float(dt_max)
         self.scheme = scheme
         if not (np.isfinite(adapt_K) and adapt_K >= 0):
-            raise ProfileError(f"adapt_K={adapt_K!r} K must be >= 0 (0: no adaptive refinement)")
+            raise ConfigError(f"adapt_K={adapt_K!r} K must be >= 0 (0: no adaptive refinement)")
         self.adapt_K = float(adapt_K)
         if grid is None:
             ifc = {TOP_LAYER_THICKNESS}

@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 from crater_thermal import materials as mat
 from crater_thermal import thermal as th
 from crater_thermal.constants import LUNAR_DAY, SIGMA, YEAR
-from crater_thermal.errors import ProfileError, SolverError
+from crater_thermal.errors import ConfigError, ProfileError, SolverError
 
 FLUX_STEP = 14_400.0  # thesis flux step [s]
 
@@ -97,7 +97,7 @@ def test_default_grid():
     assert np.all(np.abs(ratios[np.abs(g.z[1:-1] - 0.02) > 1e-12] - th.DEFAULT_GROWTH) < 1e-9)
     assert g.dz[0] <= g.first_layer_m + 1e-15
     assert 20 <= g.nz <= 40
-    with pytest.raises(ProfileError, match="growth"):
+    with pytest.raises(ConfigError, match="growth"):
         th.make_grid(growth=0.5)
 
 
@@ -310,7 +310,7 @@ def test_bad_solver_inputs():
         s.run_series([0.0, 1.0], np.ones((2, 2)))
     with pytest.raises(SolverError, match="increasing"):
         s.run_series([0.0, 0.0], np.ones((2, 3)))
-    with pytest.raises(ProfileError, match="scheme"):
+    with pytest.raises(ConfigError, match="scheme"):
         th.ColumnSolver(["1300/1800"], scheme="rk4")
     with pytest.raises(ProfileError, match="500-3500"):
         th.ColumnSolver([th.Profile("x", ((0.02, 1800.0), (2.0, 4000.0)))])
