@@ -414,6 +414,8 @@ class ColumnSolver:
         Local-error threshold of the adaptive refinement: a sub-step whose surface curvature
         indicator exceeds it is redone in up to 16 parts (0: off). In practice only the
         sunrise / sunset steps of sunlit facets are split.
+    column_labels : sequence of str, optional
+        A name per column for error messages (e.g. ``"facet 17"``).
 
     Initial state: :meth:`set_uniform`, :meth:`set_equilibrium` or :meth:`set_state`; when none
     was called, the first :meth:`run_series` / :meth:`advance` / :meth:`periodic_start` starts
@@ -428,8 +430,14 @@ class ColumnSolver:
     def __init__(self, profiles, property_set="apollo", emissivity: float = EMISSIVITY,
                  geothermal_flux: float = GEOTHERMAL_FLUX, grid: Grid | None = None,
                  dt_max: float = DEFAULT_DT_MAX, scheme: str = "trbdf2",
-                 adapt_K: float = DEFAULT_ADAPT_K):
+                 adapt_K: float = DEFAULT_ADAPT_K, column_labels: Sequence[str] | None = None):
         self.profiles = _as_profiles(profiles)
+        if column_labels is not None:
+            column_labels = [str(c) for c in column_labels]
+            if len(column_labels) != len(self.profiles):
+                raise ConfigError(f"column_labels has {len(column_labels)} entries; need one per "
+                                  f"column ({len(self.profiles)})")
+        self.column_labels = column_labels
         self.pset = materials.get_property_set(property_set)
         if not (0.0 <= emissivity <= 1.0):
             raise ConfigError(f"emissivity={emissivity!r} must be in 0-1")
@@ -621,9 +629,10 @@ class ColumnSolver:
                     if status[c] == _k.NEWTON_FAILED else
                     "non-finite forcing or temperature (NaN/inf, or T outside 0-1e5 K)")
             n_bad = int(np.count_nonzero(status != _k.OK))
+            name = f", {self.column_labels[c]}" if self.column_labels is not None else ""
             raise SolverError(f"conduction solver: {what} in column {c} (profile "
-                              f"{self.profiles[c].label!r}) during the step starting at t={t0:.6g} s"
-                              f" ({n_bad} column(s) failed)")
+                              f"{self.profiles[c].label!r}{name}) during the step starting at "
+                              f"t={t0:.6g} s ({n_bad} column(s) failed)")
         return out if record else None
 
     def advance(self, absorbed_start, absorbed_end, duration_s: float) -> np.ndarray:

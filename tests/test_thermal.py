@@ -295,8 +295,9 @@ def test_nan_forcing_names_column_and_time():
     Q[3, 17] = np.nan
     with pytest.raises(SolverError, match=r"column 17 .*t=28800 s"):
         s.run_series(t, Q)
+    s = th.ColumnSolver(["1300/1800"] * 20, column_labels=[f"facet {i}" for i in range(20)])
     s.set_uniform(100.0)
-    with pytest.raises(SolverError, match="column 2"):
+    with pytest.raises(SolverError, match="column 2 .*facet 2"):
         s.advance(np.array([1.0] * 20), np.array([1.0, 1.0, np.inf] + [1.0] * 17), FLUX_STEP)
 
 
