@@ -49,7 +49,7 @@ Periodic steady state
 mixing) reaches max |Phi(x) - x| <= 0.01 K in 4-5 periods from the equilibrium estimate, 100 K or
 250 K starts (a plain spin-up needs 300-400 years for the same accuracy on sunlit walls: the 2 m
 column's slowest mode decays over ~30-80 years). Measured: 91 profiles x 502 facets = 45,682
-columns, one year of 4-hour samples: 4 periods (199 s) plus the recorded year (33 s) on the
+columns, one year of synthetic 4-hour samples: 4 periods (199 s) plus the recorded year (33 s) on the
 shared 2-core machine, 1.2 GB resident.
 
 Initial state
