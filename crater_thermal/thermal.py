@@ -30,8 +30,8 @@ Discretisation
   layer / 4, growth 1.03), half a year of synthetic forcing: settled nights (Sun, or for the
   floor the lit walls' IR, down >= 1 day) within 0.03 K on regolith floors and walls, 0.08 K on
   sunlit rock; in the first day after sunset on sunlit walls up to 0.2 K (0.6 K without the
-  adaptive refinement of the kink steps, :data:`DEFAULT_ADAPT_K`, which costs ~3.5% more
-  sub-steps in batches with sunlit walls, none in shadow); Hayne 2017 equator validation (tests/test_periodic.py):
+  adaptive refinement of the kink steps, :data:`DEFAULT_ADAPT_K`, decided per column, which
+  costs ~12% more sub-steps on sunlit walls and ~0.3% in shadow); Hayne 2017 equator validation (tests/test_periodic.py):
   385.2 / 100.3 / 93.8 K vs heat1d 388.5 / 100.2 / 93.7 K (noon / midnight / night minimum).
   Backward Euler at 4 h: 0.16-0.48 K in settled nights.
   The scheme conserves energy exactly for its lagged capacities; against the true enthalpy
@@ -92,9 +92,10 @@ __all__ = [
 #: Default maximum conduction sub-step [s]: the thesis's 4-hour flux step (convergence study).
 DEFAULT_DT_MAX = 14_400.0
 #: Default local-error threshold [K] of the adaptive sub-step refinement (kernel ``run_columns``):
-#: at 1 K it splits ~3.5% of the steps of a batch with sunlit walls (the sunrise / sunset kinks) and
-#: cuts the first-day-after-sunset error from 0.6 to 0.2 K (bench/conduction_accuracy.py).
-DEFAULT_ADAPT_K = 1.0
+#: at 0.5 K it splits ~3% of the sub-steps of a sunlit wall (the sunrise / sunset kinks; +12%
+#: sub-steps), ~0.1% on a shadowed floor, and cuts the first-day-after-sunset error on walls from
+#: 0.6 to 0.15-0.18 K (bench/conduction_accuracy.py).
+DEFAULT_ADAPT_K = 0.5
 #: Default first-layer thickness as a fraction of the diurnal skin depth [-] (convergence study).
 DEFAULT_SKIN_FRACTION = 0.1
 #: Default geometric growth factor of layer thickness with depth [-] (convergence study).
@@ -423,7 +424,7 @@ class ColumnSolver:
         Euler, first order; for studies and the benchmark).
     adapt_K : float [K]
         Local-error threshold of the adaptive refinement: a sub-step whose surface curvature
-        indicator exceeds it is redone in up to 16 parts (0: off). In practice only the
+        indicator exceeds it is redone in 4 parts (0: off; decided per column). In practice only the
         sunrise / sunset steps of sunlit facets are split.
     column_labels : sequence of str, optional
         A name per column for error messages (e.g. ``"facet 17"``).
