@@ -27,16 +27,17 @@ Discretisation
   trapezoidal emission has no physical root (an extreme cooling transient, e.g. a 250 K start in
   the dark) takes the emission implicit for that stage instead.
   Accuracy at the defaults (dt = 4 h, 35 nodes), against a fine reference (dt = 450 s, first
-  layer / 4, growth 1.03), half a year of synthetic forcing: settled nights (Sun, or for the
-  floor the lit walls' IR, down >= 1 day) within 0.03 K on regolith floors and walls, 0.08 K on
-  sunlit rock; in the first day after sunset on sunlit walls up to 0.2 K (0.6 K without the
-  adaptive refinement of the kink steps, :data:`DEFAULT_ADAPT_K`, decided per column, which
-  costs ~12% more sub-steps on sunlit walls and ~0.3% in shadow); Hayne 2017 equator validation (tests/test_periodic.py):
-  385.2 / 100.3 / 93.8 K vs heat1d 388.5 / 100.2 / 93.7 K (noon / midnight / night minimum).
-  Backward Euler at 4 h: 0.16-0.48 K in settled nights.
+  layer / 4, growth 1.03), half a year of synthetic forcing (bench/conduction_accuracy.py):
+  settled nights (Sun, or for the floor the lit walls' IR, down >= 1 day) within 0.03 K on
+  regolith floors and walls, 0.08 K on sunlit rock; in the first day after sunset on sunlit
+  walls <= 0.18 K (0.6 K without the adaptive refinement of the sunrise / sunset kink steps,
+  :data:`DEFAULT_ADAPT_K`, decided per column, which costs ~12% more sub-steps on sunlit walls
+  and ~0.3% in shadow). Backward Euler at 4 h: 0.15-0.31 K in settled nights.
+  Hayne et al. 2017 equator validation (tests/test_periodic.py): 385.2 / 100.3 / 93.8 K vs
+  heat1d 388.5 / 100.2 / 93.7 K (noon / midnight / night minimum).
   The scheme conserves energy exactly for its lagged capacities; against the true enthalpy
-  (:meth:`ColumnSolver.stored_heat`) the defect is O(c' dT^2) per step: <= 5e-4 of the absorbed
-  energy over a year (sunlit rock), ~1e-4 on regolith walls.
+  (:meth:`ColumnSolver.stored_heat`) the defect is O(c' dT^2) per step: <= 5.3e-4 of the absorbed
+  energy over a year (sunlit rock), <= 4e-4 on regolith (tests/test_thermal.py).
 * Defaults (:data:`DEFAULT_SKIN_FRACTION` = 0.1 of the 3.6 cm diurnal skin depth, i.e. a 3.6 mm
   first layer; :data:`DEFAULT_GROWTH` = 1.15, giving 35 nodes; :data:`DEFAULT_DT_MAX` = 4 h, the
   flux step) come from the convergence study kept as a test (halving dt and the first layer, or
