@@ -632,8 +632,9 @@ class ColumnSolver:
         nb = -(-self.ncol // _k.LANES)
         kern = _k.run_columns if nb >= 2 * numba.get_num_threads() else _k.run_columns_serial
         kern(self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.ccoef,
-                       float(self.pset.c_t_min), self.rdz, self.emissivity * SIGMA, self.geothermal_flux,
-                       SCHEMES[self.scheme], self.dt_max, self.adapt_K, times, a, fidx, out, record, self.acc, status, fail)
+             float(self.pset.c_t_min), self.rdz, self.emissivity * SIGMA, self.geothermal_flux,
+             SCHEMES[self.scheme], self.dt_max, self.adapt_K, times, a, fidx, out, record,
+             self.acc, status, fail)
         if np.any(status != _k.OK):
             c = int(np.flatnonzero(status != _k.OK)[0])
             k = int(fail[c])

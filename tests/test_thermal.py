@@ -196,8 +196,8 @@ def test_energy_balance(scheme):
     budget = b["absorbed"] - b["emitted"] + b["geothermal"]
     # the scheme conserves energy exactly for its lagged capacities; against the exact enthalpy the
     # defect is O(c' dT^2) per step. 0.1% of the absorbed energy is the brief's tolerance for the
-    # default TR-BDF2 (measured <= 5.3e-4, on sunlit rock); the first-order backward-Euler option (capacities lagged
-    # over the whole 4 h step) reaches 1.1e-3 on sunlit rock, hence 2e-3 for it.
+    # default TR-BDF2 (measured <= 5.3e-4, on sunlit rock); the first-order backward-Euler option
+    # (capacities lagged over the whole 4 h step) reaches 1.1e-3 on sunlit rock, hence 2e-3 for it.
     rtol = 1e-3 if scheme == "trbdf2" else 2e-3
     np.testing.assert_array_less(np.abs(dH - budget), rtol * b["absorbed"])
     if scheme == "trbdf2":
