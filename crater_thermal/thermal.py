@@ -27,19 +27,31 @@ Discretisation
   trapezoidal emission has no physical root (an extreme cooling transient, e.g. a 250 K start in
   the dark) takes the emission implicit for that stage instead.
   Accuracy at the defaults (dt = 4 h, 35 nodes), against a fine reference (dt = 450 s, first
-  layer / 4, growth 1.03), half a year of synthetic forcing: settled nights (Sun, or for the
-  floor the lit walls' IR, down >= 1 day) within 0.03 K on regolith floors and walls, 0.08 K on
-  sunlit rock; in the first day after sunset on sunlit walls up to 0.2 K (0.6 K without the
-  adaptive refinement of the kink steps, :data:`DEFAULT_ADAPT_K`, which costs ~3.5% more
-  sub-steps in batches with sunlit walls, none in shadow); Hayne 2017 equator validation (tests/test_periodic.py):
-  385.2 / 100.3 / 93.8 K vs heat1d 388.5 / 100.2 / 93.7 K (noon / midnight / night minimum).
-  Backward Euler at 4 h: 0.16-0.48 K in settled nights.
+  layer / 4, growth 1.03), half a year of synthetic forcing (bench/conduction_accuracy.py):
+  settled nights (Sun, or for the floor the lit walls' IR, down >= 1 day) within 0.03 K on
+  regolith floors and walls, 0.08 K on sunlit rock; in the first day after sunset on sunlit
+  walls <= 0.18 K (0.6 K without the adaptive refinement of the sunrise / sunset kink steps,
+  :data:`DEFAULT_ADAPT_K`, decided per column, which costs ~12% more sub-steps on sunlit walls
+  and ~0.3% in shadow). Backward Euler at 4 h: 0.15-0.31 K in settled nights.
+  Hayne et al. 2017 equator validation (tests/test_periodic.py): 385.2 / 100.3 / 93.8 K vs
+  heat1d 388.5 / 100.2 / 93.7 K (noon / midnight / night minimum).
   The scheme conserves energy exactly for its lagged capacities; against the true enthalpy
-  (:meth:`ColumnSolver.stored_heat`) the defect is O(c' dT^2) per step: <= 5e-4 of the absorbed
-  energy over a year (sunlit rock), ~1e-4 on regolith walls.
-* Defaults (:data:`DEFAULT_SKIN_FRACTION`, :data:`DEFAULT_GROWTH`, :data:`DEFAULT_DT_MAX`) come
-  from the convergence study kept as a test: halving dt and the first layer changes night-time
-  surface temperatures by < 0.05 K.
+  (:meth:`ColumnSolver.stored_heat`) the defect is O(c' dT^2) per step: <= 5.3e-4 of the absorbed
+  energy over a year (sunlit rock), <= 4e-4 on regolith (tests/test_thermal.py).
+* Defaults (:data:`DEFAULT_SKIN_FRACTION` = 0.1 of the 3.6 cm diurnal skin depth, i.e. a 3.6 mm
+  first layer; :data:`DEFAULT_GROWTH` = 1.15, giving 35 nodes; :data:`DEFAULT_DT_MAX` = 4 h, the
+  flux step) come from the convergence study kept as a test (halving dt and the first layer, or
+  growth 1.1, changes settled night-time surface temperatures by < 0.05 K) and from
+  bench/conduction_accuracy.py (growth 1.2 leaves 0.12 K on sunlit rock, 1.15 0.08 K).
+
+Periodic steady state
+---------------------
+:func:`periodic_state` (quasi-Newton shooting with a per-column linearised Jacobian and Anderson
+mixing) reaches max |Phi(x) - x| <= 0.01 K in 4-5 periods from the equilibrium estimate, 100 K or
+250 K starts (a plain spin-up needs 300-400 years for the same accuracy on sunlit walls: the 2 m
+column's slowest mode decays over ~30-80 years). Measured: 91 profiles x 502 facets = 45,682
+columns, one year of synthetic 4-hour samples: 4 periods (199 s) plus the recorded year (33 s) on the
+shared 2-core machine, 1.2 GB resident.
 
 Initial state
 -------------
@@ -70,7 +82,7 @@ import numpy as np  # noqa: E402
 from crater_thermal import materials
 from crater_thermal.constants import (COLUMN_DEPTH, EMISSIVITY, GEOTHERMAL_FLUX, LUNAR_DAY,
                                       ROCK_DENSITY, SIGMA, TOP_LAYER_THICKNESS)
-from crater_thermal.errors import ProfileError, SolverError
+from crater_thermal.errors import ConfigError, ProfileError, SolverError
 from crater_thermal.kernels import conduction as _k
 
 __all__ = [
@@ -81,9 +93,10 @@ __all__ = [
 #: Default maximum conduction sub-step [s]: the thesis's 4-hour flux step (convergence study).
 DEFAULT_DT_MAX = 14_400.0
 #: Default local-error threshold [K] of the adaptive sub-step refinement (kernel ``run_columns``):
-#: at 1 K it splits ~3.5% of the steps of a batch with sunlit walls (the sunrise / sunset kinks) and
-#: cuts the first-day-after-sunset error from 0.6 to 0.2 K (bench/conduction_accuracy.py).
-DEFAULT_ADAPT_K = 1.0
+#: at 0.5 K it splits ~3% of the sub-steps of a sunlit wall (the sunrise / sunset kinks; +12%
+#: sub-steps), ~0.1% on a shadowed floor, and cuts the first-day-after-sunset error on walls from
+#: 0.6 to 0.15-0.18 K (bench/conduction_accuracy.py).
+DEFAULT_ADAPT_K = 0.5
 #: Default first-layer thickness as a fraction of the diurnal skin depth [-] (convergence study).
 DEFAULT_SKIN_FRACTION = 0.1
 #: Default geometric growth factor of layer thickness with depth [-] (convergence study).
@@ -346,11 +359,11 @@ def make_grid(first_layer_m: float | None = None, growth: float = DEFAULT_GROWTH
     if first_layer_m is None:
         first_layer_m = skin_fraction * skin_depth(1300.0, GRID_T_REF, property_set)
     if not (first_layer_m > 0 and first_layer_m < depth_m):
-        raise ProfileError(f"first_layer_m={first_layer_m!r} must be in (0, {depth_m}) m")
+        raise ConfigError(f"first_layer_m={first_layer_m!r} must be in (0, {depth_m}) m")
     if not (1.0 <= growth <= 3.0):
-        raise ProfileError(f"growth={growth!r} must be in 1-3")
+        raise ConfigError(f"growth={growth!r} must be in 1-3")
     if not (depth_m > 0):
-        raise ProfileError(f"depth_m={depth_m!r} must be > 0")
+        raise ConfigError(f"depth_m={depth_m!r} must be > 0")
     ifc = sorted({float(d) for d in interfaces if 0.0 < float(d) < depth_m})
     bounds = [0.0] + ifc + [float(depth_m)]
     z = [0.0]
@@ -404,15 +417,18 @@ class ColumnSolver:
         (e.g. :func:`materials.constant_set` for analytic tests).
     emissivity : [-]
     geothermal_flux : [W m-2], entering at the bottom.
-    grid : Grid, optional (default :func:`make_grid` with a node on every profile interface).
+    grid : Grid, optional (default :func:`make_grid` with a node on every profile interface; with
+        a user grid, a link that straddles an interface uses its mean density).
     dt_max : float [s]
         Largest sub-step; each forcing interval is split into equal sub-steps <= dt_max.
     scheme : ``"trbdf2"`` (default: TR-BDF2, L-stable, second order) or ``"euler"`` (backward
         Euler, first order; for studies and the benchmark).
     adapt_K : float [K]
         Local-error threshold of the adaptive refinement: a sub-step whose surface curvature
-        indicator exceeds it is redone in up to 16 parts (0: off). In practice only the
+        indicator exceeds it is redone in 4 parts (0: off; decided per column). In practice only the
         sunrise / sunset steps of sunlit facets are split.
+    column_labels : sequence of str, optional
+        A name per column for error messages (e.g. ``"facet 17"``).
 
     Initial state: :meth:`set_uniform`, :meth:`set_equilibrium` or :meth:`set_state`; when none
     was called, the first :meth:`run_series` / :meth:`advance` / :meth:`periodic_start` starts
@@ -427,23 +443,29 @@ class ColumnSolver:
     def __init__(self, profiles, property_set="apollo", emissivity: float = EMISSIVITY,
                  geothermal_flux: float = GEOTHERMAL_FLUX, grid: Grid | None = None,
                  dt_max: float = DEFAULT_DT_MAX, scheme: str = "trbdf2",
-                 adapt_K: float = DEFAULT_ADAPT_K):
+                 adapt_K: float = DEFAULT_ADAPT_K, column_labels: Sequence[str] | None = None):
         self.profiles = _as_profiles(profiles)
+        if column_labels is not None:
+            column_labels = [str(c) for c in column_labels]
+            if len(column_labels) != len(self.profiles):
+                raise ConfigError(f"column_labels has {len(column_labels)} entries; need one per "
+                                  f"column ({len(self.profiles)})")
+        self.column_labels = column_labels
         self.pset = materials.get_property_set(property_set)
         if not (0.0 <= emissivity <= 1.0):
-            raise ProfileError(f"emissivity={emissivity!r} must be in 0-1")
+            raise ConfigError(f"emissivity={emissivity!r} must be in 0-1")
         if not (np.isfinite(geothermal_flux) and abs(geothermal_flux) < 10):
-            raise ProfileError(f"geothermal_flux={geothermal_flux!r} W/m2 must be finite, |G| < 10")
+            raise ConfigError(f"geothermal_flux={geothermal_flux!r} W/m2 must be finite, |G| < 10")
         if not (np.isfinite(dt_max) and dt_max > 0):
-            raise ProfileError(f"dt_max={dt_max!r} s must be > 0")
+            raise ConfigError(f"dt_max={dt_max!r} s must be > 0")
         if scheme not in SCHEMES:
-            raise ProfileError(f"scheme={scheme!r} is unknown; allowed: {sorted(SCHEMES)}")
+            raise ConfigError(f"scheme={scheme!r} is unknown; allowed: {sorted(SCHEMES)}")
         self.emissivity = float(emissivity)
         self.geothermal_flux = float(geothermal_flux)
         self.dt_max = float(dt_max)
         self.scheme = scheme
         if not (np.isfinite(adapt_K) and adapt_K >= 0):
-            raise ProfileError(f"adapt_K={adapt_K!r} K must be >= 0 (0: no adaptive refinement)")
+            raise ConfigError(f"adapt_K={adapt_K!r} K must be >= 0 (0: no adaptive refinement)")
         self.adapt_K = float(adapt_K)
         if grid is None:
             ifc = {TOP_LAYER_THICKNESS}
@@ -610,8 +632,9 @@ class ColumnSolver:
         nb = -(-self.ncol // _k.LANES)
         kern = _k.run_columns if nb >= 2 * numba.get_num_threads() else _k.run_columns_serial
         kern(self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.ccoef,
-                       float(self.pset.c_t_min), self.rdz, self.emissivity * SIGMA, self.geothermal_flux,
-                       SCHEMES[self.scheme], self.dt_max, self.adapt_K, times, a, fidx, out, record, self.acc, status, fail)
+             float(self.pset.c_t_min), self.rdz, self.emissivity * SIGMA, self.geothermal_flux,
+             SCHEMES[self.scheme], self.dt_max, self.adapt_K, times, a, fidx, out, record,
+             self.acc, status, fail)
         if np.any(status != _k.OK):
             c = int(np.flatnonzero(status != _k.OK)[0])
             k = int(fail[c])
@@ -620,9 +643,10 @@ class ColumnSolver:
                     if status[c] == _k.NEWTON_FAILED else
                     "non-finite forcing or temperature (NaN/inf, or T outside 0-1e5 K)")
             n_bad = int(np.count_nonzero(status != _k.OK))
+            name = f", {self.column_labels[c]}" if self.column_labels is not None else ""
             raise SolverError(f"conduction solver: {what} in column {c} (profile "
-                              f"{self.profiles[c].label!r}) during the step starting at t={t0:.6g} s"
-                              f" ({n_bad} column(s) failed)")
+                              f"{self.profiles[c].label!r}{name}) during the step starting at "
+                              f"t={t0:.6g} s ({n_bad} column(s) failed)")
         return out if record else None
 
     def advance(self, absorbed_start, absorbed_end, duration_s: float) -> np.ndarray:

@@ -53,8 +53,8 @@ def _cpoly(T, ccoef, ctmin):
 #: Columns advanced together in one thread (interleaved so that the serial Thomas recurrences
 #: of different columns overlap and the inner loops vectorise).
 LANES = 16
-#: Largest number of parts an adaptive sub-step is split into.
-MAX_REFINE = 16
+#: Number of parts a sub-step flagged by the adaptive refinement is split into.
+N_REFINE = 4
 
 #: TR-BDF2 constants (Bank et al. 1985; Hosea & Shampine 1996): gamma = 2 - sqrt(2)
 TRB_GAMMA = 2.0 - np.sqrt(2.0)
@@ -300,13 +300,19 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
     st_s = np.empty(nl, np.int64)
     q2a = np.empty(nl)
     q2b = np.empty(nl)
+    refine = np.zeros(nl, np.int64)
+    T1 = np.empty((nz, nl))
+    ea1 = np.empty(nl)
+    ee1 = np.empty(nl)
+    st1 = np.empty(nl, np.int64)
+    h_sub = np.empty(nl)
     st = np.zeros(nl, np.int64)
     fail = np.full(nl, -1, np.int64)
     e_abs = np.zeros(nl)
     e_emit = np.zeros(nl)
     a_h = np.zeros(nl)
     a_time = 0.0
-    nsteps = 0
+    nsteps = np.zeros(nl)
     if record:
         for j in range(nl):
             out[0, c0 + j] = Tb[0, j]
@@ -324,7 +330,8 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
                 qb[j] = fa + (fb - fa) * ((s + 1) / nsub)
                 if not (np.isfinite(fa) and np.isfinite(fb)) and st[j] == OK:
                     st[j] = NONFINITE
-            if adapt_K > 0.0 and scheme == SCHEME_TRBDF2:
+            adapt = adapt_K > 0.0 and scheme == SCHEME_TRBDF2
+            if adapt:
                 for i in range(nz):
                     for j in range(nl):
                         Ts[i, j] = Tb[i, j]
@@ -334,43 +341,60 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
                     st_s[j] = st[j]
             _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt,
                   qa, qb, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used)
-            nr = 1
-            if adapt_K > 0.0 and scheme == SCHEME_TRBDF2:
-                # adaptive refinement: where the surface of any lane curved strongly within this
-                # sub-step (the kinks of sunrise / sunset), redo it in nr equal parts
-                dmax = 0.0
+            nref = 0
+            if adapt:
+                # adaptive refinement, decided per column (so that a column's result never
+                # depends on the other columns of its batch): where the surface curved strongly
+                # within this sub-step (the kinks of sunrise / sunset), the sub-step is redone
+                # in N_REFINE equal parts. Curvature indicator: the TR stage value against the
+                # chord through the step's end points, ~ gamma (1 - gamma) dt^2 T'' / 2.
                 for j in range(nl):
-                    # curvature estimate: the TR stage value against the chord through the
-                    # step's end points, ~ gamma (1 - gamma) dt^2 T'' / 2
                     d = abs(Tg[0, j] - (Ts[0, j] + TRB_GAMMA * (Tb[0, j] - Ts[0, j])))
-                    if not (d <= dmax):  # also catches NaN
-                        dmax = d if d == d else 1e30
-                while nr < MAX_REFINE and dmax > adapt_K * nr * nr:
-                    nr *= 2
-                if nr > 1:
-                    for i in range(nz):
-                        for j in range(nl):
-                            Tb[i, j] = Ts[i, j]
+                    refine[j] = 1 if (d > adapt_K and st[j] == OK) else 0
+                    nref += refine[j]
+            if nref > 0:
+                # keep the first attempt, rewind all lanes, redo, then restore unrefined lanes
+                for i in range(nz):
                     for j in range(nl):
-                        e_abs[j] = ea_s[j]
-                        e_emit[j] = ee_s[j]
-                        st[j] = st_s[j]
-                    for r in range(nr):
-                        for j in range(nl):
-                            q2a[j] = qa[j] + (qb[j] - qa[j]) * (r / nr)
-                            q2b[j] = qa[j] + (qb[j] - qa[j]) * ((r + 1) / nr)
-                        _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme,
-                              dt / nr, q2a, q2b, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add,
-                              alt_used)
-                        for j in range(nl):
-                            t0 = Tb[0, j]
-                            a_h[j] += dt / nr * 4.0 * es * t0 * t0 * t0
-            if nr == 1:
+                        T1[i, j] = Tb[i, j]
+                        Tb[i, j] = Ts[i, j]
+                for j in range(nl):
+                    ea1[j] = e_abs[j]
+                    ee1[j] = e_emit[j]
+                    st1[j] = st[j]
+                    e_abs[j] = ea_s[j]
+                    e_emit[j] = ee_s[j]
+                    st[j] = st_s[j]
+                    h_sub[j] = 0.0
+                for r in range(N_REFINE):
+                    for j in range(nl):
+                        q2a[j] = qa[j] + (qb[j] - qa[j]) * (r / N_REFINE)
+                        q2b[j] = qa[j] + (qb[j] - qa[j]) * ((r + 1) / N_REFINE)
+                    _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme,
+                          dt / N_REFINE, q2a, q2b, K, Cc, R, Tg, p, q, st, e_abs, e_emit,
+                          alt_add, alt_used)
+                    for j in range(nl):
+                        t0 = Tb[0, j]
+                        h_sub[j] += dt / N_REFINE * 4.0 * es * t0 * t0 * t0
+                for j in range(nl):
+                    if refine[j]:
+                        a_h[j] += h_sub[j]
+                        nsteps[j] += N_REFINE
+                    else:
+                        for i in range(nz):
+                            Tb[i, j] = T1[i, j]
+                        e_abs[j] = ea1[j]
+                        e_emit[j] = ee1[j]
+                        st[j] = st1[j]
+                        t0 = Tb[0, j]
+                        a_h[j] += dt * 4.0 * es * t0 * t0 * t0
+                        nsteps[j] += 1
+            else:
                 for j in range(nl):
                     t0 = Tb[0, j]
                     a_h[j] += dt * 4.0 * es * t0 * t0 * t0
+                    nsteps[j] += 1
             a_time += dt
-            nsteps += nr
         bad = False
         for j in range(nl):
             if st[j] == OK:
@@ -398,7 +422,7 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
         acc[c, 1] += e_emit[j]
         acc[c, 2] += a_h[j]
         acc[c, 3] += a_time
-        acc[c, 4] += nsteps
+        acc[c, 4] += nsteps[j]
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -412,11 +436,10 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt
     m : (ncol, nz) [kg m-2]; b0, b3, e0, e1 : (ncol, nz-1); rock : (ncol,) uint8 (1: rock term).
     ccoef : (5,); ctmin [K]; rdz : (nz-1,) inverse link lengths [m-1]; es = eps sigma
     [W m-2 K-4]; G [W m-2]; scheme : SCHEME_BE or SCHEME_TRBDF2; dt_max [s];
-    adapt_K [K]: local-error threshold. After each sub-step the surface's curvature indicator
-    |T_stage - chord through the step's end points| ~ gamma (1 - gamma) dt^2 T'' / 2 (TR-BDF2
-    only; backward Euler is never refined) is compared with adapt_K; if any column of the LANES
-    batch exceeds it, the sub-step is redone in nr = 2, 4, ... MAX_REFINE equal parts, the
-    smallest with indicator <= adapt_K nr^2 (errors scale as dt^2). 0 disables.
+    adapt_K [K]: local-error threshold (TR-BDF2 only; 0 disables). After each sub-step, a column
+    whose surface curvature indicator |T_stage - chord through the step's end points|
+    (~ gamma (1 - gamma) dt^2 T'' / 2) exceeds adapt_K has the sub-step redone in N_REFINE
+    equal parts (error / 16). Decided per column: results never depend on the batch.
     times : (nt,) [s]; absorbed : (nt, nforce) [W m-2]; fidx : (ncol,) forcing column per column.
     out : (nt, ncol) surface temperatures at the samples (written when ``record``).
     acc : (ncol, N_ACC) accumulators (added to). status, fail_idx : (ncol,) int64 outputs
