@@ -31,8 +31,8 @@ Discretisation
   settled nights (Sun, or for the floor the lit walls' IR, down >= 1 day) within 0.03 K on
   regolith floors and walls, 0.08 K on sunlit rock; in the first day after sunset on sunlit
   walls <= 0.18 K (0.6 K without the adaptive refinement of the sunrise / sunset kink steps,
-  :data:`DEFAULT_ADAPT_K`, decided per column, which costs ~12% more sub-steps on sunlit walls
-  and ~0.3% in shadow). Backward Euler at 4 h: 0.15-0.31 K in settled nights.
+  :data:`DEFAULT_ADAPT_K`, decided and done per column, +18% wall time on a half-sunlit
+  synthetic crater). Backward Euler at 4 h: 0.15-0.31 K in settled nights.
   Hayne et al. 2017 equator validation (tests/test_periodic.py): 385.2 / 100.3 / 93.8 K vs
   heat1d 388.5 / 100.2 / 93.7 K (noon / midnight / night minimum).
   The scheme conserves energy exactly for its lagged capacities; against the true enthalpy
@@ -93,9 +93,10 @@ __all__ = [
 #: Default maximum conduction sub-step [s]: the thesis's 4-hour flux step (convergence study).
 DEFAULT_DT_MAX = 14_400.0
 #: Default local-error threshold [K] of the adaptive sub-step refinement (kernel ``run_columns``):
-#: at 0.5 K it splits ~3% of the sub-steps of a sunlit wall (the sunrise / sunset kinks; +12%
-#: sub-steps), ~0.1% on a shadowed floor, and cuts the first-day-after-sunset error on walls from
-#: 0.6 to 0.15-0.18 K (bench/conduction_accuracy.py).
+#: at 0.5 K it redoes 2-4% of the sub-steps of a sunlit wall in 4 parts (the sunrise / sunset
+#: kinks), almost none in shadow, and cuts the first-day-after-sunset error on walls from 0.6 to
+#: 0.15-0.18 K (bench/conduction_accuracy.py); wall time +18% on a synthetic crater with half
+#: its facets sunlit at random phases (only the flagged columns are recomputed).
 DEFAULT_ADAPT_K = 0.5
 #: Default first-layer thickness as a fraction of the diurnal skin depth [-] (convergence study).
 DEFAULT_SKIN_FRACTION = 0.1

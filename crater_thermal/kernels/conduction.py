@@ -301,11 +301,6 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
     q2a = np.empty(nl)
     q2b = np.empty(nl)
     refine = np.zeros(nl, np.int64)
-    T1 = np.empty((nz, nl))
-    ea1 = np.empty(nl)
-    ee1 = np.empty(nl)
-    st1 = np.empty(nl, np.int64)
-    h_sub = np.empty(nl)
     st = np.zeros(nl, np.int64)
     fail = np.full(nl, -1, np.int64)
     e_abs = np.zeros(nl)
@@ -341,7 +336,6 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
                     st_s[j] = st[j]
             _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt,
                   qa, qb, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used)
-            nref = 0
             if adapt:
                 # adaptive refinement, decided per column (so that a column's result never
                 # depends on the other columns of its batch): where the surface curved strongly
@@ -351,46 +345,30 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
                 for j in range(nl):
                     d = abs(Tg[0, j] - (Ts[0, j] + TRB_GAMMA * (Tb[0, j] - Ts[0, j])))
                     refine[j] = 1 if (d > adapt_K and st[j] == OK) else 0
-                    nref += refine[j]
-            if nref > 0:
-                # keep the first attempt, rewind all lanes, redo, then restore unrefined lanes
-                for i in range(nz):
-                    for j in range(nl):
-                        T1[i, j] = Tb[i, j]
+            for j in range(nl):
+                if refine[j]:
+                    # rewind this column and redo its sub-step alone (a one-lane view), so the
+                    # other columns of the batch pay nothing
+                    for i in range(nz):
                         Tb[i, j] = Ts[i, j]
-                for j in range(nl):
-                    ea1[j] = e_abs[j]
-                    ee1[j] = e_emit[j]
-                    st1[j] = st[j]
                     e_abs[j] = ea_s[j]
                     e_emit[j] = ee_s[j]
                     st[j] = st_s[j]
-                    h_sub[j] = 0.0
-                for r in range(N_REFINE):
-                    for j in range(nl):
+                    hs = 0.0
+                    for r in range(N_REFINE):
                         q2a[j] = qa[j] + (qb[j] - qa[j]) * (r / N_REFINE)
                         q2b[j] = qa[j] + (qb[j] - qa[j]) * ((r + 1) / N_REFINE)
-                    _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme,
-                          dt / N_REFINE, q2a, q2b, K, Cc, R, Tg, p, q, st, e_abs, e_emit,
-                          alt_add, alt_used)
-                    for j in range(nl):
+                        _step(Tb[:, j:j + 1], mb[:, j:j + 1], b0b[:, j:j + 1], b3b[:, j:j + 1],
+                              e0b[:, j:j + 1], e1b[:, j:j + 1], anyrock, ccoef, ctmin, rdz, es, G,
+                              scheme, dt / N_REFINE, q2a[j:j + 1], q2b[j:j + 1], K[:, j:j + 1],
+                              Cc[:, j:j + 1], R[:, j:j + 1], Tg[:, j:j + 1], p[:, j:j + 1],
+                              q[:, j:j + 1], st[j:j + 1], e_abs[j:j + 1], e_emit[j:j + 1],
+                              alt_add[j:j + 1], alt_used[j:j + 1])
                         t0 = Tb[0, j]
-                        h_sub[j] += dt / N_REFINE * 4.0 * es * t0 * t0 * t0
-                for j in range(nl):
-                    if refine[j]:
-                        a_h[j] += h_sub[j]
-                        nsteps[j] += N_REFINE
-                    else:
-                        for i in range(nz):
-                            Tb[i, j] = T1[i, j]
-                        e_abs[j] = ea1[j]
-                        e_emit[j] = ee1[j]
-                        st[j] = st1[j]
-                        t0 = Tb[0, j]
-                        a_h[j] += dt * 4.0 * es * t0 * t0 * t0
-                        nsteps[j] += 1
-            else:
-                for j in range(nl):
+                        hs += dt / N_REFINE * 4.0 * es * t0 * t0 * t0
+                    a_h[j] += hs
+                    nsteps[j] += N_REFINE
+                else:
                     t0 = Tb[0, j]
                     a_h[j] += dt * 4.0 * es * t0 * t0 * t0
                     nsteps[j] += 1
