@@ -223,7 +223,8 @@ def test_resume_after_kill_matches_uninterrupted(tmp_path):
     while proc.poll() is None and time.time() < deadline:
         if ckpt.exists():
             try:
-                k = int(np.load(ckpt)["k"])
+                with np.load(ckpt) as z:
+                    k = int(z["k"])
             except Exception:  # being replaced right now
                 k = 0
             if k >= 80:
