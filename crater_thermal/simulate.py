@@ -200,7 +200,7 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
             cols = [p for p in chunk for _ in range(nf)]
             solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
             spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
-            spin_a = np.tile(spin_a, (1, len(chunk)))
+            # (nt, nf) forcing serves every profile: column j of the solver uses forcing column j % nf
             if fixed:
                 if initial_temperature is not None:
                     solver.set_uniform(float(initial_temperature))
@@ -213,7 +213,7 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
                 pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
                 info["periodic_iterations"].append(int(pinfo["iterations"]))
                 info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
-            T = solver.run_series(t_rec, np.tile(abs_rec, (1, len(chunk))))
+            T = solver.run_series(t_rec, abs_rec)
             out[p0:p0 + len(chunk)] = T.reshape(nt, len(chunk), nf).transpose(1, 0, 2)
             update(len(chunk), info=f"{p0 + len(chunk)}/{n_prof} profiles")
     return out, info
