@@ -34,3 +34,11 @@ class OutputExistsError(CraterThermalError):
 
 class SolverError(CraterThermalError):
     """The conduction solver produced NaN/inf or its Newton iteration failed."""
+
+
+class InternalError(RuntimeError):
+    """A consistency check inside crater_thermal failed: a bug, not a problem with the input.
+
+    Deliberately not a :class:`CraterThermalError`: the command line reports it as an internal error
+    (exit code 3) and asks for a bug report, instead of blaming the user's input.
+    """

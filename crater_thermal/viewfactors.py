@@ -52,7 +52,7 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from crater_thermal.errors import MeshError
+from crater_thermal.errors import InternalError, MeshError
 from crater_thermal.geometry import Mesh
 
 __all__ = [
@@ -246,24 +246,32 @@ def _compact(n, blocked, need, pi_, pj_, kk, nf):
 
 
 @numba.njit(nogil=True, cache=True)
-def _fill(pi_, pj_, kk, A, pos_up, pos_low, indices, data):
-    """Write one chunk's pairs as (i, j) and (j, i) entries of the CSR arrays.
+def _fill(pi_, pj_, kk, A, pos_up, pos_low, up_end, low_end, indices, data):
+    """Write one chunk's pairs as (i, j) and (j, i) entries of the CSR arrays; returns False (and stops)
+    if a pair would land outside the slots reserved for it (an internal counting error).
 
     pos_up[i]: next free slot of row i's upper part (rows of this chunk only, so chunks never share
-    them); pos_low: this chunk's own start slots of the lower parts.  Pairs come sorted by (i, j).
+    them); pos_low: this chunk's own start slots of the lower parts.  up_end / low_end: the first slot
+    after row r's upper part / after this chunk's share of row r's lower part.  Pairs come sorted by
+    (i, j).
     """
     for p in range(pi_.shape[0]):
         i = pi_[p]
         j = pj_[p]
         k = kk[p]
         q = pos_up[i]
+        if q >= up_end[i]:
+            return False
         indices[q] = j
         data[q] = k * A[j]
         pos_up[i] = q + 1
         q = pos_low[j]
+        if q >= low_end[j]:
+            return False
         indices[q] = i
         data[q] = k * A[i]
         pos_low[j] = q + 1
+    return True
 
 
 @numba.njit(nogil=True, cache=True)
@@ -289,13 +297,20 @@ def _rescale_rows(indptr, indices, data):
 def _assemble(nf: int, results: list, A: np.ndarray, pool=None):
     """CSR arrays with sorted columns from the per-chunk visible pairs (chunks in row order).
 
-    Row r holds first the entries (r, i) of pairs (i, r), i < r, in increasing i (chunk by chunk),
-    then the entries (r, j) of pairs (r, j), j > r: no sort is needed.  Chunks fill disjoint slots, so
-    they are written concurrently.  Rows summing above 1 are then rescaled (module docstring).
+    ``results`` holds, per chunk, ``(pi, pj, k, up, low)``: the visible pairs (i < j) and the per-row
+    counts ``up[r]`` (pairs with first index r) and ``low[r]`` (pairs with second index r) that
+    :func:`_compact` counted while keeping exactly these pairs.  Row r holds first the entries (r, i)
+    of pairs (i, r), i < r, in increasing i (chunk by chunk), then the entries (r, j) of pairs (r, j),
+    j > r: no sort is needed.  Each chunk gets its own start-slot array (never a shared one), chunks
+    fill disjoint slots, so they are written concurrently.  Every write is checked against the end of
+    its reserved slots, and every slot must be filled exactly once; otherwise :class:`InternalError`.
+    Rows summing above 1 are then rescaled (module docstring).
     """
     up = np.zeros(nf, np.int64)
     low_total = np.zeros(nf, np.int64)
     for r in results:
+        if len(r[0]) != int(r[3].sum()) or len(r[0]) != int(r[4].sum()):
+            raise InternalError("view factors: a chunk's pair count differs from its row counts")
         up += r[3]
         low_total += r[4]
     indptr = np.zeros(nf + 1, np.int64)
@@ -304,24 +319,29 @@ def _assemble(nf: int, results: list, A: np.ndarray, pool=None):
     indices = np.empty(nnz, np.int32)
     data = np.empty(nnz, np.float64)
     pos_up = indptr[:-1] + low_total
-    # turn each chunk's lower-part counts into its start slots, in place (no extra nf-sized arrays)
+    up_end = indptr[1:]
+    # each chunk's own start and end slots in every row's lower part
+    starts, ends = [], []
     acc = indptr[:-1].copy()
     for r in results:
-        cnt = r[4]
-        nxt = acc + cnt
-        cnt[:] = acc  # start of this chunk's entries in each row's lower part
+        nxt = acc + r[4]
+        starts.append(acc.copy())  # advanced in place by _fill: must not alias any end array
+        ends.append(nxt)
         acc = nxt
     del acc
 
     def fill(c):
-        pi_, pj_, kk, _, start = results[c]
-        _fill(pi_, pj_, kk, A, pos_up, start, indices, data)
+        pi_, pj_, kk = results[c][:3]
+        return _fill(pi_, pj_, kk, A, pos_up, starts[c], up_end, ends[c], indices, data)
 
     if pool is None:
-        for c in range(len(results)):
-            fill(c)
+        ok = [fill(c) for c in range(len(results))]
     else:
-        list(pool.map(fill, range(len(results))))
+        ok = list(pool.map(fill, range(len(results))))
+    filled = all(ok) and np.array_equal(pos_up, up_end) and all(
+        np.array_equal(s, e) for s, e in zip(starts, ends))
+    if not filled:
+        raise InternalError("view factors: the filled entries differ from the counted ones")
     excess = _rescale_rows(indptr, indices, data)
     return indptr, indices, data, excess
 
@@ -424,13 +444,16 @@ def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None, progress: bool =
     chunks = _row_chunks(nf, int(chunk_pairs))
     ones = np.ones(max(1, min(int(chunk_pairs), nf * (nf - 1) // 2 + 1)) + nf, dtype=np.float32)
 
-    empty = (np.empty(0, np.int32), np.empty(0, np.int32), np.empty(0), np.zeros(nf, np.int64), np.zeros(nf, np.int64))
+    def empty():
+        # fresh arrays each time: _assemble derives per-chunk slots from them
+        return (np.empty(0, np.int32), np.empty(0, np.int32), np.empty(0),
+                np.zeros(nf, np.int64), np.zeros(nf, np.int64))
 
     def work(rows):
         i0, i1 = rows
         cap = sum(nf - 1 - i for i in range(i0, i1))
         if cap == 0:
-            return empty
+            return empty()
         o32 = np.empty((cap, 3), np.float32)
         d32 = np.empty((cap, 3), np.float32)
         pi_ = np.empty(cap, np.int32)
@@ -440,7 +463,7 @@ def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None, progress: bool =
         n = _candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, NEAR_DISTANCE_FACTOR, COS_CUTOFF,
                              o32, d32, pi_, pj_, kk, need)
         if n == 0:
-            return empty
+            return empty()
         t = ones[:n] if n <= ones.shape[0] else np.ones(n, np.float32)
         blocked = tracer._scene.run(o32[:n], d32[:n], dists=t, query="OCCLUDED") != -1
         del o32, d32
