@@ -190,6 +190,10 @@ def report(
     netd_ref_k: float = typer.Option(2.0, "--netd-ref-k", help="Detector NETD [K] at 50 K (Diviner ~2 K)."),
     scatter_in_quadrature: bool = typer.Option(False, "--scatter-in-quadrature",
                                                help="Stricter: add the 0.94 K natural scatter in quadrature."),
+    night: str = typer.Option("facet", "--night", help="Night: facet (no direct sunlight on the facet for "
+                              "--min-dark-hours), centre (thesis: Sun below the crater centre's horizon), "
+                              "facet_and_centre."),
+    min_dark_hours: float = typer.Option(24.0, "--min-dark-hours", help="Darkness before a facet's night [h]."),
 ) -> None:
     """Figures (thesis Figs. 7.4-7.9), report.html and summary.json for a run and its replay."""
     from crater_thermal.analysis import Instrument
@@ -197,7 +201,8 @@ def report(
 
     inst = Instrument(k_sigma=k_sigma, netd_ref_K=netd_ref_k, scatter_in_quadrature=scatter_in_quadrature)
     path = make_report(run, replay, out, overwrite=overwrite, footprint_fraction=footprint_fraction,
-                       snapshots=not no_snapshots, instrument=inst)
+                       snapshots=not no_snapshots, instrument=inst, night_definition=night,
+                       min_dark_hours=min_dark_hours)
     typer.echo(str(path))
 
 

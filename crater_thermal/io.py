@@ -268,6 +268,14 @@ def read_flux_dataset(path) -> xr.Dataset:
         _check_var(ds, path, name, ("time", "facet"), FLUX_UNITS)
     if np.any(ds["solar_incident"].values < 0) or np.any(ds["ir_incident"].values < 0):
         raise FluxFileError(f"{path}: negative irradiance in solar_incident or ir_incident")
+    for name in ("solar_absorbed", "spinup_solar_absorbed"):  # optional: incidence-dependent albedo
+        if name in ds:
+            if ds[name].attrs.get("units") not in FLUX_UNITS:
+                raise FluxFileError(f"{path}: '{name}' has units {ds[name].attrs.get('units')!r}, "
+                                    f"expected {FLUX_UNITS[0]!r}")
+            v = ds[name].values
+            if not np.all(np.isfinite(v)) or np.any(v < 0):
+                raise FluxFileError(f"{path}: '{name}' has NaN/inf or negative values")
     _check_attr_range(ds, path, "albedo", 0.0, 1.0)
     _check_attr_range(ds, path, "emissivity", 1e-6, 1.0)
     return ds

@@ -37,7 +37,8 @@ FIGURES = {
     "fig7_5_temperature.png": "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5).",
     "fig7_6_loose_minus_nominal.png": "Loose minus nominal surface temperature over the run, night shaded (Fig. 7.6).",
     "fig7_7a_density_grid.png": "Night-time median difference to nominal on the floor over the density grid, top x bottom density; nominal outlined (Fig. 7.7a).",
-    "fig7_7b_regions.png": "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b).",
+    "fig7_7b_regions.png": "Night-time (per facet) median loose minus nominal by crater region and illumination class "
+                           "(and latitude), bars = quartiles (Fig. 7.7b).",
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
     "fig7_9_quartiles.png": "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9).",
     "detectability.png": "Dwell time needed to detect loose vs nominal at k sigma, per region (instrument model, thesis 7.3).",
@@ -47,7 +48,7 @@ SNAPSHOTS = {
     "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
 }
 
-#: Top-level keys of summary.json and what they hold (units in the names; regions are analysis.REGIONS).
+#: Top-level keys of summary.json and what they hold (units in the names; regions: analysis.region_masks).
 SUMMARY_KEYS = {
     "schema_version": "int: layout version of this file (1).",
     "mesh_hash": "str: mesh hash shared by the run and the replay.",
@@ -58,7 +59,13 @@ SUMMARY_KEYS = {
     "n_times": "int: number of time samples.",
     "n_facets": "int: number of mesh facets.",
     "night_fraction": "float [-]: fraction of samples with the Sun's centre below the horizon at the crater centre.",
-    "regions": "list[str]: region labels (analysis.REGIONS); *_poleward = on the pole side of the axis, facing the equator.",
+    "night_definition": "str: 'facet' (night = no direct sunlight on the facet for night_min_dark_hours; day = "
+                        "directly lit) or 'centre' (the thesis: Sun's centre below the crater centre's horizon).",
+    "night_min_dark_hours": "float [h]: darkness a facet needs before its samples count as night ('facet').",
+    "night_fraction_samples": "float [-]: fraction of (time, facet) samples that are night.",
+    "regions": "list[str]: region names (analysis.region_masks): floor, {lower_wall, upper_wall, top_wall_ring, rim}_"
+               "{pole,equator,east,west}_facing (by the facet normal's azimuth, +-45 deg; at |lat| >= 89.5 deg "
+               "{antisun,sun,sun_left,sun_right}_facing), surround, never_lit / rarely_lit / often_lit; may overlap.",
     "region_facet_count": "{region: int}: facets per region.",
     "profiles": "list[str]: replayed profile labels.",
     "nominal_profile": "str: the nominal profile label (differences are profile minus this).",
@@ -68,7 +75,8 @@ SUMMARY_KEYS = {
     "night_median_dT_K": "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region facets.",
     "night_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, night.",
     "night_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, night.",
-    "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (Sun above the horizon).",
+    "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (night_definition: facet directly lit, "
+                       "or Sun above the crater centre's horizon).",
     "day_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, day.",
     "day_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, day.",
     "night_frac_abs_dT_above_threshold": "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K.",
@@ -145,13 +153,18 @@ def _clean(x):
 class _Analysis:
     """Everything the figures and the summary need, computed once."""
 
-    def __init__(self, run, replay, threshold_K: float, advance: Callable[[], None] = lambda: None):
+    def __init__(self, run, replay, threshold_K: float, advance: Callable[[], None] = lambda: None,
+                 night_definition: str = "facet", min_dark_hours: float = an.MIN_DARK_HOURS):
         an.check_pair(run, replay)
         self.run, self.replay = run, replay
         self.times = np.asarray(run["time"].values).astype("datetime64[ns]")
         self.days = (self.times - self.times[0]).astype(np.int64) / 86400e9
-        self.night = an.night_mask(run)
-        self.regions = an.regions_of(run)
+        self.night = an.night_mask(run)  # the crater centre's night: shading of the time series
+        self.night_definition, self.min_dark_hours = night_definition, float(min_dark_hours)
+        # per (time, facet) night and day used by every statistic (analysis.night_day_masks)
+        self.night_f, self.day_f = an.night_day_masks(run, night_definition, min_dark_hours)
+        self.regions = an.region_masks(run)  # name -> (nf,) bool
+        self.nf = int(run["surface_temperature"].shape[1])
         self.meta = an.mesh_meta(run)
         self.lat = float(run.attrs.get("lat_deg", np.nan))
         self.nominal = an.nominal_label(run, replay)
@@ -165,22 +178,25 @@ class _Analysis:
         self.night_stats, self.day_stats, self.night_map, self.floor_night_median = {}, {}, {}, {}
         self.loose_dT = None
         for p, d in an.iter_profile_differences(run, replay, self.T_nom):
-            self.night_stats[p] = an.region_statistics(d, self.night, self.regions, threshold_K)
-            self.day_stats[p] = an.region_statistics(d, ~self.night, self.regions, threshold_K)
-            self.night_map[p] = an.night_median_map(d, self.night)
-            self.floor_night_median[p] = self.night_stats[p]["floor"]["median_K"]
+            self.night_stats[p] = an.masked_statistics(d, self.night_f, self.regions, threshold_K)
+            self.day_stats[p] = an.masked_statistics(d, self.day_f, self.regions, threshold_K)
+            self.night_map[p] = an.facet_median_map(d, self.night_f)
+            self.floor_night_median[p] = self.night_stats[p].get("floor", {}).get("median_K")
             if p == self.loose:
                 self.loose_dT = d
             advance()
-        self.nom_night = {r: (float(np.median(self.T_nom[self.night][:, self.regions == r]))
-                              if self.night.any() and (self.regions == r).any() else None) for r in an.REGIONS}
+        self.nom_night = {r: an.masked_median(self.T_nom, self.night_f, m) for r, m in self.regions.items()}
+
+    def region_label(self, i: int) -> str:
+        """The first crater region (or class) holding facet ``i``."""
+        return next((r for r, m in self.regions.items() if m[i]), "-")
 
     def detectability(self, instrument: an.Instrument, footprint_fraction: float) -> dict:
         """Loose vs nominal per region from night-time medians (analysis.detectability)."""
         det = {}
         if self.loose is None:
             return det
-        for r in an.REGIONS:
+        for r in self.regions:
             med = self.night_stats[self.loose][r]["median_K"]
             if med is None or self.nom_night[r] is None:
                 det[r] = dict(dT_K=med, dT_observed_K=None, T_scene_K=None, netd_K=None, n_samples=None,
@@ -211,8 +227,8 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrumen
         if B.loose is None:
             continue
         key = f"{B.lat:g}"
-        lat_night[key] = {r: B.night_stats[B.loose][r]["median_K"] for r in an.REGIONS}
-        lat_day[key] = {r: B.day_stats[B.loose][r]["median_K"] for r in an.REGIONS}
+        lat_night[key] = {r: B.night_stats[B.loose][r]["median_K"] for r in B.regions}
+        lat_day[key] = {r: B.day_stats[B.loose][r]["median_K"] for r in B.regions}
         lat_dwell[key] = {r: v["dwell_time_s"] for r, v in B.detectability(instrument, footprint_fraction).items()}
     s = dict(
         schema_version=1,
@@ -222,10 +238,13 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrumen
         time_start_utc=str(np.datetime_as_string(A.times[0], unit="s")) + "Z",
         time_end_utc=str(np.datetime_as_string(A.times[-1], unit="s")) + "Z",
         n_times=int(A.times.size),
-        n_facets=int(A.regions.size),
+        n_facets=A.nf,
         night_fraction=float(A.night.mean()),
-        regions=list(an.REGIONS),
-        region_facet_count={r: int((A.regions == r).sum()) for r in an.REGIONS},
+        night_definition=A.night_definition,
+        night_min_dark_hours=A.min_dark_hours,
+        night_fraction_samples=float(A.night_f.mean()),
+        regions=list(A.regions),
+        region_facet_count={r: int(m.sum()) for r, m in A.regions.items()},
         profiles=list(A.labels),
         nominal_profile=A.nominal,
         loose_profile=A.loose,
@@ -278,7 +297,7 @@ def _shade_night(ax, days, night):
 
 def _facet_title(A, key):
     i = A.facets[key]
-    return f"{key.replace('_', ' ')} (facet {i}, {A.regions[i].replace('_', ' ')})"
+    return f"{key.replace('_', ' ')} (facet {i}, {A.region_label(i).replace('_', ' ')})"
 
 
 def _fig_fluxes(A, path):
@@ -292,7 +311,7 @@ def _fig_fluxes(A, path):
         a.set_ylabel("flux [W m-2]")
         a.set_title(_facet_title(A, key), fontsize=10)
         a.legend(fontsize=8, loc="upper right")
-    ax[1, 0].set_xlabel("days since start (grey: night at the crater centre)")
+    ax[1, 0].set_xlabel("days since start (grey: night at the crater centre; statistics use per-facet night)")
     fig.suptitle(f"Incident fluxes, lat {A.lat:g} deg")
     fig.savefig(path)
 
@@ -363,30 +382,61 @@ def _fig_density_grid(A, path):
 
 
 def _region_ticks(a, regions):
-    a.set_xticks(range(len(regions)), [r.replace("_", "\n") for r in regions], fontsize=7)
+    a.set_xticks(range(len(regions)), [r.replace("_facing", "-facing").replace("_", " ") for r in regions],
+                 fontsize=7, rotation=45, ha="right", rotation_mode="anchor")
+
+
+def _aligned_regions(all_A) -> Tuple[List[str], List[List[Optional[str]]]]:
+    """Region names of the first analysis and, per analysis, its name for each of them (None if absent).
+
+    Regions of runs at different latitudes match by name, or by position when a polar run names its
+    sectors by the Sun (``upper_wall_sun_facing`` beside ``upper_wall_equator_facing``)."""
+    base = list(all_A[0].regions)
+    per = []
+    for B in all_A:
+        names = list(B.regions)
+        if names == base:
+            per.append(list(base))
+        elif len(names) == len(base):
+            per.append(names)
+        else:
+            per.append([r if r in B.regions else None for r in base])
+    return base, per
+
+
+def _region_tick(base: str, others: Sequence[Optional[str]]) -> str:
+    alt = sorted({o for o in others if o and o != base})
+    return " ".join([base.replace("_facing", "-facing").replace("_", " ")]
+                    + [f"({a.replace('_facing', '-facing').replace('_', ' ')})" for a in alt])
 
 
 def _fig_regions(all_A, path):
-    fig, ax = _figure(1, 1, (10, 4.5))
+    base, per = _aligned_regions(all_A)
+    keep = [j for j, r in enumerate(base) if any(p[j] and A.loose and A.night_stats[A.loose][p[j]]["n"]
+                                                  for A, p in zip(all_A, per))]
+    fig, ax = _figure(1, 1, (max(10.0, 0.75 * len(keep) + 2), 5.0))
     a = ax[0, 0]
     n = len(all_A)
     w = 0.8 / n
-    x = np.arange(len(an.REGIONS))
-    for k, A in enumerate(all_A):
+    x = np.arange(len(keep))
+    for k, (A, names) in enumerate(zip(all_A, per)):
         if A.loose is None:
             continue
         st = A.night_stats[A.loose]
-        med = np.array([np.nan if st[r]["median_K"] is None else st[r]["median_K"] for r in an.REGIONS])
-        q1 = np.array([np.nan if st[r]["q1_K"] is None else st[r]["q1_K"] for r in an.REGIONS])
-        q3 = np.array([np.nan if st[r]["q3_K"] is None else st[r]["q3_K"] for r in an.REGIONS])
+        q = np.array([[np.nan if names[j] is None or st[names[j]][key] is None else st[names[j]][key]
+                       for key in ("q1_K", "median_K", "q3_K")] for j in keep]).reshape(-1, 3)
         xs = x - 0.4 + w * (k + 0.5)
-        a.bar(xs, med, w, label=f"lat {A.lat:g} deg")
-        a.errorbar(xs, med, yerr=[med - q1, q3 - med], fmt="none", ecolor="k", lw=1)
+        a.bar(xs, q[:, 1], w, label=f"lat {A.lat:g} deg")
+        a.errorbar(xs, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], fmt="none", ecolor="k", lw=1)
     a.axhline(0, color="k", lw=0.5)
-    _region_ticks(a, an.REGIONS)
+    a.set_xticks(x, [_region_tick(base[j], [p[j] for p in per]) for j in keep], fontsize=7, rotation=45,
+                 ha="right", rotation_mode="anchor")
     a.set_ylabel("night-time median loose - nominal [K]")
     a.legend(fontsize=8)
-    a.set_title("By crater region (error bars: quartiles); poleward = pole side of the axis, faces the equator", fontsize=10)
+    night = ("per facet: no direct sunlight for %g h" % all_A[0].min_dark_hours
+             if all_A[0].night_definition == "facet" else "Sun below the crater centre's horizon")
+    a.set_title("By region (error bars: quartiles). Sectors: the azimuth the slope faces, +-45 deg; "
+                f"night {night}", fontsize=9)
     fig.savefig(path)
 
 
@@ -396,7 +446,7 @@ def _fig_night_map(all_A, path):
 
     n = len(all_A)
     fig, ax = _figure(1, n, (5.2 * n + 1.0, 5.0))
-    maps = [np.abs(A.night_map[A.loose]) if A.loose else np.full(A.regions.size, np.nan) for A in all_A]
+    maps = [np.abs(A.night_map[A.loose]) if A.loose else np.full(A.nf, np.nan) for A in all_A]
     vmax = max([float(np.nanmax(m)) for m in maps if np.isfinite(m).any()] + [1e-3])
     for k, A in enumerate(all_A):
         a = ax[0, k]
@@ -427,8 +477,13 @@ def _fig_quartiles(all_A, path):
         order = np.argsort(lats)
         for j, when in enumerate(("night", "day")):
             a = ax[0, j]
-            for r in ("floor", "upper_wall_poleward", "upper_wall_equatorward"):
-                q = np.array([_quart(getattr(all_A[i], f"{when}_stats")[all_A[i].loose], r) for i in order])
+            base, per = _aligned_regions(all_A)
+            for r in ("floor", "upper_wall_equator_facing", "upper_wall_pole_facing"):
+                if r not in base:
+                    continue
+                j = base.index(r)
+                q = np.array([_quart(getattr(all_A[i], f"{when}_stats")[all_A[i].loose], per[i][j])
+                              if per[i][j] else [np.nan] * 3 for i in order])
                 line, = a.plot(lats[order], q[:, 1], marker="o", label=f"{r} median")
                 a.fill_between(lats[order], q[:, 0], q[:, 2], color=line.get_color(), alpha=0.2)
             a.set_xlabel("latitude [deg]")
@@ -436,15 +491,15 @@ def _fig_quartiles(all_A, path):
             a.legend(fontsize=7)
     else:
         A = all_A[0]
-        x = np.arange(len(an.REGIONS))
+        x = np.arange(len(A.regions))
         for j, when in enumerate(("night", "day")):
             a = ax[0, j]
             if A.loose:
-                q = np.array([_quart(getattr(A, f"{when}_stats")[A.loose], r) for r in an.REGIONS])
+                q = np.array([_quart(getattr(A, f"{when}_stats")[A.loose], r) for r in A.regions])
                 a.errorbar(x, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], fmt="o", capsize=4,
                            color="tab:blue" if when == "night" else "tab:orange")
             a.axhline(0, color="k", lw=0.5)
-            _region_ticks(a, an.REGIONS)
+            _region_ticks(a, list(A.regions))
             a.set_title(f"{when} (lat {A.lat:g} deg): median and quartiles", fontsize=10)
     ax[0, 0].set_ylabel("loose - nominal [K]")
     fig.savefig(path)
@@ -453,9 +508,10 @@ def _fig_quartiles(all_A, path):
 def _fig_detectability(det: dict, instrument: an.Instrument, path):
     fig, ax = _figure(1, 1, (10, 4.5))
     a = ax[0, 0]
-    x = np.arange(len(an.REGIONS))
+    names = list(det)
+    x = np.arange(len(names))
     dwell = np.array([np.nan if not det.get(r) or det[r]["dwell_time_s"] is None else det[r]["dwell_time_s"]
-                      for r in an.REGIONS])
+                      for r in names])
     ok = np.isfinite(dwell)
     bottom = instrument.integration_s / 2
     a.bar(x[ok], dwell[ok] - bottom, bottom=bottom, color="tab:green", label="detectable: dwell needed")
@@ -464,7 +520,7 @@ def _fig_detectability(det: dict, instrument: an.Instrument, path):
     a.set_yscale("log")
     a.set_ylim(bottom, max(np.nanmax(dwell) * 3 if ok.any() else 1.0, 1.0))
     a.axhline(instrument.integration_s, color="k", ls=":", lw=0.8, label=f"one integration ({instrument.integration_s:g} s)")
-    _region_ticks(a, an.REGIONS)
+    _region_ticks(a, names)
     a.set_ylabel("dwell time [s]")
     a.set_title(f"Loose vs nominal at {instrument.k_sigma:g} sigma; NETD {instrument.netd_ref_K:g} K at "
                 f"{instrument.t_ref_K:g} K in {instrument.band_um[0]:g}-{instrument.band_um[1]:g} um; "
@@ -513,9 +569,16 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
         f"<p>{summary['time_start_utc']} to {summary['time_end_utc']}, {summary['n_times']} samples, "
         f"{summary['n_facets']} facets (mesh {html.escape(summary['mesh_hash'])}); night fraction "
         f"{summary['night_fraction']:.2f}. Differences are replayed profile minus nominal "
-        f"({html.escape(summary['nominal_profile'])}); night = Sun's centre below the horizon at the crater centre. "
-        "Regions: floor, lower/upper wall (inner/outer half of the wall in radius), rim (outer flank), surround; "
-        "<i>poleward</i> = on the pole side of the axis (these slopes face the equator and the Sun).</p>",
+        f"({html.escape(summary['nominal_profile'])}); "
+        + (f"night = no direct sunlight on the facet for at least {summary['night_min_dark_hours']:g} h, day = "
+           "the facet directly lit (a never-lit facet has no day)"
+           if summary["night_definition"] == "facet" else
+           "night = Sun's centre below the horizon at the crater centre (thesis)")
+        + f" ({summary['night_fraction_samples']:.2f} of the samples are night). "
+        "Regions: floor; lower/upper wall (below/above half the wall's height); top wall ring (the facets at the "
+        "crest); rim (outer flank); surround; each wall/rim part split into +-45 deg sectors by the azimuth its "
+        "slope faces (<i>equator_facing</i>: on the pole side, facing the equator and the Sun); never / rarely "
+        "(&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap.</p>",
     ]
     loose = summary["loose_profile"]
     if loose:
@@ -595,7 +658,8 @@ def _install(tmp: Path, out_dir: Path) -> None:
 
 def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: Optional[bool] = None,
                 instrument: an.Instrument = an.Instrument(), threshold_K: float = an.NATURAL_SCATTER_K,
-                footprint_fraction: float = 1.0, snapshots: bool = True) -> Path:
+                footprint_fraction: float = 1.0, snapshots: bool = True, night_definition: str = "facet",
+                min_dark_hours: float = an.MIN_DARK_HOURS) -> Path:
     """Write figures, report.html and summary.json for a run and its replay.
 
     Parameters
@@ -616,6 +680,11 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         Pixel fraction of loose regolith (rest nominal), thesis Eq. 8.2.
     snapshots : bool
         Also render 3-D views with pyvista (a note replaces them if rendering fails).
+    night_definition : str
+        "facet" (default: no direct sunlight on the facet for ``min_dark_hours``), "centre" (the thesis:
+        Sun below the crater centre's horizon) or "facet_and_centre" (analysis.night_day_masks).
+    min_dark_hours : float [h]
+        Darkness a facet needs before its samples count as night (24 h).
 
     Returns
     -------
@@ -632,6 +701,10 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
     _refuse_existing(out_dir, overwrite)
     if not 0.0 <= footprint_fraction <= 1.0:
         raise ConfigError(f"footprint_fraction={footprint_fraction} out of range [0, 1]")
+    if night_definition not in an.NIGHT_DEFINITIONS:
+        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(an.NIGHT_DEFINITIONS)}")
+    if not (np.isfinite(min_dark_hours) and min_dark_hours >= 0):
+        raise ConfigError(f"min_dark_hours={min_dark_hours} out of range [0, inf)")
     runs, reps = _as_list(run_ds), _as_list(replay_ds)
     if len(runs) != len(reps) or not runs:
         raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
@@ -640,7 +713,7 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         runs = [_track(_open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
         reps = [_track(_open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
         return _make_report(runs, reps, out_dir, overwrite, progress, instrument, threshold_K,
-                            footprint_fraction, snapshots)
+                            footprint_fraction, snapshots, night_definition, min_dark_hours)
     finally:
         for ds in opened:
             ds.close()
@@ -652,14 +725,14 @@ def _track(ds, opened: list):
 
 
 def _make_report(runs, reps, out_dir: Path, overwrite, progress, instrument, threshold_K, footprint_fraction,
-                 snapshots) -> Path:
+                 snapshots, night_definition="facet", min_dark_hours=an.MIN_DARK_HOURS) -> Path:
     for run, rep in zip(runs, reps):
         an.check_run(run, an._RUN_VARS + ("solar_incident", "ir_incident"))
         an.check_pair(run, rep)
     n_profiles = sum(len(an.profile_labels(p)) - 1 for p in reps)
     n_steps = n_profiles + len(FIGURES) + 1
     with progress_bar("report: profiles, figures", n_steps, progress) as advance:
-        all_A = [_Analysis(r, p, threshold_K, advance) for r, p in zip(runs, reps)]
+        all_A = [_Analysis(r, p, threshold_K, advance, night_definition, min_dark_hours) for r, p in zip(runs, reps)]
         return _write_report(all_A, out_dir, overwrite, advance, instrument, footprint_fraction, snapshots)
 
 

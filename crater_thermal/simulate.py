@@ -150,6 +150,15 @@ def seconds_since(times: np.ndarray, t0: np.datetime64) -> np.ndarray:
     return (np.asarray(times, "datetime64[ns]") - np.datetime64(t0, "ns")).astype(np.int64) / 1e9
 
 
+def absorbed_solar_of(flux_ds, prefix: str = "") -> np.ndarray:
+    """Absorbed sunlight [W m-2] of a flux dataset: its ``<prefix>solar_absorbed`` when present (runs
+    with an incidence-dependent albedo), else ``(1 - albedo) <prefix>solar_incident`` (constant albedo,
+    and flux files from other tools)."""
+    if prefix + "solar_absorbed" in flux_ds:
+        return np.asarray(flux_ds[prefix + "solar_absorbed"].values, float)
+    return (1 - float(flux_ds.attrs["albedo"])) * flux_ds[prefix + "solar_incident"].values
+
+
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
                   fixed_spinup: bool = False, chunk_columns: int = 50_000, progress: bool | None = None,
@@ -172,19 +181,17 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     """
     from crater_thermal import thermal
 
-    albedo = float(flux_ds.attrs["albedo"])
     eps = float(flux_ds.attrs["emissivity"])
     pset = property_set or str(flux_ds.attrs.get("property_set", "apollo"))
     qgeo = float(flux_ds.attrs.get("geothermal_flux", 0.033) if geothermal_flux is None else geothermal_flux)
     times = flux_ds["time"].values
     t0 = times[0]
     t_rec = seconds_since(times, t0)
-    abs_rec = (1 - albedo) * flux_ds["solar_incident"].values + eps * flux_ds["ir_incident"].values
+    abs_rec = absorbed_solar_of(flux_ds, "") + eps * flux_ds["ir_incident"].values
     has_spin = "spinup_solar_incident" in flux_ds
     if has_spin:
         t_spin = seconds_since(flux_ds["spinup_time"].values, t0)
-        abs_spin = ((1 - albedo) * flux_ds["spinup_solar_incident"].values
-                    + eps * flux_ds["spinup_ir_incident"].values)
+        abs_spin = absorbed_solar_of(flux_ds, "spinup_") + eps * flux_ds["spinup_ir_incident"].values
     nt, nf = abs_rec.shape
     n_prof = len(profiles)
     out = np.empty((n_prof, nt, nf), np.float32)
@@ -317,6 +324,9 @@ class Forcing:
     sun_dist_m: np.ndarray
     direct: np.ndarray  # (ns + nt - 1, nf) [W m-2]
     solar: np.ndarray  # direct + scattered [W m-2]
+    #: absorbed sunlight [W m-2] when the albedo depends on incidence (``albedo_model != "constant"``);
+    #: None: absorbed = (1 - A) solar
+    solar_absorbed: np.ndarray | None = None
 
     @property
     def n_spin(self) -> int:
@@ -365,13 +375,42 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
                                                 solar_constant=case.sun.solar_constant_W_m2,
                                                 disk=disk, progress=progress_enabled(progress))
     with timer("radiosity"):
-        if F is None:
-            solar = direct
+        scat = None if F is None else radiosity.ScatteringSolver(
+            F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces)
+        model = getattr(case.surface, "albedo_model", "constant")
+        solar_abs = None
+        if model == "constant":
+            solar = direct if scat is None else scat.solar_incident(direct)
         else:
-            scat = radiosity.ScatteringSolver(F, case.surface.albedo, method=case.scattering.method,
-                                              n_bounces=case.scattering.n_bounces)
-            solar = scat.solar_incident(direct)
-    return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
+            solar, solar_abs = absorbed_sunlight(case, mesh, sun_dirs, direct, scat, F)
+    return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar, solar_abs)
+
+
+def absorbed_sunlight(case, mesh, sun_dirs, direct, scat, F):
+    """Incident and absorbed sunlight [W m-2] with an incidence-dependent albedo for direct light.
+
+    Direct sunlight is reflected with A(i) (``illumination.direct_albedo``, the case's ``albedo_model``);
+    scattered light, which arrives from many directions, with the case's albedo A0 (the normal-incidence
+    value, a lower bound of the hemispherical average of A(i)). Radiosity: B = A(i) E + A0 F B, so the
+    scattered irradiance is F (I - A0 F)^-1 A(i) E, computed with the A0 solver on the equivalent direct
+    flux A(i) E / A0. Returns ``(solar_incident, solar_absorbed)``, both (nt, nf):
+    ``solar_absorbed = (1 - A(i)) E + (1 - A0) (solar_incident - E)``.
+    """
+    from crater_thermal import illumination
+
+    A0 = float(case.surface.albedo)
+    A_dir = illumination.direct_albedo(mesh.normals, sun_dirs, A0, case.surface.albedo_model,
+                                       getattr(case.surface, "albedo_a", illumination.HAYNE2017_ALBEDO_A),
+                                       getattr(case.surface, "albedo_b", illumination.HAYNE2017_ALBEDO_B))
+    if scat is None:
+        scattered = np.zeros_like(direct)
+    elif A0 > 0:
+        equivalent = direct * (A_dir / A0)
+        scattered = np.maximum(scat.solar_incident(equivalent) - equivalent, 0.0)
+    else:  # no multiple scattering: one bounce of the directly reflected light
+        scattered = np.asarray((F @ (A_dir * direct).T).T)
+    solar = direct + scattered
+    return solar, (1.0 - A_dir) * direct + (1.0 - A0) * scattered
 
 
 def _case_fingerprint(case) -> str:
@@ -416,8 +455,10 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         solver_kw["dt_max"] = float(case.steps.conduction_step_s)
     solver = thermal.ColumnSolver([nominal] * nf, property_set=case.surface.property_set, emissivity=eps,
                                   geothermal_flux=case.surface.geothermal_flux_W_m2, **solver_kw)
-    stepper = CoupledStepper(solver, fc.F, albedo, eps)
-    spin_solar, rec_solar = fc.split(fc.solar)
+    # an incidence-dependent albedo: drive the columns with the absorbed sunlight itself (albedo 0)
+    drive = fc.solar if fc.solar_absorbed is None else fc.solar_absorbed
+    stepper = CoupledStepper(solver, fc.F, albedo if fc.solar_absorbed is None else 0.0, eps)
+    spin_solar, rec_solar = fc.split(drive)
     t0 = fc.times[0]
     spin_t = seconds_since(fc.spin_times, t0)
     rec_t = seconds_since(fc.times, t0)
@@ -478,13 +519,21 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         extra_vars = {"start_residual": (("facet",), np.asarray(spin_info["residual"], float),
                                          {"units": "K", "long_name": "max over the column of |T(end) - T(start)| "
                                           "of the spin-up window's last period"})}
+        spin_incident, rec_incident = fc.split(fc.solar)
+        if fc.solar_absorbed is not None:
+            extra_vars["solar_absorbed"] = (("time", "facet"), rec_solar, {
+                "units": "W m-2", "long_name": "absorbed shortwave irradiance (incidence-dependent albedo); "
+                "replay uses it instead of (1 - albedo) solar_incident"})
         if getattr(case.output, "save_spinup_fluxes", True) and fc.n_spin:
-            extra_vars["spinup_solar_incident"] = (("spinup_time", "facet"), spin_solar, {"units": "W m-2"})
+            extra_vars["spinup_solar_incident"] = (("spinup_time", "facet"), spin_incident, {"units": "W m-2"})
             extra_vars["spinup_ir_incident"] = (("spinup_time", "facet"), spin_ir, {"units": "W m-2"})
+            if fc.solar_absorbed is not None:
+                extra_vars["spinup_solar_absorbed"] = (("spinup_time", "facet"), spin_solar, {"units": "W m-2"})
         ds = io.run_dataset(
-            mesh, fc.times, solar_incident=rec_solar, ir_incident=out_ir, solar_direct=rec_direct,
+            mesh, fc.times, solar_incident=rec_incident, ir_incident=out_ir, solar_direct=rec_direct,
             surface_temperature=out_T, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU,
             attrs={"case_name": case.name, "case_toml": case.toml_text, "albedo": albedo, "emissivity": eps,
+                   "albedo_model": str(getattr(case.surface, "albedo_model", "constant")),
                    "lat_deg": float(case.location.lat_deg), "lon_deg": float(case.location.lon_deg),
                    "property_set": case.surface.property_set, "nominal_profile": nominal.label,
                    "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
