@@ -43,5 +43,3 @@ ROCK_DENSITY = 3070.0
 #: (Keihm 1984 form; Hayne et al. 2017, JGR Planets 122, 2371, Appendix A: a = 0.06, b = 0.25)
 HAYNE2017_ALBEDO_A = 0.06
 HAYNE2017_ALBEDO_B = 0.25
-#: Albedo models of a case's ``[surface] albedo_model``
-ALBEDO_MODELS = ("constant", "hayne2017")
