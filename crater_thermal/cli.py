@@ -181,7 +181,7 @@ def sweep(
 @app.command()
 def report(
     run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output), or a sweep's output folder."),
-    replay: Optional[Path] = typer.Argument(None, help="Replay dataset made from RUN (omit when RUN is a sweep folder)."),
+    replay: Optional[Path] = typer.Argument(None, help="Replay dataset made from RUN (omit for a sweep folder)."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder: report.html, figures/, summary.json."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing report.html."),
     instrument: List[str] = typer.Option([], "--instrument", help="Preset channel (repeatable): diviner_ch7, "
@@ -192,9 +192,12 @@ def report(
     integration_s: float = typer.Option(0.128, "--integration-s", help="User channel: one integration [s]."),
     knee_s: float = typer.Option(60.0, "--knee-s", help="User channel: 1/f knee, dwell where averaging stops [s]."),
     gain_error: float = typer.Option(0.01, "--gain-error", help="User channel: relative 1-sigma gain error."),
-    footprint_fraction: float = typer.Option(1.0, "--footprint-fraction", help="Loose fraction of the candidate footprint [0-1]."),
-    reference_footprints: int = typer.Option(1, "--reference-footprints", help="Nominal footprints averaged as the reference."),
-    natural_scatter_k: float = typer.Option(0.94, "--natural-scatter-k", help="Footprint-to-footprint scatter of true temperatures [K]."),
+    footprint_fraction: float = typer.Option(1.0, "--footprint-fraction",
+                                             help="Loose fraction of the candidate footprint [0-1]."),
+    reference_footprints: int = typer.Option(1, "--reference-footprints",
+                                             help="Nominal footprints averaged as the reference."),
+    natural_scatter_k: float = typer.Option(0.94, "--natural-scatter-k",
+                                            help="Footprint-to-footprint scatter of true temperatures [K]."),
     false_alarm: float = typer.Option(0.01, "--false-alarm", help="False-alarm rate of the one-sided test (0-1)."),
     no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
 ) -> None:

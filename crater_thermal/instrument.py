@@ -543,8 +543,9 @@ def dwell_for_detection(dT_K: float, T_nominal_K: float, instrument: Instrument,
     mu, T_cand = float(mu_a), float(T_cand_a)
     inst = instrument
     out = {"mu_K": mu, "T_candidate_K": T_cand, "netd_candidate_K": float(inst.netd(T_cand)),
-               "netd_reference_K": float(inst.netd(T_nominal_K)), "detectable": False, "dwell_s": None, "n_samples": None,
-               "pd_at_dwell": None, "pd_limit": None, "limiting_term": None, "sigma_terms_K": None, "answer": ""}
+           "netd_reference_K": float(inst.netd(T_nominal_K)), "detectable": False, "dwell_s": None,
+           "n_samples": None, "pd_at_dwell": None, "pd_limit": None, "limiting_term": None, "sigma_terms_K": None,
+           "answer": ""}
 
     def terms_at(n):
         return noise_terms(mu, T_cand, T_nominal_K, n * inst.integration_s, inst, obs)

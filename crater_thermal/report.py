@@ -41,8 +41,10 @@ FIGURES = {
     "fig7_7b_regions.png": "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b).",
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
     "fig7_9_quartiles.png": "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9).",
-    "detectability.png": "Probability of detecting loose vs nominal (night medians) against dwell time, per instrument and region, at the stated false-alarm rate (instrument.py).",
-    "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), at the reference dwell.",
+    "detectability.png": "Probability of detecting loose vs nominal (night medians) against dwell time, per "
+                         "instrument and region, at the stated false-alarm rate (instrument.py).",
+    "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), "
+                                "at the reference dwell.",
 }
 SNAPSHOTS = {
     "map3d_temperature.png": "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction.",
@@ -51,7 +53,8 @@ SNAPSHOTS = {
 
 #: Top-level keys of summary.json and what they hold (units in the names; regions are analysis.REGIONS).
 SUMMARY_KEYS = {
-    "schema_version": "int: layout version of this file (2: detection statistics replace the k-sigma detectability of 1).",
+    "schema_version": "int: layout version of this file (2: detection statistics replace the k-sigma "
+                      "detectability of 1).",
     "mesh_hash": "str: mesh hash shared by the run and the replay.",
     "lat_deg": "float [deg]: latitude of the crater (first run if several).",
     "lon_deg": "float [deg]: longitude of the crater.",
@@ -79,13 +82,24 @@ SUMMARY_KEYS = {
     "density_grid_floor_night_median_dT_K": "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night medians (Fig. 7.7a).",
     "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
     "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
-    "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each footprint for P_D >= target per latitude (null = not detectable at any dwell).",
-    "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: instrument channels (instrument.Instrument; presets instrument.PRESETS).",
-    "observation": "{footprint_fraction, reference_footprints, natural_scatter_K, false_alarm, target_pd, test}: how the candidate is compared with nominal (instrument.Observation).",
+    "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each "
+                                  "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
+    "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: "
+                   "instrument channels (instrument.Instrument; presets instrument.PRESETS).",
+    "observation": "{footprint_fraction, reference_footprints, natural_scatter_K, false_alarm, target_pd, test}: "
+                   "how the candidate is compared with nominal (instrument.Observation).",
     "detection_reference_dwell_s": "float [s]: dwell at which |dT|/sigma is evaluated for the best local time.",
     "detection_dwell_grid_s": "{instrument: [float]} [s]: dwell times of the P_D curves.",
-    "band_signal_night_floor": "{instrument: {band_um, T_K, band_radiance_W_m2_sr, dL_dT_W_m2_sr_K, netd_K, netd_ref_K, t_ref_K}}: what each band receives from the night-time nominal floor (and at 300 K).",
-    "detection": "{instrument: {region: {dT_median_K, dT_q1_K, dT_q3_K, T_nominal_K, mu_K (observed, band-mixed), netd_candidate_K, netd_reference_K, detectable, dwell_s (null = none), n_samples, pd_at_dwell, pd_limit (infinite dwell), limiting_term (instrument.TERMS), sigma_terms_K {term: K}, answer (sentence), pd_vs_dwell [-] on detection_dwell_grid_s, best_local_time_h (null = no samples), best_snr, best_dT_K, best_T_nominal_K, snr_by_local_time [-] (24 lunar-hour bins, |mu|/sigma_0 at detection_reference_dwell_s), dwell_s_scatter_half, dwell_s_scatter_double}}}: loose vs nominal from night-time medians (instrument.dwell_for_detection).",
+    "band_signal_night_floor": "{instrument: {band_um, T_K, band_radiance_W_m2_sr, dL_dT_W_m2_sr_K, netd_K, "
+                               "netd_ref_K, t_ref_K}}: what each band receives from the night-time nominal floor "
+                               "(and at 300 K).",
+    "detection": "{instrument: {region: {dT_median_K, dT_q1_K, dT_q3_K, T_nominal_K, mu_K (observed, band-mixed), "
+                 "netd_candidate_K, netd_reference_K, detectable, dwell_s (null = none), n_samples, pd_at_dwell, "
+                 "pd_limit (infinite dwell), limiting_term (instrument.TERMS), sigma_terms_K {term: K}, answer "
+                 "(sentence), pd_vs_dwell [-] on detection_dwell_grid_s, best_local_time_h (null = no samples), "
+                 "best_snr, best_dT_K, best_T_nominal_K, snr_by_local_time [-] (24 lunar-hour bins, |mu|/sigma_0 at "
+                 "detection_reference_dwell_s), dwell_s_scatter_half, dwell_s_scatter_double}}}: loose vs nominal "
+                 "from night-time medians (instrument.dwell_for_detection).",
     "figures": "list[str]: files written under figures/.",
     "snapshot_note": "str|null: why 3-D snapshots are missing, if they are.",
 }
@@ -246,7 +260,8 @@ def _detection(A, instruments: Sequence[ins.Instrument], obs: ins.Observation, w
             row.update(ins.dwell_for_detection(med, Tn, inst, obs))
             row["pd_vs_dwell"] = ins.detection_probability(med, Tn, grid, inst, obs)
             for key, f in (("dwell_s_scatter_half", 0.5), ("dwell_s_scatter_double", 2.0)):
-                row[key] = ins.dwell_for_detection(med, Tn, inst, obs.with_scatter(f * obs.natural_scatter_K))["dwell_s"]
+                o = obs.with_scatter(f * obs.natural_scatter_K)
+                row[key] = ins.dwell_for_detection(med, Tn, inst, o)["dwell_s"]
             if with_time:
                 row.update(_best_local_time(bins[r], inst, obs))
             per[r] = row
@@ -640,11 +655,13 @@ def _html_detection(summary: dict) -> str:
                          _fmt(d.get("dwell_s"), ".3g") if d.get("detectable") else "never",
                          _fmt(d.get("pd_limit")), str(d.get("limiting_term") or "-").replace("_", " "),
                          "-" if lt is None else f"{lt:.1f} h (|dT|/sigma {d['best_snr']:.2g})",
-                         f"{_fmt(d.get('dwell_s_scatter_half'), '.3g')} / {_fmt(d.get('dwell_s_scatter_double'), '.3g')}",
+                         f"{_fmt(d.get('dwell_s_scatter_half'), '.3g')} / "
+                         f"{_fmt(d.get('dwell_s_scatter_double'), '.3g')}",
                          d.get("answer", "")])
-        parts.append(f"<h3>{html.escape(name)}: {inst['lo_um']:g}-{inst['hi_um']:g} um, NETD {inst['netd_ref_K']:.3g} K "
-                     f"at {inst['t_ref_K']:g} K per {inst['integration_s']:.3g} s, 1/f knee {inst['knee_s']:g} s, "
-                     f"gain error {100 * inst['gain_error']:g}%</h3><p><small>{html.escape(inst['source'])}</small></p>")
+        parts.append(f"<h3>{html.escape(name)}: {inst['lo_um']:g}-{inst['hi_um']:g} um, NETD "
+                     f"{inst['netd_ref_K']:.3g} K at {inst['t_ref_K']:g} K per {inst['integration_s']:.3g} s, "
+                     f"1/f knee {inst['knee_s']:g} s, gain error {100 * inst['gain_error']:g}%</h3>"
+                     f"<p><small>{html.escape(inst['source'])}</small></p>")
         parts.append(_table(rows, ["region", "night median dT [K]", "quartiles [K]", "T nominal [K]",
                                    "NETD at candidate [K]", "dwell for P_D [s]", "P_D at infinite dwell",
                                    "limiting term", "best local time", "dwell with scatter x0.5 / x2 [s]", "answer"]))
@@ -733,7 +750,8 @@ def sweep_pairs(folder) -> Tuple[List[Path], List[Path]]:
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise ConfigError(f"{folder} is not a folder; expected a sweep output folder with CASE/run.nc and CASE/replay.nc")
+        raise ConfigError(f"{folder} is not a folder; expected a sweep output folder with CASE/run.nc and "
+                          "CASE/replay.nc")
     cases = sorted(d for d in folder.iterdir() if (d / "run.nc").is_file() and (d / "replay.nc").is_file())
     if not cases:
         raise ConfigError(f"{folder} holds no CASE/run.nc with CASE/replay.nc (a sweep's output folder)")

@@ -1,6 +1,5 @@
 """Tests of crater_thermal.analysis: masks, regions, differences, statistics (instrument: test_instrument.py)."""
 
-
 import numpy as np
 import pytest
 
