@@ -83,7 +83,7 @@ def mesh_bowl(
 
 @mesh_app.command("dem")
 def mesh_dem(
-    dem: Path = typer.Argument(..., help="DEM: GeoTIFF, PDS3 .LBL/.IMG (LOLA LDEM_*), any GDAL raster with a lunar CRS."),
+    dem: Path = typer.Argument(..., help="DEM: GeoTIFF, PDS3 .LBL/.IMG (LOLA LDEM_*), any GDAL raster, lunar CRS."),
     center_lat: float = typer.Option(..., "--center-lat", help="Site centre, planetocentric latitude [deg]."),
     center_lon: float = typer.Option(..., "--center-lon", help="Site centre, east longitude [deg]."),
     radius_km: float = typer.Option(..., "--radius-km", help="Radius of the analysed (inner) region [km]."),

@@ -451,8 +451,8 @@ def _lattice(R: float, H: float, r_min: float = -1.0) -> tuple[np.ndarray, np.nd
     ni = int(math.floor(R / H)) + 1
     j = np.arange(-nj, nj + 1)
     i = np.arange(-ni, ni + 1)
-    J, I = np.meshgrid(j, i, indexing="ij")
-    col2 = 2 * I + (J % 2)  # x in units of H/2
+    J, Ii = np.meshgrid(j, i, indexing="ij")
+    col2 = 2 * Ii + (J % 2)  # x in units of H/2
     x = col2 * (0.5 * H)
     y = J * dy
     r = np.hypot(x, y)
@@ -590,7 +590,8 @@ def site_mesh(path, center_lat_deg: float, center_lon_deg: float, radius_km: flo
     tri = Delaunay(xy)
     F = np.asarray(tri.simplices, dtype=np.int64)
     p = xy[F]
-    signed = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 2, 0] - p[:, 0, 0]) * (p[:, 1, 1] - p[:, 0, 1])
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    signed = e1[:, 0] * e2[:, 1] - e2[:, 0] * e1[:, 1]
     F[signed < 0] = F[signed < 0][:, [0, 2, 1]]
     # drop degenerate slivers (three nearly collinear boundary nodes), relative to the local facet size
     keep = np.abs(signed) > 1e-9 * H * H
