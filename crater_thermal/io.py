@@ -127,7 +127,7 @@ def mesh_variables(mesh) -> dict:
         "area": (("facet",), np.asarray(mesh.areas, float), {"units": "m2"}),
         "normal": (("facet", "xyz"), np.asarray(mesh.normals, float), {"units": "1"}),
         "centroid": (("facet", "xyz"), np.asarray(mesh.centroids, float), {"units": "m"}),
-        "inner": (("facet",), inner_flags(mesh.n_facets, mesh.meta).astype(np.int8),
+        "inner": (("facet",), inner_flags(len(mesh.faces), getattr(mesh, "meta", None)).astype(np.int8),
                   {"units": "1", "flag_values": np.array([0, 1], np.int8), "flag_meanings": "outer inner",
                    "long_name": "facet of the analysed region (0: outer terrain for shadows and radiation only)"}),
     }

@@ -66,6 +66,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from crater_thermal import choices
 from crater_thermal.errors import ConfigError, DEMError
 
 __all__ = [
@@ -96,7 +97,7 @@ MESH_BYTES_PER_FACET = 400.0
 #: Estimated memory of the exact view-factor matrix per facet pair that sees each other [bytes]
 #: (value + index), with ~12 % of pairs visible on rough terrain; shown in the size estimate only.
 VIEW_FACTOR_BYTES_PER_PAIR = 12.0
-HEIGHT_KINDS = ("auto", "height", "radius")
+HEIGHT_KINDS = choices.HEIGHT_KINDS
 #: Lunar reference radius [m] (IAU 2015 sphere; LOLA products) and the 1 % tolerance of a DEM's CRS.
 MOON_RADIUS_M = 1_737_400.0
 _BODY_TOLERANCE = 0.01
