@@ -10,7 +10,7 @@ that run's saved fluxes with the thesis's 0.033 W m-2 and with 0.018 W m-2 (Hayn
 modern estimates are 0.014-0.021) and prints the night-time
 (Sun centre below the crater centre's horizon) median floor temperature of each, and the floor's median
 night-time absorbed infrared from the walls, eps * ir_incident [W m-2], for comparison with the
-geothermal flux. Writes validation/results/geothermal_floor.json.
+geothermal flux, and the year-mean flux the floor absorbs. Writes validation/results/geothermal_floor.json.
 """
 
 from __future__ import annotations
@@ -29,6 +29,12 @@ from crater_thermal import analysis, config, io, simulate, thermal  # noqa: E402
 FLUXES_W_M2 = (0.033, 0.018)
 
 
+def _shown(path: Path) -> str:
+    """``path`` relative to the repository when inside it (for the committed JSON)."""
+    p = path.resolve()
+    return str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p)
+
+
 def main() -> None:
     if len(sys.argv) > 1:
         run_nc = Path(sys.argv[1])
@@ -42,8 +48,12 @@ def main() -> None:
     night = analysis.night_mask(run)
     floor = analysis.regions_of(run) == "floor"
     eps = float(ds.attrs["emissivity"])
-    out = {"run": str(run_nc), "lat_deg": float(run.attrs["lat_deg"]),
+    out = {"run": _shown(run_nc), "lat_deg": float(run.attrs["lat_deg"]),
            "night_floor_absorbed_ir_median_W_m2": float(np.median(eps * ds["ir_incident"].values[night][:, floor])),
+           # year mean of what the floor absorbs: sunlight (direct and scattered) and the walls' IR
+           "floor_absorbed_year_mean_W_m2": float(np.mean(
+               ((1 - float(ds.attrs["albedo"])) * ds["solar_incident"].values
+                + eps * ds["ir_incident"].values)[:, floor])),
            "night_floor_T_median_K": {}}
     nominal = thermal.parse_profile("1300/1800")
     for q in FLUXES_W_M2:

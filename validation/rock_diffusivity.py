@@ -27,6 +27,12 @@ from crater_thermal import analysis, io, materials, simulate, thermal  # noqa: E
 OLD_D1 = 4.0e-5  # [m2 K s-1] rock diffusivity's 1/T coefficient before issue 12
 
 
+def _shown(path: Path) -> str:
+    """``path`` relative to the repository when inside it (for the committed JSON)."""
+    p = path.resolve()
+    return str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p)
+
+
 def main() -> None:
     if len(sys.argv) < 2:
         sys.exit(__doc__)
@@ -35,7 +41,7 @@ def main() -> None:
     run = io.open_run(run_nc)
     floor = analysis.regions_of(run) == "floor"
     nominal, rock = thermal.parse_profile("1300/1800"), thermal.parse_profile("rock")
-    out = {"run": str(run_nc), "lat_deg": float(run.attrs["lat_deg"]), "floor_abs_rock_minus_nominal_median_K": {}}
+    out = {"run": _shown(run_nc), "lat_deg": float(run.attrs["lat_deg"]), "floor_abs_rock_minus_nominal_median_K": {}}
     adopted = materials.ROCK_D1
     for d1 in (adopted, OLD_D1):
         materials.ROCK_D1 = d1  # read when the solver builds its coefficients
