@@ -119,6 +119,7 @@ def test_summary_values_match_an_independent_computation(report_dir, files):
     # floor's per-facet night includes the day's indirect heating, ~70 K) to thousands of K (at ~50 K)
     band = s["band_signal_night_floor"]["microbolometer"]
     assert band["netd_K"][0] > 10 * abs(expect) and not s["detection"]["microbolometer"]["floor"]["detectable"]
+    assert s["detection"]["microbolometer"]["floor"]["dwell_s_no_scatter"] is None
 
 
 def test_refuses_existing_report_and_overwrites_atomically(report_dir, files):
