@@ -12,8 +12,33 @@ origin (its centroid lifted along the normal, :mod:`crater_thermal.raytrace`), f
 the elevation between -90 and +90 deg.  The rays run against the whole mesh, so any outer terrain that
 only casts shadows counts.  For terrain that is a height field in z (craters, DEM sites: no
 overhangs) a ray is blocked at every elevation below a blocked one, so the bisection finds *the*
-horizon; elsewhere it finds one blocked/free transition.  ``k`` bisection steps leave a bracket of
-``180 / 2^k`` deg; the midpoint is kept, within half of that.
+horizon; elsewhere it finds one blocked/free transition.  ``k = ceil(log2(180 / tolerance_deg))``
+bisection steps leave a bracket of ``180 / 2^k`` deg (0.0055 deg for the default 0.01); the midpoint is
+kept, within half of that.  :func:`horizon_map` bisects the full range only at a coarse subset of the
+azimuths (every 16th of 720); each finer level starts from the range of its two neighbours widened by
+``BRACKET_MARGIN_DEG``, checks that bracket with two rays (extending it to -90 or +90 deg where the
+horizon lies outside) and bisects it to the same final width: ~9.7 rays per facet and azimuth instead
+of 15, with the same result (measured: identical within the bracket on a crater and the rough site).
+
+Number of azimuths (measured with ``trace_horizons`` against 1440 reference azimuths at 0.0005 deg on
+150 random facets; error of the linear interpolation, deg):
+
+====================  ===========================  ===========================
+mesh                  360 azimuths max / p99 / rms  720 azimuths max / p99 / rms
+====================  ===========================  ===========================
+10 km crater, 502     0.077 / 0.006 / 0.002         0.030 / 0.003 / 0.001
+10 km crater, 5000    0.053 / 0.005 / 0.002         0.020 / 0.003 / 0.001
+rough site, 5000      1.02 / 0.052 / 0.013          0.86 / 0.020 / 0.005
+====================  ===========================  ===========================
+
+The maxima on the rough site are near-field horizon jumps (a hill's edge one or two facets away: the
+horizon changes by degrees within 0.1 deg of azimuth), which any finite sampling interpolates across
+one interval.  Everywhere else the error is far below the Sun's 0.27 deg radius.  The default of 720
+(0.5 deg) comes from the lunation-mean flux criterion (1 %, or 1 W m-2 where the flux is tiny, against a
+169-patch ray-traced disk, 4 h steps): met on every facet of the craters at 360 and 720; on the rough
+site a few facets miss it (2000 facets, 360 azimuths: worst 1.2 W m-2; 1500 facets, 720: < 1 % of the
+facets, worst 2.4 W m-2, a step with the Sun on a horizon jump; 1440: none; ``tests/test_horizons.py``).
+Memory: 720 float32 per facet, 2.9 kB (290 MB at 100k facets).
 
 Frame: elevations and azimuths are taken in the crater frame (x east, y north, z up) for every
 facet, also on meshes that carry the Moon's curvature (the DEM sites' local east/north/up frame).
