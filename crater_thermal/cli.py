@@ -81,6 +81,85 @@ def mesh_bowl(
 
 
 
+@mesh_app.command("dem")
+def mesh_dem(
+    dem: Path = typer.Argument(..., help="DEM: GeoTIFF, PDS3 .LBL/.IMG (LOLA LDEM_*), any GDAL raster, lunar CRS."),
+    center_lat: float = typer.Option(..., "--center-lat", help="Site centre, planetocentric latitude [deg]."),
+    center_lon: float = typer.Option(..., "--center-lon", help="Site centre, east longitude [deg]."),
+    radius_km: float = typer.Option(..., "--radius-km", help="Radius of the analysed (inner) region [km]."),
+    resolution_m: Optional[float] = typer.Option(None, "--resolution-m",
+                                                 help="Facet edge in the inner region [m] (default: ~10k facets)."),
+    outer_radius_km: Optional[float] = typer.Option(None, "--outer-radius-km",
+                                                    help="Coarser ring for shadows/radiation out to this radius [km]."),
+    outer_resolution_m: Optional[float] = typer.Option(None, "--outer-resolution-m",
+                                                       help="Facet edge in the outer ring [m] (default 4x inner)."),
+    height_kind: str = typer.Option("auto", "--height-kind",
+                                    help="auto | height (above the sphere) | radius (from the Moon's centre)."),
+    max_facets: int = typer.Option(2_000_000, "--max-facets", help="Refuse larger sites (estimated up front)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply keeps the site metadata)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
+) -> None:
+    """Mesh a site of a polar DEM: true 3-D positions in the centre's east/north/up frame [m]."""
+    from crater_thermal import geometry, terrain
+    from crater_thermal.errors import OutputExistsError
+
+    if output.exists() and not overwrite:
+        raise OutputExistsError(f"output {str(output)!r} exists; pass --overwrite to replace it")
+    m = terrain.site_mesh(dem, center_lat, center_lon, radius_km, resolution_m=resolution_m,
+                          outer_radius_km=outer_radius_km, outer_resolution_m=outer_resolution_m,
+                          height_kind=height_kind, max_facets=max_facets)
+    geometry.save_mesh(m, output, overwrite=overwrite)
+    typer.echo(f"wrote {output}: {m.n_facets} facets ({m.meta['n_inner']} inner), "
+               f"{m.meta['resolution_m']:.4g} m, heights read as {m.meta['height_kind']!r}, hash {m.hash}")
+
+
+# ---------------------------------------------------------------- dem (synthetic sites)
+
+dem_app = typer.Typer(no_args_is_help=True, help="Digital elevation models: synthetic polar sites.")
+app.add_typer(dem_app, name="dem")
+
+
+def _parse_crater(text: str) -> tuple:
+    """'D_KM' or 'D_KM@X_KM,Y_KM' -> (diameter_km, x_km, y_km)."""
+    from crater_thermal.errors import ConfigError
+
+    try:
+        d, _, at = text.partition("@")
+        x, y = (at.split(",") if at else ("0", "0"))
+        return float(d), float(x), float(y)
+    except ValueError:
+        raise ConfigError(f"--crater {text!r} must be D_KM or D_KM@X_KM,Y_KM (e.g. 5@2,-3)") from None
+
+
+@dem_app.command("synth")
+def dem_synth(
+    lat_deg: float = typer.Option(..., "--lat-deg", help="Centre latitude [deg], |lat| >= 60."),
+    lon_deg: float = typer.Option(0.0, "--lon-deg", help="Centre east longitude [deg]."),
+    size_km: float = typer.Option(20.0, "--size-km", help="Side of the square raster [km]."),
+    pixel_m: float = typer.Option(40.0, "--pixel-m", help="Pixel size [m] (polar stereographic, true at the pole)."),
+    crater: List[str] = typer.Option([], "--crater", help="D_KM[@X_KM,Y_KM]: idealized crater (Table 7.1), "
+                                     "offset from the centre in map x, y [km]. Repeatable."),
+    roughness: float = typer.Option(0.0, "--roughness", help="RMS height of the self-affine background [m]."),
+    hurst: float = typer.Option(0.9, "--hurst", help="Hurst exponent of the background, [0, 1]."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    output: Path = typer.Option(..., "-o", "--output",
+                                help="site.tif (GeoTIFF, float32 heights) or site.lbl (PDS3 int16 .IMG + .LBL)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
+) -> None:
+    """A synthetic polar site (rough terrain with craters) as a lunar polar-stereographic DEM."""
+    from crater_thermal import terrain
+
+    craters = [_parse_crater(c) for c in crater]
+    z, tr, wkt = terrain.synthetic_heights(lat_deg, lon_deg, size_km, pixel_m, craters=craters,
+                                           roughness_m=roughness, hurst=hurst, seed=seed)
+    if output.suffix.lower() in (".lbl", ".img"):
+        path = terrain.write_pds3(output, z, tr, pole="south" if lat_deg < 0 else "north", overwrite=overwrite)
+    else:
+        path = terrain.write_geotiff(output, z, tr, wkt, overwrite=overwrite)
+    typer.echo(f"wrote {path}: {z.shape[1]} x {z.shape[0]} pixels of {pixel_m:g} m, heights "
+               f"{float(z.min()):.0f} to {float(z.max()):.0f} m")
+
+
 # ---------------------------------------------------------------- steady (radiosity)
 
 
@@ -180,24 +259,46 @@ def sweep(
 
 @app.command()
 def report(
-    run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output)."),
-    replay: Path = typer.Argument(..., help="Replay dataset made from RUN."),
+    run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output), or a sweep's output folder."),
+    replay: Optional[Path] = typer.Argument(None, help="Replay dataset made from RUN (omit for a sweep folder)."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder: report.html, figures/, summary.json."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing report.html."),
-    footprint_fraction: float = typer.Option(1.0, help="Pixel fraction of loose regolith (Eq. 8.2) [0-1]."),
+    instrument: List[str] = typer.Option([], "--instrument", help="Preset channel (repeatable): diviner_ch7, "
+                                         "diviner_ch8, diviner_ch9, microbolometer. Default: all."),
+    band_um: Optional[str] = typer.Option(None, "--band-um", help="Add a user channel: LOW:HIGH band edges [um]."),
+    netd_k: Optional[float] = typer.Option(None, "--netd-k", help="User channel: NETD of one integration [K]."),
+    netd_at_k: float = typer.Option(300.0, "--netd-at-k", help="User channel: scene temperature of --netd-k [K]."),
+    integration_s: float = typer.Option(0.128, "--integration-s", help="User channel: one integration [s]."),
+    knee_s: float = typer.Option(60.0, "--knee-s", help="User channel: 1/f knee, dwell where averaging stops [s]."),
+    gain_error: float = typer.Option(0.01, "--gain-error", help="User channel: relative 1-sigma gain error."),
+    footprint_fraction: float = typer.Option(1.0, "--footprint-fraction",
+                                             help="Loose fraction of the candidate footprint [0-1]."),
+    reference_footprints: int = typer.Option(1, "--reference-footprints",
+                                             help="Nominal footprints averaged as the reference."),
+    natural_scatter_k: float = typer.Option(0.94, "--natural-scatter-k",
+                                            help="Footprint-to-footprint scatter of true temperatures [K]."),
+    false_alarm: float = typer.Option(0.01, "--false-alarm", help="False-alarm rate of the one-sided test (0-1)."),
     no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
-    k_sigma: float = typer.Option(3.0, "--k-sigma", help="Detection threshold in units of NETD/sqrt(n)."),
-    netd_ref_k: float = typer.Option(2.0, "--netd-ref-k", help="Detector NETD [K] at 50 K (Diviner ~2 K)."),
-    scatter_in_quadrature: bool = typer.Option(False, "--scatter-in-quadrature",
-                                               help="Stricter: add the 0.94 K natural scatter in quadrature."),
 ) -> None:
-    """Figures (thesis Figs. 7.4-7.9), report.html and summary.json for a run and its replay."""
-    from crater_thermal.analysis import Instrument
+    """Figures (thesis Figs. 7.4-7.9), detection statistics, report.html and summary.json."""
+    from crater_thermal import instrument as ins
+    from crater_thermal.errors import ConfigError
     from crater_thermal.report import make_report
 
-    inst = Instrument(k_sigma=k_sigma, netd_ref_K=netd_ref_k, scatter_in_quadrature=scatter_in_quadrature)
-    path = make_report(run, replay, out, overwrite=overwrite, footprint_fraction=footprint_fraction,
-                       snapshots=not no_snapshots, instrument=inst)
+    insts = [ins.get_instrument(n) for n in instrument]
+    if band_um is not None or netd_k is not None:
+        if band_um is None or netd_k is None:
+            raise ConfigError("a user channel needs both --band-um LOW:HIGH and --netd-k")
+        try:
+            lo, hi = (float(v) for v in band_um.split(":"))
+        except ValueError:
+            raise ConfigError(f"--band-um={band_um!r} must be LOW:HIGH in um, e.g. 8:14") from None
+        insts.append(ins.custom_instrument(lo, hi, netd_k, netd_at_k, integration_s=integration_s, knee_s=knee_s,
+                                           gain_error=gain_error))
+    obs = ins.Observation(footprint_fraction=footprint_fraction, reference_footprints=reference_footprints,
+                          natural_scatter_K=natural_scatter_k, false_alarm=false_alarm)
+    path = make_report(run, replay, out, overwrite=overwrite, instruments=insts or None, observation=obs,
+                       snapshots=not no_snapshots)
     typer.echo(str(path))
 
 
