@@ -314,12 +314,13 @@ def show(
     animate: Optional[Path] = typer.Option(None, "--animate", help="Write an animation over time (.gif; .mp4 needs imageio[ffmpeg])."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
     max_frames: int = typer.Option(120, "--max-frames", help="Most frames in an animation."),
+    exaggeration: float = typer.Option(1.0, "--exaggeration", help="Vertical exaggeration of the heights (0, 100]."),
 ) -> None:
     """3-D view of the crater coloured by a variable, with the Sun direction (pyvista)."""
     from crater_thermal.viz import show as _show
 
     res = _show(run, time=time, var=var, profile=profile, replay=replay, screenshot=screenshot,
-                animate=animate, overwrite=overwrite, max_frames=max_frames)
+                animate=animate, overwrite=overwrite, max_frames=max_frames, exaggeration=exaggeration)
     for key in ("screenshot", "animation"):
         if res[key]:
             typer.echo(res[key])
