@@ -1,9 +1,16 @@
 """Optional dependencies (package extras) that fail cleanly where they are used.
 
-A feature that needs an extra imports it through :func:`optional_import`; when the package is not
-installed the user gets a one-line :class:`~crater_thermal.errors.MissingExtraError` naming the
-extra to install (``pip install 'crater_thermal[viz]'``) instead of a traceback, and everything
-that does not need the extra keeps working.
+A feature that needs an extra imports it inside the function that uses it and turns an ``ImportError``
+into :func:`missing_extra`'s one-line :class:`~crater_thermal.errors.MissingExtraError`, which names
+the extra to install (``pip install 'crater_thermal[viz]'``) instead of a traceback; everything that
+does not need the extra keeps working (trimesh's pattern)::
+
+    try:
+        import pyvista as pv
+    except ImportError:
+        raise missing_extra("pyvista", "viz", "3-D views") from None
+
+(The import stays a plain ``import`` statement so that the import-linter contracts see it.)
 
 Extras (see ``pyproject.toml``): ``viz`` (pyvista, imageio, imageio-ffmpeg: 3-D views, report
 snapshots, MP4 animations) and ``distributed`` (dask.distributed: ``sweep --scheduler``).
@@ -11,34 +18,20 @@ snapshots, MP4 animations) and ``distributed`` (dask.distributed: ``sweep --sche
 
 from __future__ import annotations
 
-import importlib
-from types import ModuleType
-
 from crater_thermal.errors import MissingExtraError
 
 
 def missing_extra(package: str, extra: str, purpose: str) -> MissingExtraError:
-    """The error for a missing optional ``package`` of ``extra``, needed for ``purpose``."""
-    return MissingExtraError(f"{purpose} need {package}, which is not installed: "
-                             f"pip install 'crater_thermal[{extra}]'")
-
-
-def optional_import(module: str, extra: str, purpose: str) -> ModuleType:
-    """Import ``module`` or raise :class:`~crater_thermal.errors.MissingExtraError` naming ``extra``.
+    """The error for a missing optional ``package`` of ``extra``, needed for ``purpose``.
 
     Parameters
     ----------
-    module : str
-        Module to import, e.g. ``"pyvista"`` or ``"distributed"``.
+    package : str
+        What is missing, e.g. ``"pyvista"``.
     extra : str
-        The crater_thermal extra that installs it.
+        The crater_thermal extra that installs it, e.g. ``"viz"``.
     purpose : str
-        What needs it, for the message (plural: "3-D views", "sweeps on a dask cluster").
+        What needs it, plural, for the message: ``"3-D views"``, ``"MP4 animations"``.
     """
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        package = module.split(".")[0]
-        if exc.name is not None and exc.name.split(".")[0] != package:
-            package = f"{package} (its dependency {exc.name.split('.')[0]} is missing)"
-        raise missing_extra(package, extra, purpose) from None
+    return MissingExtraError(f"{purpose} need {package}, which is not installed: "
+                             f"pip install 'crater_thermal[{extra}]'")

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Sequence
 
 from crater_thermal.errors import ConfigError
-from crater_thermal.extras import optional_import
+from crater_thermal.extras import missing_extra
 from crater_thermal.progress import bar
 
 #: Seconds to wait for a dask scheduler to answer before giving up [s].
@@ -82,10 +82,11 @@ def sweep(case_paths: Sequence[str], out_dir, *, scheduler: str | None = None, w
     client = _connect(scheduler) if scheduler else None
     with bar("sweep", progress) as report:
         if client is not None:
-            distributed = optional_import("distributed", "distributed", "sweeps on a dask cluster (--scheduler)")
+            from distributed import as_completed as dask_completed  # present: _connect imported it
+
             with client:
                 futures = client.map(run_one, paths, [str(out_dir)] * len(paths), pure=False)
-                for fut in distributed.as_completed(futures):
+                for fut in dask_completed(futures):
                     results.append(fut.result())
                     if report is not None:
                         report(len(results), len(paths))
@@ -117,9 +118,12 @@ def _connect(scheduler: str):
     ConfigError
         No scheduler answers at that address within :data:`SCHEDULER_TIMEOUT_S`.
     """
-    distributed = optional_import("distributed", "distributed", "sweeps on a dask cluster (--scheduler)")
     try:
-        return distributed.Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+        from distributed import Client
+    except ImportError:
+        raise missing_extra("dask.distributed", "distributed", "sweeps on a dask cluster (--scheduler)") from None
+    try:
+        return Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
     except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, timed out, malformed
         reason = " ".join(str(exc).split())[:160] or type(exc).__name__
         raise ConfigError(f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "

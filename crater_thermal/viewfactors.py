@@ -102,11 +102,12 @@ def _assemble(nf: int, results: list, A: np.ndarray, pool=None):
 
     ``results`` holds, per chunk, ``(pi, pj, k, up, low)``: the visible pairs (i < j) and the per-row
     counts ``up[r]`` (pairs with first index r) and ``low[r]`` (pairs with second index r) that
-    :func:`~crater_thermal.kernels.viewfactors.compact_pairs` counted while keeping exactly these pairs.  Row r holds first the entries (r, i)
-    of pairs (i, r), i < r, in increasing i (chunk by chunk), then the entries (r, j) of pairs (r, j),
-    j > r: no sort is needed.  Each chunk gets its own start-slot array (never a shared one), chunks
-    fill disjoint slots, so they are written concurrently.  Every write is checked against the end of
-    its reserved slots, and every slot must be filled exactly once; otherwise :class:`InternalError`.
+    :func:`~crater_thermal.kernels.viewfactors.compact_pairs` counted while keeping exactly these pairs.
+    Row r holds first the entries (r, i) of pairs (i, r), i < r, in increasing i (chunk by chunk), then
+    the entries (r, j) of pairs (r, j), j > r: no sort is needed.  Each chunk gets its own start-slot
+    array (never a shared one), chunks fill disjoint slots, so they are written concurrently.  Every
+    write is checked against the end of its reserved slots, and every slot must be filled exactly
+    once; otherwise :class:`InternalError`.
     Rows summing above 1 are then rescaled (module docstring).
     """
     up = np.zeros(nf, np.int64)

@@ -23,7 +23,7 @@ import numpy as np
 from crater_thermal import analysis as an
 from crater_thermal import io as ctio
 from crater_thermal.errors import ConfigError
-from crater_thermal.extras import missing_extra, optional_import
+from crater_thermal.extras import missing_extra
 
 #: Variables :func:`show` can colour by: name -> (label, unit).
 VARIABLES = {
@@ -44,7 +44,10 @@ def _pyvista():
         # headless: let VTK go straight to EGL instead of warning about a missing X server
         # (override with VTK_DEFAULT_OPENGL_WINDOW, e.g. vtkOSOpenGLRenderWindow for OSMesa builds)
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    pv = optional_import("pyvista", "viz", "3-D views")
+    try:
+        import pyvista as pv
+    except ImportError:
+        raise missing_extra("pyvista", "viz", "3-D views") from None
     if not _has_display():
         pv.OFF_SCREEN = True
     return pv
