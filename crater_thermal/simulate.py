@@ -21,8 +21,8 @@ Start of the recorded period
 
 from __future__ import annotations
 
+import contextlib
 import os
-import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -32,37 +32,16 @@ import numpy as np
 from crater_thermal.constants import SIGMA
 from crater_thermal.errors import ConfigError, FluxFileError
 
-
 # ----------------------------------------------------------------------------- progress
 
 
-def progress_enabled(flag: bool | None = None) -> bool:
-    """Progress bars on a terminal, quiet in CI or when piped (``flag`` overrides)."""
-    if flag is not None:
-        return flag
-    if os.environ.get("CI") or os.environ.get("CRATER_THERMAL_QUIET"):
-        return False
-    return sys.stderr.isatty()
+def _stage(progress, description: str):
+    """Context yielding the stage's ``(done, total)`` callback from a reporter, or None without one.
 
-
-@contextmanager
-def progress_bar(description: str, total: float, enabled: bool | None = None):
-    """A rich progress bar (with ETA) yielding ``update(advance, info)``; a no-op when disabled."""
-    if not progress_enabled(enabled):
-        yield lambda advance=1, info="": None
-        return
-    from rich.progress import (BarColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                  TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
-                  TextColumn("{task.fields[info]}"), transient=False) as prog:
-        task = prog.add_task(description, total=total, info="")
-
-        def update(advance=1, info=""):
-            prog.update(task, advance=advance, info=info)
-
-        yield update
+    ``progress`` is a reporter (``crater_thermal.progress``): ``progress(description)`` is a context
+    manager yielding a ``ProgressCallback``. None (or False) means no progress reporting.
+    """
+    return progress(description) if progress else contextlib.nullcontext(None)
 
 
 # ----------------------------------------------------------------------------- coupled stepping
@@ -161,8 +140,8 @@ def absorbed_solar_of(flux_ds, prefix: str = "") -> np.ndarray:
 
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
-                  fixed_spinup: bool = False, chunk_columns: int = 50_000, progress: bool | None = None,
-                  tol_K: float = 0.01):
+                  fixed_spinup: bool = False, chunk_columns: int = 50_000,
+                  progress: Callable[[int, int], None] | None = None, tol_K: float = 0.01):
     """Replay saved fluxes against several density profiles (no coupling: the IR is the saved one).
 
     Parameters
@@ -174,6 +153,7 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
         the record itself when the file has no spin-up fluxes).
     fixed_spinup : with no ``initial_temperature``: start from the equilibrium estimate and run the
         spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
+    progress : optional ``progress(done, total)`` callback, called with the profiles replayed so far.
 
     Returns
     -------
@@ -201,28 +181,28 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
         else "periodic"
     info = {"start": start,
             "periodic_iterations": [], "periodic_residual_K": []}
-    with progress_bar("replay", n_prof, progress) as update:
-        for p0 in range(0, n_prof, per_chunk):
-            chunk = list(profiles[p0:p0 + per_chunk])
-            cols = [p for p in chunk for _ in range(nf)]
-            solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
-            spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
-            # (nt, nf) forcing serves every profile: column j of the solver uses forcing column j % nf
-            if fixed:
-                if initial_temperature is not None:
-                    solver.set_uniform(float(initial_temperature))
-                else:
-                    solver.set_equilibrium(spin_a)
-                if has_spin:
-                    solver.run_series(spin_t, spin_a, record=False)
+    for p0 in range(0, n_prof, per_chunk):
+        chunk = list(profiles[p0:p0 + per_chunk])
+        cols = [p for p in chunk for _ in range(nf)]
+        solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
+        spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
+        # (nt, nf) forcing serves every profile: column j of the solver uses forcing column j % nf
+        if fixed:
+            if initial_temperature is not None:
+                solver.set_uniform(float(initial_temperature))
             else:
                 solver.set_equilibrium(spin_a)
-                pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
-                info["periodic_iterations"].append(int(pinfo["iterations"]))
-                info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
-            T = solver.run_series(t_rec, abs_rec)
-            out[p0:p0 + len(chunk)] = T.reshape(nt, len(chunk), nf).transpose(1, 0, 2)
-            update(len(chunk), info=f"{p0 + len(chunk)}/{n_prof} profiles")
+            if has_spin:
+                solver.run_series(spin_t, spin_a, record=False)
+        else:
+            solver.set_equilibrium(spin_a)
+            pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
+            info["periodic_iterations"].append(int(pinfo["iterations"]))
+            info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
+        T = solver.run_series(t_rec, abs_rec)
+        out[p0:p0 + len(chunk)] = T.reshape(nt, len(chunk), nf).transpose(1, 0, 2)
+        if progress:
+            progress(p0 + len(chunk), n_prof)
     return out, info
 
 
@@ -265,7 +245,8 @@ def case_mesh(case):
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 
-def _checkpoint_path(out_path) -> str:
+def checkpoint_path(out_path) -> str:
+    """The checkpoint file of a run writing ``out_path``: ``OUT.checkpoint.npz`` beside it."""
     return str(out_path) + ".checkpoint.npz"
 
 
@@ -293,7 +274,10 @@ def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, all
 def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_temperature=None,
                 fixed_spinup=False, property_set=None, allow_inverted=False, output, overwrite=False,
                 progress=None):
-    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically."""
+    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
+
+    ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
+    """
     from crater_thermal import io
 
     io.check_output(output, overwrite)  # fail before any work
@@ -301,8 +285,9 @@ def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_
         raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
     profiles = resolve_profiles(labels, density_grid, allow_inverted)
     ds = io.read_flux_dataset(flux_path)
-    T, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
-                            fixed_spinup=fixed_spinup, progress=progress)
+    with _stage(progress, "replay") as report:
+        T, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
+                                fixed_spinup=fixed_spinup, progress=report)
     tops, bottoms = zip(*(profile_densities(p) for p in profiles))
     out = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, T,
                             attrs={"replay_start": info["start"],
@@ -317,6 +302,40 @@ def _view_factor_cache_dir() -> str:
     """Folder for cached view-factor matrices (``CRATER_THERMAL_CACHE`` or ~/.cache/crater_thermal)."""
     base = os.environ.get("CRATER_THERMAL_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "crater_thermal")
     return os.path.join(base, "viewfactors")
+
+
+def _horizon_cache_dir() -> str:
+    """Folder for cached horizon maps (next to the view factors)."""
+    return os.path.join(os.path.dirname(_view_factor_cache_dir()), "horizons")
+
+
+def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
+    """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings (``method`` "rays" or "horizon").
+
+    The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct".
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`), one stage each.
+    """
+    from crater_thermal import illumination
+
+    timer = timer or Timer()
+    method = getattr(sun, "method", "rays")
+    if method == "horizon":
+        from crater_thermal import horizons
+
+        with timer("horizons"), _stage(progress, "horizon map") as report:
+            hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
+                                        or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
+                                        progress=report)
+        with timer("direct"):
+            return horizons.direct_irradiance_horizon(mesh, hmap, sun_dirs, sun_dist,
+                                                      solar_constant=sun.solar_constant_W_m2,
+                                                      law=None if sun.point_sun else sun.limb_darkening)
+    disk = None if sun.point_sun else illumination.sun_disk(
+        **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
+    with timer("direct"), _stage(progress, "direct sunlight") as report:
+        return illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
+                                              solar_constant=sun.solar_constant_W_m2, disk=disk,
+                                              progress=report)
 
 
 @dataclass
@@ -348,7 +367,11 @@ class Forcing:
 
 
 def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
-    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window."""
+    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window.
+
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`) for the view-factor and
+    direct-sunlight stages.
+    """
     from crater_thermal import ephemeris, geometry, illumination, radiosity, raytrace, viewfactors  # noqa: F401
 
     with timer("geometry"):
@@ -357,8 +380,9 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     with timer("viewfactors"):
         F = None
         if getattr(case.crater, "kind", "crater") != "flat":
-            F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
-                                               progress=progress_enabled(progress))
+            with _stage(progress, f"view factors ({mesh.n_facets} facets)") as report:
+                F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
+                                                   progress=report)
             if F.nnz == 0:
                 F = None
     step_s = float(case.steps.flux_step_hours) * 3600.0
@@ -374,13 +398,7 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
         sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(
             all_times, case.location.lat_deg, case.location.lon_deg, moon_frame=case.sun.moon_frame,
             correction=case.sun.correction, moon_kernels=case.sun.moon_kernels)
-    with timer("direct"):
-        disk = None if case.sun.point_sun else illumination.sun_disk(
-            **({"n_rings": case.sun.n_rings} if getattr(case.sun, "n_rings", None) else {}),
-            law=case.sun.limb_darkening)
-        direct = illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
-                                                solar_constant=case.sun.solar_constant_W_m2,
-                                                disk=disk, progress=progress_enabled(progress))
+    direct = direct_sunlight(case.sun, mesh, tracer, sun_dirs, sun_dist, progress, timer)  # "horizons", "direct"
     with timer("radiosity"):
         scat = None if F is None else radiosity.ScatteringSolver(
             F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces)
@@ -426,9 +444,12 @@ def _case_fingerprint(case) -> str:
     return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
 
 
-def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
+def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None,
              timer: Timer | None = None):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
+
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view
+    factors, direct sunlight, the recorded period); None (or False) for none.
 
     The state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and when
     the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the same
@@ -439,7 +460,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     from crater_thermal import io, thermal
 
     out_path = Path(out_path)
-    ckpt_path = Path(_checkpoint_path(out_path))
+    ckpt_path = Path(checkpoint_path(out_path))
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():
@@ -508,14 +529,15 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         extra["spin_ir"] = spin_ir
     if ckpt is None:
         save_ckpt("record", 0, out_T, out_ir, extra)
-    with progress_bar("run " + case.name, nt - 1 - k0, progress) as update:
+    with _stage(progress, "run " + case.name) as report:
         with timer("conduction_record"):
             for k in range(k0, nt - 1):
                 out_T[k + 1], out_ir[k + 1] = stepper.step(rec_solar[k], rec_solar[k + 1], out_ir[k],
                                                            rec_t[k + 1] - rec_t[k])
                 if every and (k + 1) % every == 0 and k + 1 < nt - 1:
                     save_ckpt("record", k + 1, out_T, out_ir, extra)
-                update(1, info=str(fc.times[k + 1])[:16])
+                if report is not None:
+                    report(k + 1 - k0, nt - 1 - k0)
     # ---- write
     with timer("io"):
         spin_direct, rec_direct = fc.split(fc.direct)

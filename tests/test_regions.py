@@ -178,7 +178,7 @@ def test_polar_sectors_named_by_mean_sun_azimuth():
     assert 0.0 < weight <= 1.0
     n = run["normal"].values if "normal" in run else None
     if n is None:
-        n = an._mesh_normals(run["mesh_vertices"].values, run["mesh_faces"].values)  # noqa: SLF001
+        n = an.mesh_normals(run["mesh_vertices"].values, run["mesh_faces"].values)
     az = _normal_azimuth_deg(n)
     want = math.degrees(math.atan2(s[0], s[1]))
     for part in an.SECTORED_PARTS:
