@@ -312,6 +312,45 @@ def _view_factor_cache_dir() -> str:
     return os.path.join(base, "viewfactors")
 
 
+def _horizon_cache_dir() -> str:
+    """Folder for cached horizon maps (next to the view factors)."""
+    return os.path.join(os.path.dirname(_view_factor_cache_dir()), "horizons")
+
+
+def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
+    """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings (``method`` "rays" or "horizon").
+
+    The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct".
+    """
+    from crater_thermal import illumination
+
+    timer = timer or Timer()
+    method = getattr(sun, "method", "rays")
+    if method == "horizon":
+        from crater_thermal import horizons
+
+        with timer("horizons"), progress_bar("horizon map", mesh.n_facets, progress_enabled(progress)) as bar:
+            done = [0]
+
+            def report(n_done, total):
+                bar(n_done - done[0])
+                done[0] = n_done
+
+            hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
+                                        or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
+                                        progress=report)
+        with timer("direct"):
+            return horizons.direct_irradiance_horizon(mesh, hmap, sun_dirs, sun_dist,
+                                                      solar_constant=sun.solar_constant_W_m2,
+                                                      law=None if sun.point_sun else sun.limb_darkening)
+    disk = None if sun.point_sun else illumination.sun_disk(
+        **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
+    with timer("direct"):
+        return illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
+                                              solar_constant=sun.solar_constant_W_m2, disk=disk,
+                                              progress=progress_enabled(progress))
+
+
 @dataclass
 class Forcing:
     """Everything a case's coupled run needs before conduction starts (all SI)."""
@@ -364,13 +403,7 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
         sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(
             all_times, case.location.lat_deg, case.location.lon_deg, moon_frame=case.sun.moon_frame,
             correction=case.sun.correction, moon_kernels=case.sun.moon_kernels)
-    with timer("direct"):
-        disk = None if case.sun.point_sun else illumination.sun_disk(
-            **({"n_rings": case.sun.n_rings} if getattr(case.sun, "n_rings", None) else {}),
-            law=case.sun.limb_darkening)
-        direct = illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
-                                                solar_constant=case.sun.solar_constant_W_m2,
-                                                disk=disk, progress=progress_enabled(progress))
+    direct = direct_sunlight(case.sun, mesh, tracer, sun_dirs, sun_dist, progress, timer)  # "horizons", "direct"
     with timer("radiosity"):
         if F is None:
             solar = direct
