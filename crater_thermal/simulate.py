@@ -421,11 +421,11 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
             raise ConfigError(f"checkpoint {ckpt_path} belongs to a different case; run without --resume")
     if ckpt is None:
         io.check_output(out_path, overwrite)
+    nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
     timer = timer or Timer()
     fc = compute_forcing(case, timer, progress)
     mesh, nf = fc.mesh, fc.mesh.n_facets
     albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
-    nominal = thermal.parse_profile(case.surface.nominal_profile)
     solver_kw = {}
     if getattr(case.steps, "conduction_step_s", None):
         solver_kw["dt_max"] = float(case.steps.conduction_step_s)
