@@ -23,10 +23,11 @@ its symmetry), in blocks of a hierarchical partition:
 * **Far blocks** are computed once, entry by entry (centroid kernel, one visibility ray per facing pair,
   at most :data:`MAX_BLOCK_ENTRIES` entries at a time) and compressed right away by adaptive cross
   approximation with full pivoting (the block is in memory, so the residual and its Frobenius norm are
-  exact at every step): crosses are added until ``||M - U V^T||_F <= tolerance * ||M||_F``.  The factors are kept (float32) when they take
-  less memory than the block's non-zeros would as sparse entries; otherwise the block is split into its
-  children blocks (reusing the computed entries, no new rays) and, at leaf level, kept sparse.  All-zero
-  blocks (facets that face away from each other, coplanar plains, fully occluded pairs) cost nothing.
+  exact at every step): crosses are added until ``||M - U V^T||_F <= tolerance * ||M||_F``.  The factors
+  are kept (float32) when they take less memory than the block's non-zeros would as sparse entries;
+  otherwise the block is split into its children blocks (reusing the computed entries, no new rays) and,
+  at leaf level, kept sparse.  All-zero blocks (facets that face away from each other, coplanar plains,
+  fully occluded pairs) cost nothing.
 
 Error control: every far block satisfies ``||M - M~||_F <= tol ||M||_F`` and near blocks are exact, so
 ``||G - G~||_F <= tol ||G||_F``; products with the smooth, positive fields the model uses (emitted IR,
@@ -54,6 +55,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from crater_thermal.choices import VIEW_FACTOR_METHODS as METHODS
 from crater_thermal.errors import ConfigError, MeshError
 from crater_thermal.geometry import Mesh
 
@@ -69,10 +71,10 @@ __all__ = [
     "view_factor_operator",
 ]
 
-#: Accepted ``view_factors`` methods.
-METHODS = ("auto", "exact", "compressed")
-#: Default relative Frobenius tolerance of each compressed far block.
-DEFAULT_TOLERANCE = 1e-4
+# METHODS ("auto", "exact", "compressed"), the accepted ``view_factors`` methods, is declared in
+# crater_thermal.choices (the case schema's list) and re-exported here.
+#: Default relative Frobenius tolerance of each compressed far block (the case schema's default too).
+DEFAULT_TOLERANCE = 1e-3
 #: ``"auto"`` uses the compressed operator from this many facets on (exact below).
 AUTO_COMPRESSED_MIN_FACETS = 20_000
 #: Facets per leaf cluster of the kd-tree.
@@ -387,7 +389,8 @@ class _Builder:
         self.P = np.ascontiguousarray((tracer.origins - centre)[p])
         self.V = np.ascontiguousarray(mesh.vertices - centre)
         self.Fc = np.ascontiguousarray(mesh.faces[p])
-        self.bary = vf._subtriangle_barycentrics(vf.NEAR_SUBDIVISIONS)
+        bary = getattr(vf, "subtriangle_barycentrics", None) or vf._subtriangle_barycentrics
+        self.bary = bary(vf.NEAR_SUBDIVISIONS)
         self.near_factor = float(vf.NEAR_DISTANCE_FACTOR)
         self.cos_cut = float(vf.COS_CUTOFF)
         self.ones = np.ones(RAY_CHUNK, np.float32)
@@ -558,7 +561,6 @@ def compressed_view_factors(mesh: Mesh, tracer=None, tolerance: float = DEFAULT_
     finally:
         if pool is not None:
             pool.shutdown()
-    del builder
     # sparse part: upper triangle (i < j by construction), CSR, float32 values
     if coo:
         ii = np.concatenate([c[0] for c in coo])

@@ -2,11 +2,13 @@
 
 import numpy as np
 import pytest
+from terrains import grid_mesh
 
-from crater_thermal import illumination, radiosity, simulate, thermal, vfoperator as vo
+from crater_thermal import illumination, radiosity, simulate, thermal
+from crater_thermal import vfoperator as vo
 from crater_thermal.constants import AU, SIGMA
 from crater_thermal.errors import ConfigError
-from crater_thermal.geometry import Mesh, flat_mesh
+from crater_thermal.geometry import flat_mesh
 from crater_thermal.raytrace import RayTracer
 from crater_thermal.viewfactors import view_factor_matrix
 
@@ -25,10 +27,7 @@ def terrain_mesh(n_facets, size_m=20_000.0, diameter_m=10_000.0, depth_m=2_000.0
         rim = 0.08 * depth_m
         z += np.where(r >= R, rim * np.exp(-(((r - R) / (0.3 * R)) ** 2)), rim * (r / R) ** 2)
         z += rough_m * np.random.default_rng(seed).standard_normal(z.shape)
-    V = np.column_stack([X.ravel(), Y.ravel(), z.ravel()])
-    idx = np.arange((k + 1) ** 2).reshape(k + 1, k + 1)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
-    return Mesh(V, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]), {"kind": "file"})
+    return grid_mesh(x, x, z)
 
 
 def _rel(a, b):
