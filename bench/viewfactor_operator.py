@@ -59,7 +59,9 @@ def _rss_mb() -> float:
 
 def child(method: str, n: int, tol: float, out_npz: str) -> dict:
     """One build in this process: times, memory, products saved to ``out_npz``."""
-    from crater_thermal import illumination, vfoperator as vo, viewfactors as vf
+    from crater_thermal import illumination
+    from crater_thermal import vfoperator as vo
+    from crater_thermal import viewfactors as vf
     from crater_thermal.constants import AU, SIGMA
     from crater_thermal.raytrace import RayTracer
 

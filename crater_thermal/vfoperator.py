@@ -389,6 +389,12 @@ class _Builder:
         self.P = np.ascontiguousarray((tracer.origins - centre)[p])
         self.V = np.ascontiguousarray(mesh.vertices - centre)
         self.Fc = np.ascontiguousarray(mesh.faces[p])
+        # the exact matrix's near-pair quadrature (moving into kernels/viewfactors.py, issue 12)
+        try:
+            from crater_thermal.kernels.viewfactors import near_kernel
+        except ImportError:  # pragma: no cover - until that move lands
+            near_kernel = vf._near_kernel
+        self.near_kernel = near_kernel
         bary = getattr(vf, "subtriangle_barycentrics", None) or vf._subtriangle_barycentrics
         self.bary = bary(vf.NEAR_SUBDIVISIONS)
         self.near_factor = float(vf.NEAR_DISTANCE_FACTOR)
@@ -472,7 +478,8 @@ class _Builder:
         for s, t, diag in blocks:
             n += kv.near_block_pairs(int(tr.lo[s]), int(tr.hi[s]), int(tr.lo[t]), int(tr.hi[t]), diag, self.C,
                                      self.N, self.S, self.A, self.P, self.V, self.Fc, self.bary, self.near_factor,
-                                     self.cos_cut, o32[n:], d32[n:], pi_[n:], pj_[n:], gg[n:], need[n:])
+                                     self.cos_cut, o32[n:], d32[n:], pi_[n:], pj_[n:], gg[n:], need[n:],
+                                     self.near_kernel)
         if n == 0:
             return [], [], 0, 0
         blocked = np.empty(n, np.int32)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from crater_thermal import choices, config, ephemeris, illumination, materials, profiles, radiosity, thermal, vfoperator
 
-
 _MINIMAL = """
 [crater]
 diameter_km = 1.0

@@ -1,7 +1,8 @@
 """Numba kernels of the compressed view-factor operator (:mod:`crater_thermal.vfoperator`).
 
-Only numpy and numba are imported here (plus the near-pair quadrature kernel of the exact matrix, so
-that both paths compute the very same entries); kernels never raise and never do I/O.
+Only numpy and numba are imported here; the near-pair quadrature kernel of the exact matrix is passed
+in as an argument (so that both paths compute the very same entries).  Kernels never raise and never
+do I/O.
 
 All arrays are in the operator's *cluster order* (facets permuted so that every cluster of the tree
 is a contiguous index range).  The operator stores the symmetric matrix ``G_ij = A_i F_ij = A_i A_j
@@ -13,11 +14,6 @@ import math
 
 import numpy as np
 from numba import njit
-
-try:  # the exact matrix's near-pair kernel (moving from viewfactors.py into kernels/viewfactors.py)
-    from crater_thermal.kernels.viewfactors import near_kernel
-except ImportError:  # pragma: no cover - until that move lands
-    from crater_thermal.viewfactors import _near_kernel as near_kernel
 
 
 @njit(nogil=True, cache=True)
@@ -68,11 +64,12 @@ def scatter_visible(n, pos, val, blocked, out):
 
 @njit(nogil=True, cache=True)
 def near_block_pairs(r0, r1, c0, c1, diag, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut,
-                     o32, d32, pi_, pj_, gg, need):
+                     o32, d32, pi_, pj_, gg, need, near_kernel):
     """Candidate pairs of a near block (rows r0..r1-1, columns c0..c1-1; ``diag``: only j > i).
 
     Same rule as the exact matrix: sub-facet quadrature for pairs closer than ``near_factor`` facet
-    sizes, the centroid kernel otherwise; ``need[k]`` False for near pairs taken as visible without a
+    sizes (``near_kernel(i, j, V, Fc, N, C, A, bary, poly)``, the exact matrix's njit function), the
+    centroid kernel otherwise; ``need[k]`` False for near pairs taken as visible without a
     ray.  Writes ``G_ij`` [m2] into gg; returns the number of pairs.
     """
     n = 0
