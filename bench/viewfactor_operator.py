@@ -66,7 +66,8 @@ def child(method: str, n: int, tol: float, out_npz: str) -> dict:
     from crater_thermal.raytrace import RayTracer
 
     small = terrain(600)
-    vo.view_factor_operator(small, RayTracer(small), method=method, tolerance=tol)  # numba warm-up
+    warm = vo.view_factor_operator(small, RayTracer(small), method=method, tolerance=tol)  # numba warm-up
+    warm @ np.ones(small.n_facets), warm @ np.ones((small.n_facets, 2))
     mesh = terrain(n)
     tracer = RayTracer(mesh)
     sun = illumination.sun_direction_from_angles(10.0, 200.0)

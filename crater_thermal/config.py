@@ -265,7 +265,7 @@ SCHEMA: Tuple[Key, ...] = (
     K("scattering", "n_bounces", "int", 3, 'bounces for `"bounces"`', lo=1, hi=100),
     # [radiation]
     K("radiation", "view_factors", "choice", "auto", "exact sparse view-factor matrix, hierarchically compressed "
-      "operator, or by facet count (auto: compressed from 20,000 facets on)", choices=choices.VIEW_FACTOR_METHODS),
+      "operator, or by facet count (auto: compressed from 10,000 facets on)", choices=choices.VIEW_FACTOR_METHODS),
     K("radiation", "tolerance", "float", 1e-3, "compressed operator: relative Frobenius error allowed per far "
       "block (products come out ~50x more accurate)", lo=1e-8, hi=0.1),
     # [replay]

@@ -93,7 +93,9 @@ class CoupledStepper:
         """IR irradiance [W m-2] on every facet from the others' emission."""
         if self.F is None:
             return np.zeros_like(T_surface)
-        return np.asarray(self.F @ emitted(T_surface, self.emissivity)).reshape(np.shape(T_surface))
+        ir = np.asarray(self.F @ emitted(T_surface, self.emissivity)).reshape(np.shape(T_surface))
+        # a compressed operator may leave round-off of either sign (~tolerance) where nothing is seen
+        return np.maximum(ir, 0.0)
 
     def absorbed(self, solar: np.ndarray, ir: np.ndarray) -> np.ndarray:
         return (1.0 - self.albedo) * solar + self.emissivity * ir

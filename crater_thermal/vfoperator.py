@@ -75,8 +75,11 @@ __all__ = [
 # crater_thermal.choices (the case schema's list) and re-exported here.
 #: Default relative Frobenius tolerance of each compressed far block (the case schema's default too).
 DEFAULT_TOLERANCE = 1e-3
-#: ``"auto"`` uses the compressed operator from this many facets on (exact below).
-AUTO_COMPRESSED_MIN_FACETS = 20_000
+#: ``"auto"`` uses the compressed operator from this many facets on (exact below).  Measured
+#: (bench/viewfactor_operator.py): at 10k facets the exact matrix builds in about half the CPU time but
+#: takes 6x the memory (9x at 25k), and above 8,000 facets its scattering solve is a sparse LU of a
+#: matrix with 0.05-0.12 N^2 non-zeros; below, the exact matrix and its dense LU are cheaper.
+AUTO_COMPRESSED_MIN_FACETS = 10_000
 #: Facets per leaf cluster of the kd-tree.
 LEAF_SIZE = 32
 #: Admissibility: far when ``max(diam_s, diam_t) <= ADMISSIBILITY * distance``.
