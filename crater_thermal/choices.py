@@ -16,6 +16,7 @@ import numpy as np
 
 __all__ = [
     "CRATER_KINDS",
+    "HEIGHT_KINDS",
     "SPINUP_MODES",
     "PROPERTY_SETS",
     "LIMB_DARKENING_LAWS",
@@ -23,6 +24,7 @@ __all__ = [
     "VIEW_FACTOR_METHODS",
     "MOON_FRAMES",
     "SUN_CORRECTIONS",
+    "SUN_METHODS",
     "EPHEMERIS_START",
     "EPHEMERIS_END",
     "DE421_LIBRATION_START",
@@ -30,8 +32,11 @@ __all__ = [
     "ephemeris_span",
 ]
 
-#: Terrain kinds (simulate.case_mesh; geometry builds each): idealized crater, flat plain, mesh file.
-CRATER_KINDS = ("crater", "flat", "mesh")
+#: Terrain kinds (simulate.case_mesh; geometry or terrain builds each): idealized crater, flat plain, mesh
+#: file, a site of a digital elevation model.
+CRATER_KINDS = ("crater", "flat", "mesh", "dem")
+#: How DEM pixel values are read (terrain): auto-detect, height above the reference sphere, radius.
+HEIGHT_KINDS = ("auto", "height", "radius")
 #: Spin-up procedures (simulate.run_case).
 SPINUP_MODES = ("periodic", "fixed")
 #: Thermophysical property sets (materials.PROPERTY_SETS has one PropertySet per name).
@@ -46,6 +51,9 @@ VIEW_FACTOR_METHODS = ("auto", "exact", "compressed")
 MOON_FRAMES = ("iau2009", "de421")
 #: Sun-direction corrections (ephemeris.sun_position_moon_fixed).
 SUN_CORRECTIONS = ("apparent", "light_time", "geometric")
+#: Direct-sunlight methods (simulate; horizons.SUN_METHODS): the ray-traced sampled disk
+#: (illumination.direct_irradiance, the reference) or horizon maps (horizons.direct_irradiance_horizon).
+SUN_METHODS = ("rays", "horizon")
 
 #: First usable instant (UTC) of the ephemeris (ephemeris). DE421 spans JD 2414864.5 to 2471184.5
 #: TDB (1899-07-29 to 2053-10-09); one day is kept as a margin for the light time (~499 s) and

@@ -596,19 +596,103 @@ def _fig_local_time(summary: dict, path):
     fig.savefig(path)
 
 
+# ------------------------------------------------------------------------- DEM sites: plan-view maps
+
+#: Figure of a DEM site (kind "dem"): maps in the DEM's own projected coordinates.
+SITE_FIGURES = {
+    "site_maps.png": "Plan view in the DEM's projected coordinates (x, y [km]): per-facet night-time median nominal "
+                     "temperature, night-time median loose minus nominal, and the probability of detecting it at the "
+                     "reference dwell (best instrument); outer shadow-only terrain grey.",
+}
+
+
+def is_site(A) -> bool:
+    """True for a run on a DEM site (mesh kind "dem"): crater radii do not exist there."""
+    return A.meta.get("kind") == "dem"
+
+
+def _night_facet_median(values: np.ndarray, night) -> np.ndarray:
+    """(nf,) per-facet median over the night samples [same unit]; ``night`` (nt,) or (nt, nf) bool."""
+    mask = np.asarray(night, bool)
+    if mask.ndim == 1:
+        return np.median(values[mask], axis=0) if mask.any() else np.full(values.shape[1], np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # facets without a night sample: NaN
+            return np.nanmedian(np.where(mask, values, np.nan), axis=0)
+
+
+def site_plan_coordinates(run) -> Tuple[np.ndarray, str]:
+    """(nv, 2) vertex positions [km] in the DEM's projected CRS, and the CRS name (terrain does the projection)."""
+    from crater_thermal import terrain
+
+    meta = an.mesh_meta(run)
+    x, y = terrain.local_to_dem_xy(np.asarray(run["mesh_vertices"].values, float), meta)
+    return np.column_stack([np.asarray(x), np.asarray(y)]) / 1000.0, str(meta.get("crs_name", "DEM CRS"))
+
+
+def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: ins.Observation) -> None:
+    from matplotlib.tri import Triangulation
+
+    xy, crs_name = site_plan_coordinates(A.run)
+    f = np.asarray(A.run["mesh_faces"].values, int)
+    inner = np.asarray(A.run["inner"].values, bool) if "inner" in A.run else np.ones(len(f), bool)
+    tri = Triangulation(xy[:, 0], xy[:, 1], f)
+    T_night = _night_facet_median(A.T_nom, A.night)
+    panels = [(T_night, "night-time median T, nominal [K]", "inferno", None)]
+    if A.loose is not None:
+        dT = _night_facet_median(A.loose_dT, A.night) if A.loose_dT is not None else A.night_map[A.loose]
+        lim = float(np.nanmax(np.abs(dT[inner]))) if np.isfinite(dT[inner]).any() else 1.0
+        panels.append((dT, f"night-time median {A.loose} - nominal [K]", "RdBu_r", (-max(lim, 1e-3), max(lim, 1e-3))))
+        if instruments:
+            inst = instruments[0]
+            ok = np.isfinite(dT) & np.isfinite(T_night) & (T_night + np.nan_to_num(dT) > 0)
+            pd = np.full(len(f), np.nan)
+            for k in np.flatnonzero(ok & inner):
+                pd[k] = float(np.ravel(ins.detection_probability(dT[k], T_night[k], np.array([REFERENCE_DWELL_S]),
+                                                                  inst, observation))[0])
+            panels.append((pd, f"P(detect) in {REFERENCE_DWELL_S:g} s, {inst.name}", "viridis", (0.0, 1.0)))
+    n = len(panels)
+    fig, ax = _figure(1, n, (5.0 * n + 0.6, 4.9))
+    for k, (vals, label, cmap, clim) in enumerate(panels):
+        a = ax[0, k]
+        v = np.array(vals, float)
+        v[~inner] = np.nan
+        if not inner.all():  # outer shadow-only terrain, light grey
+            from matplotlib.colors import ListedColormap
+
+            a.tripcolor(tri, facecolors=np.zeros(len(f)), cmap=ListedColormap(["#d9d9d9"]))
+        tri_in = Triangulation(xy[:, 0], xy[:, 1], f[inner])
+        lo, hi = clim if clim else (float(np.nanmin(v)), float(np.nanmax(v)))
+        pc = a.tripcolor(tri_in, facecolors=np.nan_to_num(v[inner], nan=lo), cmap=cmap, vmin=lo,
+                         vmax=max(hi, lo + 1e-3))
+        fig.colorbar(pc, ax=a, shrink=0.8, label=label)
+        a.set_aspect("equal")
+        a.set_xlabel("x [km]")
+        a.set_ylabel("y [km]")
+        a.set_title(label.split(" [")[0], fontsize=9)
+    fig.suptitle(f"{A.meta.get('dem_source', 'DEM')} ({crs_name}), centre {A.lat:g} deg, "
+                 f"{float(A.run.attrs.get('lon_deg', np.nan)):g} deg", fontsize=10)
+    fig.savefig(path)
+
+
 def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
     from crater_thermal import viz
 
     i = int(np.argmax(np.asarray(A.run["sun_direction"].values)[:, 2]))
+    vx = viz.site_exaggeration(A.run)
     viz.snapshot(A.run, A.T_nom[i], i, "Surface temperature [K]", f"Nominal {A.nominal}",
-                 fig_dir / "map3d_temperature.png", cmap="inferno")
+                 fig_dir / "map3d_temperature.png", cmap="inferno", exaggeration=vx)
     out = ["map3d_temperature.png"]
     if A.loose is not None:
         m = A.night_map[A.loose]
         lim = float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else 1.0
         j = int(np.flatnonzero(A.night)[0]) if A.night.any() else i
         viz.snapshot(A.run, m, j, "night median dT [K]", f"Night-time median {A.loose} - nominal",
-                     fig_dir / "map3d_night_dT.png", cmap="RdBu_r", clim=(-max(lim, 1e-3), max(lim, 1e-3)))
+                     fig_dir / "map3d_night_dT.png", cmap="RdBu_r", clim=(-max(lim, 1e-3), max(lim, 1e-3)),
+                     exaggeration=vx)
         out.append("map3d_night_dT.png")
     return out
 

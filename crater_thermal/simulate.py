@@ -242,7 +242,7 @@ class Timer:
 
 
 def case_mesh(case):
-    """The mesh a case asks for: an idealized crater, a flat patch, or a mesh file [m]."""
+    """The mesh a case asks for: an idealized crater, a flat patch, a mesh file, or a DEM site [m]."""
     from crater_thermal import geometry
 
     c = case.crater
@@ -250,6 +250,13 @@ def case_mesh(case):
         return geometry.load_mesh(c.mesh)
     if getattr(c, "kind", "crater") == "flat":
         return geometry.flat_mesh()
+    if getattr(c, "kind", "crater") == "dem":
+        from crater_thermal import terrain
+
+        return terrain.site_mesh(c.dem, case.location.lat_deg, case.location.lon_deg, c.radius_km,
+                                 resolution_m=c.resolution_m, outer_radius_km=c.outer_radius_km,
+                                 outer_resolution_m=c.outer_resolution_m, height_kind=c.height_kind,
+                                 max_facets=c.max_facets)
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 
@@ -305,6 +312,45 @@ def _view_factor_cache_dir() -> str:
     """Folder for cached view-factor matrices (``CRATER_THERMAL_CACHE`` or ~/.cache/crater_thermal)."""
     base = os.environ.get("CRATER_THERMAL_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "crater_thermal")
     return os.path.join(base, "viewfactors")
+
+
+def _horizon_cache_dir() -> str:
+    """Folder for cached horizon maps (next to the view factors)."""
+    return os.path.join(os.path.dirname(_view_factor_cache_dir()), "horizons")
+
+
+def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
+    """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings (``method`` "rays" or "horizon").
+
+    The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct".
+    """
+    from crater_thermal import illumination
+
+    timer = timer or Timer()
+    method = getattr(sun, "method", "rays")
+    if method == "horizon":
+        from crater_thermal import horizons
+
+        with timer("horizons"), progress_bar("horizon map", mesh.n_facets, progress_enabled(progress)) as bar:
+            done = [0]
+
+            def report(n_done, total):
+                bar(n_done - done[0])
+                done[0] = n_done
+
+            hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
+                                        or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
+                                        progress=report)
+        with timer("direct"):
+            return horizons.direct_irradiance_horizon(mesh, hmap, sun_dirs, sun_dist,
+                                                      solar_constant=sun.solar_constant_W_m2,
+                                                      law=None if sun.point_sun else sun.limb_darkening)
+    disk = None if sun.point_sun else illumination.sun_disk(
+        **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
+    with timer("direct"):
+        return illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
+                                              solar_constant=sun.solar_constant_W_m2, disk=disk,
+                                              progress=progress_enabled(progress))
 
 
 @dataclass
@@ -374,13 +420,7 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
         sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(
             all_times, case.location.lat_deg, case.location.lon_deg, moon_frame=case.sun.moon_frame,
             correction=case.sun.correction, moon_kernels=case.sun.moon_kernels)
-    with timer("direct"):
-        disk = None if case.sun.point_sun else illumination.sun_disk(
-            **({"n_rings": case.sun.n_rings} if getattr(case.sun, "n_rings", None) else {}),
-            law=case.sun.limb_darkening)
-        direct = illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
-                                                solar_constant=case.sun.solar_constant_W_m2,
-                                                disk=disk, progress=progress_enabled(progress))
+    direct = direct_sunlight(case.sun, mesh, tracer, sun_dirs, sun_dist, progress, timer)  # "horizons", "direct"
     with timer("radiosity"):
         if F is None:
             solar = direct

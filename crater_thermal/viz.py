@@ -50,13 +50,44 @@ def _pyvista():
     return pv
 
 
-def polydata(ds):
-    """pyvista PolyData of the run's mesh (``mesh_vertices`` [m], ``mesh_faces``)."""
+def polydata(ds, exaggeration: float = 1.0):
+    """pyvista PolyData of the run's mesh (``mesh_vertices`` [m], ``mesh_faces``), heights times
+    ``exaggeration`` (vertical exaggeration about the site frame's z = 0)."""
     pv = _pyvista()
-    v = np.asarray(ds["mesh_vertices"].values, dtype=float)
+    v = np.array(ds["mesh_vertices"].values, dtype=float)
+    v[:, 2] *= float(exaggeration)
     f = np.asarray(ds["mesh_faces"].values, dtype=np.int64)
     cells = np.hstack([np.full((len(f), 1), 3, dtype=np.int64), f]).ravel()
     return pv.PolyData(v, cells)
+
+
+def site_exaggeration(ds) -> float:
+    """A vertical exaggeration that makes a site's relief readable: 1 for craters and steep terrain; for a
+    DEM site, enough to make the relief ~15 % of the horizontal extent, at most 10 (rounded)."""
+    import json
+
+    try:
+        kind = json.loads(ds.attrs.get("mesh_meta", "{}")).get("kind")
+    except ValueError:
+        kind = None
+    if kind != "dem":
+        return 1.0
+    v = np.asarray(ds["mesh_vertices"].values, dtype=float)
+    extent = float(max(np.ptp(v[:, 0]), np.ptp(v[:, 1])))
+    relief = float(np.ptp(v[:, 2]))
+    if relief <= 0.0:
+        return 1.0
+    return float(np.clip(round(0.15 * extent / relief), 1.0, 10.0))
+
+
+def _check_exaggeration(exaggeration) -> float:
+    try:
+        x = float(exaggeration)
+    except (TypeError, ValueError):
+        raise ConfigError(f"exaggeration={exaggeration!r} must be a number") from None
+    if not (np.isfinite(x) and 0.0 < x <= 100.0):
+        raise ConfigError(f"exaggeration={exaggeration!r} out of range (0, 100]")
+    return x
 
 
 def time_label(t) -> str:
@@ -120,17 +151,24 @@ class _Scene:
     """A plotter holding the crater, a Sun arrow and a title; frames update values in place."""
 
     def __init__(self, run, scalar_title: str, cmap: str, clim: Tuple[float, float],
-                 window_size: Tuple[int, int] = (1024, 768), off_screen: bool = True):
+                 window_size: Tuple[int, int] = (1024, 768), off_screen: bool = True, exaggeration: float = 1.0):
         pv = _pyvista()
         self.pv = pv
-        self.mesh = polydata(run)
+        self.exaggeration = _check_exaggeration(exaggeration)
+        self.mesh = polydata(run, self.exaggeration)
         self.mesh.cell_data["values"] = np.zeros(self.mesh.n_cells)
+        # outer shadow-only terrain of a DEM site (facets not analysed) is drawn grey
+        self.outer = ~np.asarray(run["inner"].values).astype(bool) if "inner" in run else None
         self.p = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
         self.p.set_background("white")
-        self.p.add_mesh(self.mesh, scalars="values", cmap=cmap, clim=clim, show_edges=False,
+        self.p.add_mesh(self.mesh, scalars="values", cmap=cmap, clim=clim, show_edges=False, nan_color="lightgrey",
                         scalar_bar_args=dict(title=scalar_title, color="black", vertical=True,
                                              position_x=0.85, position_y=0.15, height=0.7, width=0.06))
         b = np.asarray(self.mesh.bounds, float)
+        if self.outer is not None and self.outer.any() and not self.outer.all():
+            # frame the analysed region, not the (much wider) outer ring
+            pts = np.asarray(self.mesh.points)[np.asarray(run["mesh_faces"].values)[~self.outer].ravel()]
+            b = np.ravel(np.column_stack([pts.min(axis=0), pts.max(axis=0)]))
         self.extent = float(max(b[1] - b[0], b[3] - b[2]))
         self.top = float(b[5])
         self.times = np.asarray(run["time"].values)
@@ -140,10 +178,16 @@ class _Scene:
         # look from the equator side, so the pole-side (Sun-facing) inner wall is in view
         lat = float(run.attrs.get("lat_deg", -90.0))
         self.p.view_vector((0.35, 1.0 if lat <= 0 else -1.0, 1.1), viewup=(0.0, 0.0, 1.0))
+        self.p.reset_camera(bounds=list(b))
         self.p.camera.zoom(1.25)
 
     def update(self, values, i: int, title: str):
-        self.mesh.cell_data["values"] = np.asarray(values, float)
+        values = np.array(values, float)
+        if self.outer is not None and self.outer.any():
+            values[self.outer] = np.nan
+        self.mesh.cell_data["values"] = values
+        if self.exaggeration != 1.0:
+            title = f"{title}  (vertical x{self.exaggeration:g})"
         if self.sun is not None:
             s = self.sun[i]
             above = s[2] >= 0
@@ -194,17 +238,18 @@ def _save_png(img: np.ndarray, path: Path) -> None:
 
 
 def snapshot(run, values, time_index: int, scalar_title: str, title: str, path, cmap: str = "inferno",
-             clim: Optional[Tuple[float, float]] = None, window_size: Tuple[int, int] = (900, 700)) -> Path:
+             clim: Optional[Tuple[float, float]] = None, window_size: Tuple[int, int] = (900, 700),
+             exaggeration: float = 1.0) -> Path:
     """Render one off-screen view of per-facet ``values`` (nf,) and write it to ``path`` (PNG).
 
-    Used by the report. Returns the path.
+    Used by the report. ``exaggeration``: vertical exaggeration of the heights. Returns the path.
     """
     values = np.asarray(values, float)
     if clim is None:
         finite = values[np.isfinite(values)]
         lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
         clim = (lo, hi if hi > lo else lo + 1.0)
-    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True)
+    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True, exaggeration=exaggeration)
     try:
         scene.update(values, time_index, title)
         img = scene.image()
@@ -224,7 +269,7 @@ def _frame_indices(nt: int, max_frames: int) -> np.ndarray:
 def show(run_path, time: Optional[str] = None, var: str = "surface_temperature", profile: Optional[str] = None,
          replay=None, screenshot=None, animate=None, overwrite: bool = False,
          window_size: Tuple[int, int] = (1024, 768), max_frames: int = 120, fps: float = 10.0,
-         progress: Optional[bool] = None) -> dict:
+         progress: Optional[bool] = None, exaggeration: float = 1.0) -> dict:
     """Show the crater coloured by a variable, or write a screenshot / animation.
 
     Parameters
@@ -252,6 +297,8 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
         Animation frame rate.
     progress : bool, optional
         Progress bar for animations; default: only on a terminal.
+    exaggeration : float
+        Vertical exaggeration of the heights, (0, 100] (e.g. 3 for a DEM site's gentle relief).
 
     Returns
     -------
@@ -268,14 +315,15 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
             replay = _open_replay(replay)
             opened.append(replay)
         return _show(run_path, time, var, profile, replay, screenshot, animate, overwrite, window_size,
-                     max_frames, fps, progress)
+                     max_frames, fps, progress, exaggeration)
     finally:
         for ds in opened:
             ds.close()
 
 
 def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_size, max_frames, fps,
-          progress) -> dict:
+          progress, exaggeration=1.0) -> dict:
+    exaggeration = _check_exaggeration(exaggeration)
     vals, scalar_title, cmap = field(run, var, rep, profile)
     times = np.asarray(run["time"].values)
     from crater_thermal.analysis import _has
@@ -306,23 +354,25 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
         # one time: colour range of that time (more contrast than the whole run's)
         v = vals[i]
         c = (float(v.min()), float(max(v.max(), v.min() + 1e-3))) if profile is None else clim
-        snapshot(run, v, i, scalar_title, title, shot, cmap=cmap, clim=c, window_size=window_size)
+        snapshot(run, v, i, scalar_title, title, shot, cmap=cmap, clim=c, window_size=window_size,
+                 exaggeration=exaggeration)
         out["screenshot"] = str(shot)
     if anim is not None:
         out["n_frames"] = _animate(run, vals, scalar_title, title, cmap, clim, anim, window_size,
-                                   _frame_indices(len(times), max_frames), fps, progress)
+                                   _frame_indices(len(times), max_frames), fps, progress, exaggeration)
         out["animation"] = str(anim)
     if shot is None and anim is None:  # pragma: no cover - needs a display
-        scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=False)
+        scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=False, exaggeration=exaggeration)
         scene.update(vals[i], i, title)
         scene.p.show()
     return out
 
 
-def _animate(run, vals, scalar_title, title, cmap, clim, path: Path, window_size, frames, fps, progress) -> int:
+def _animate(run, vals, scalar_title, title, cmap, clim, path: Path, window_size, frames, fps, progress,
+             exaggeration: float = 1.0) -> int:
     from crater_thermal.report import progress_bar
 
-    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True)
+    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True, exaggeration=exaggeration)
     suffix = path.suffix.lower()
     fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)
     os.close(fd)
