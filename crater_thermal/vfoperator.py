@@ -392,14 +392,10 @@ class _Builder:
         self.P = np.ascontiguousarray((tracer.origins - centre)[p])
         self.V = np.ascontiguousarray(mesh.vertices - centre)
         self.Fc = np.ascontiguousarray(mesh.faces[p])
-        # the exact matrix's near-pair quadrature (moving into kernels/viewfactors.py, issue 12)
-        try:
-            from crater_thermal.kernels.viewfactors import near_kernel
-        except ImportError:  # pragma: no cover - until that move lands
-            near_kernel = vf._near_kernel
-        self.near_kernel = near_kernel
-        bary = getattr(vf, "subtriangle_barycentrics", None) or vf._subtriangle_barycentrics
-        self.bary = bary(vf.NEAR_SUBDIVISIONS)
+        from crater_thermal.kernels.viewfactors import near_kernel
+
+        self.near_kernel = near_kernel  # the exact matrix's near-pair quadrature
+        self.bary = vf.subtriangle_barycentrics(vf.NEAR_SUBDIVISIONS)
         self.near_factor = float(vf.NEAR_DISTANCE_FACTOR)
         self.cos_cut = float(vf.COS_CUTOFF)
         self.ones = np.ones(RAY_CHUNK, np.float32)
@@ -655,7 +651,7 @@ def view_factor_operator(mesh: Mesh, tracer=None, method: str = "auto", toleranc
     cache_dir : path-like, optional
         Exact matrix only: its ``.npz`` cache folder.
     progress : callable, optional
-        Compressed operator only: ``progress(done, total)``.
+        ``progress(done, total)`` (:mod:`crater_thermal.progress` contract).
 
     Returns
     -------
@@ -667,5 +663,5 @@ def view_factor_operator(mesh: Mesh, tracer=None, method: str = "auto", toleranc
         raise MeshError(f"view_factor_operator needs a geometry.Mesh, got {type(mesh).__name__}")
     kind = resolve_method(method, mesh.n_facets)
     if kind == "exact":
-        return SparseViewFactors(vf.view_factor_matrix(mesh, tracer, cache_dir=cache_dir))
+        return SparseViewFactors(vf.view_factor_matrix(mesh, tracer, cache_dir=cache_dir, progress=progress))
     return compressed_view_factors(mesh, tracer, tolerance, progress=progress)
