@@ -21,8 +21,8 @@ Start of the recorded period
 
 from __future__ import annotations
 
+import contextlib
 import os
-import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -32,37 +32,16 @@ import numpy as np
 from crater_thermal.constants import SIGMA
 from crater_thermal.errors import ConfigError, FluxFileError
 
-
 # ----------------------------------------------------------------------------- progress
 
 
-def progress_enabled(flag: bool | None = None) -> bool:
-    """Progress bars on a terminal, quiet in CI or when piped (``flag`` overrides)."""
-    if flag is not None:
-        return flag
-    if os.environ.get("CI") or os.environ.get("CRATER_THERMAL_QUIET"):
-        return False
-    return sys.stderr.isatty()
+def _stage(progress, description: str):
+    """Context yielding the stage's ``(done, total)`` callback from a reporter, or None without one.
 
-
-@contextmanager
-def progress_bar(description: str, total: float, enabled: bool | None = None):
-    """A rich progress bar (with ETA) yielding ``update(advance, info)``; a no-op when disabled."""
-    if not progress_enabled(enabled):
-        yield lambda advance=1, info="": None
-        return
-    from rich.progress import (BarColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                  TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
-                  TextColumn("{task.fields[info]}"), transient=False) as prog:
-        task = prog.add_task(description, total=total, info="")
-
-        def update(advance=1, info=""):
-            prog.update(task, advance=advance, info=info)
-
-        yield update
+    ``progress`` is a reporter (``crater_thermal.progress``): ``progress(description)`` is a context
+    manager yielding a ``ProgressCallback``. None (or False) means no progress reporting.
+    """
+    return progress(description) if progress else contextlib.nullcontext(None)
 
 
 # ----------------------------------------------------------------------------- coupled stepping
@@ -80,7 +59,7 @@ class CoupledStepper:
     Parameters
     ----------
     solver : thermal.ColumnSolver with one column per facet.
-    F : (nf, nf) sparse view-factor matrix, or None for no exchange (flat ground).
+    F : vfoperator.ViewFactorOperator (or a sparse (nf, nf) matrix), or None for no exchange (flat ground).
     albedo, emissivity : [-]
     """
 
@@ -93,7 +72,9 @@ class CoupledStepper:
         """IR irradiance [W m-2] on every facet from the others' emission."""
         if self.F is None:
             return np.zeros_like(T_surface)
-        return np.asarray(self.F @ emitted(T_surface, self.emissivity))
+        ir = np.asarray(self.F @ emitted(T_surface, self.emissivity)).reshape(np.shape(T_surface))
+        # a compressed operator may leave round-off of either sign (~tolerance) where nothing is seen
+        return np.maximum(ir, 0.0)
 
     def absorbed(self, solar: np.ndarray, ir: np.ndarray) -> np.ndarray:
         return (1.0 - self.albedo) * solar + self.emissivity * ir
@@ -152,8 +133,8 @@ def seconds_since(times: np.ndarray, t0: np.datetime64) -> np.ndarray:
 
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
-                  fixed_spinup: bool = False, chunk_columns: int = 50_000, progress: bool | None = None,
-                  tol_K: float = 0.01):
+                  fixed_spinup: bool = False, chunk_columns: int = 50_000,
+                  progress: Callable[[int, int], None] | None = None, tol_K: float = 0.01):
     """Replay saved fluxes against several density profiles (no coupling: the IR is the saved one).
 
     Parameters
@@ -165,6 +146,7 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
         the record itself when the file has no spin-up fluxes).
     fixed_spinup : with no ``initial_temperature``: start from the equilibrium estimate and run the
         spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
+    progress : optional ``progress(done, total)`` callback, called with the profiles replayed so far.
 
     Returns
     -------
@@ -194,28 +176,28 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
         else "periodic"
     info = {"start": start,
             "periodic_iterations": [], "periodic_residual_K": []}
-    with progress_bar("replay", n_prof, progress) as update:
-        for p0 in range(0, n_prof, per_chunk):
-            chunk = list(profiles[p0:p0 + per_chunk])
-            cols = [p for p in chunk for _ in range(nf)]
-            solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
-            spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
-            # (nt, nf) forcing serves every profile: column j of the solver uses forcing column j % nf
-            if fixed:
-                if initial_temperature is not None:
-                    solver.set_uniform(float(initial_temperature))
-                else:
-                    solver.set_equilibrium(spin_a)
-                if has_spin:
-                    solver.run_series(spin_t, spin_a, record=False)
+    for p0 in range(0, n_prof, per_chunk):
+        chunk = list(profiles[p0:p0 + per_chunk])
+        cols = [p for p in chunk for _ in range(nf)]
+        solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
+        spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
+        # (nt, nf) forcing serves every profile: column j of the solver uses forcing column j % nf
+        if fixed:
+            if initial_temperature is not None:
+                solver.set_uniform(float(initial_temperature))
             else:
                 solver.set_equilibrium(spin_a)
-                pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
-                info["periodic_iterations"].append(int(pinfo["iterations"]))
-                info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
-            T = solver.run_series(t_rec, abs_rec)
-            out[p0:p0 + len(chunk)] = T.reshape(nt, len(chunk), nf).transpose(1, 0, 2)
-            update(len(chunk), info=f"{p0 + len(chunk)}/{n_prof} profiles")
+            if has_spin:
+                solver.run_series(spin_t, spin_a, record=False)
+        else:
+            solver.set_equilibrium(spin_a)
+            pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
+            info["periodic_iterations"].append(int(pinfo["iterations"]))
+            info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
+        T = solver.run_series(t_rec, abs_rec)
+        out[p0:p0 + len(chunk)] = T.reshape(nt, len(chunk), nf).transpose(1, 0, 2)
+        if progress:
+            progress(p0 + len(chunk), n_prof)
     return out, info
 
 
@@ -258,7 +240,8 @@ def case_mesh(case):
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 
-def _checkpoint_path(out_path) -> str:
+def checkpoint_path(out_path) -> str:
+    """The checkpoint file of a run writing ``out_path``: ``OUT.checkpoint.npz`` beside it."""
     return str(out_path) + ".checkpoint.npz"
 
 
@@ -286,7 +269,10 @@ def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, all
 def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_temperature=None,
                 fixed_spinup=False, property_set=None, allow_inverted=False, output, overwrite=False,
                 progress=None):
-    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically."""
+    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
+
+    ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
+    """
     from crater_thermal import io
 
     io.check_output(output, overwrite)  # fail before any work
@@ -294,8 +280,9 @@ def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_
         raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
     profiles = resolve_profiles(labels, density_grid, allow_inverted)
     ds = io.read_flux_dataset(flux_path)
-    T, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
-                            fixed_spinup=fixed_spinup, progress=progress)
+    with _stage(progress, "replay") as report:
+        T, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
+                                fixed_spinup=fixed_spinup, progress=report)
     tops, bottoms = zip(*(profile_densities(p) for p in profiles))
     out = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, T,
                             attrs={"replay_start": info["start"],
@@ -321,6 +308,7 @@ def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer:
     """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings (``method`` "rays" or "horizon").
 
     The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct".
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`), one stage each.
     """
     from crater_thermal import illumination
 
@@ -329,13 +317,7 @@ def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer:
     if method == "horizon":
         from crater_thermal import horizons
 
-        with timer("horizons"), progress_bar("horizon map", mesh.n_facets, progress_enabled(progress)) as bar:
-            done = [0]
-
-            def report(n_done, total):
-                bar(n_done - done[0])
-                done[0] = n_done
-
+        with timer("horizons"), _stage(progress, "horizon map") as report:
             hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
                                         or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
                                         progress=report)
@@ -345,10 +327,10 @@ def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer:
                                                       law=None if sun.point_sun else sun.limb_darkening)
     disk = None if sun.point_sun else illumination.sun_disk(
         **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
-    with timer("direct"):
+    with timer("direct"), _stage(progress, "direct sunlight") as report:
         return illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
                                               solar_constant=sun.solar_constant_W_m2, disk=disk,
-                                              progress=progress_enabled(progress))
+                                              progress=report)
 
 
 @dataclass
@@ -356,7 +338,7 @@ class Forcing:
     """Everything a case's coupled run needs before conduction starts (all SI)."""
 
     mesh: object
-    F: object  # sparse (nf, nf) or None
+    F: object  # vfoperator.ViewFactorOperator or None (no exchange)
     spin_times: np.ndarray  # (ns,) datetime64[ns]; empty when there is no spin-up window
     times: np.ndarray  # (nt,) datetime64[ns], the recorded period
     sun_dirs: np.ndarray  # (ns + nt - 1, 3) over spin-up + record (shared sample once)
@@ -376,9 +358,23 @@ class Forcing:
         return arr[:ns], arr[ns - 1:]
 
 
+def view_factor_settings(case) -> tuple[str, float]:
+    """(method, tolerance) of a case's view factors: ``[radiation] view_factors`` and ``tolerance``."""
+    from crater_thermal import vfoperator
+
+    rad = getattr(case, "radiation", None)
+    method = str(getattr(rad, "view_factors", "auto") or "auto")
+    tol = getattr(rad, "tolerance", None)
+    return method, float(vfoperator.DEFAULT_TOLERANCE if tol is None else tol)
+
+
 def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
-    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window."""
-    from crater_thermal import ephemeris, geometry, illumination, radiosity, raytrace, viewfactors  # noqa: F401
+    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window.
+
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`) for the view-factor and
+    direct-sunlight stages.
+    """
+    from crater_thermal import ephemeris, geometry, illumination, radiosity, raytrace, vfoperator  # noqa: F401
 
     with timer("geometry"):
         mesh = case_mesh(case)
@@ -386,9 +382,12 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     with timer("viewfactors"):
         F = None
         if getattr(case.crater, "kind", "crater") != "flat":
-            F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
-                                               progress=progress_enabled(progress))
-            if F.nnz == 0:
+            method, tol = view_factor_settings(case)
+            kind = vfoperator.resolve_method(method, mesh.n_facets)
+            with _stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
+                F = vfoperator.view_factor_operator(mesh, tracer, method=kind, tolerance=tol,
+                                                    cache_dir=_view_factor_cache_dir(), progress=report)
+            if F.is_zero:
                 F = None
     step_s = float(case.steps.flux_step_hours) * 3600.0
     with timer("ephemeris"):
@@ -420,9 +419,12 @@ def _case_fingerprint(case) -> str:
     return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
 
 
-def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
+def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None,
              timer: Timer | None = None):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
+
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view
+    factors, direct sunlight, the recorded period); None (or False) for none.
 
     The state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and when
     the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the same
@@ -433,7 +435,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     from crater_thermal import io, thermal
 
     out_path = Path(out_path)
-    ckpt_path = Path(_checkpoint_path(out_path))
+    ckpt_path = Path(checkpoint_path(out_path))
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():
@@ -500,14 +502,15 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         extra["spin_ir"] = spin_ir
     if ckpt is None:
         save_ckpt("record", 0, out_T, out_ir, extra)
-    with progress_bar("run " + case.name, nt - 1 - k0, progress) as update:
+    with _stage(progress, "run " + case.name) as report:
         with timer("conduction_record"):
             for k in range(k0, nt - 1):
                 out_T[k + 1], out_ir[k + 1] = stepper.step(rec_solar[k], rec_solar[k + 1], out_ir[k],
                                                            rec_t[k + 1] - rec_t[k])
                 if every and (k + 1) % every == 0 and k + 1 < nt - 1:
                     save_ckpt("record", k + 1, out_T, out_ir, extra)
-                update(1, info=str(fc.times[k + 1])[:16])
+                if report is not None:
+                    report(k + 1 - k0, nt - 1 - k0)
     # ---- write
     with timer("io"):
         spin_direct, rec_direct = fc.split(fc.direct)
