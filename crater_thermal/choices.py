@@ -22,6 +22,7 @@ __all__ = [
     "LIMB_DARKENING_LAWS",
     "ALBEDO_MODELS",
     "SCATTERING_METHODS",
+    "VIEW_FACTOR_METHODS",
     "MOON_FRAMES",
     "SUN_CORRECTIONS",
     "SUN_METHODS",
@@ -47,6 +48,8 @@ LIMB_DARKENING_LAWS = ("linear", "quadratic", "neckel_labs", "uniform")
 ALBEDO_MODELS = ("constant", "hayne2017")
 #: Methods for the scattered sunlight (radiosity).
 SCATTERING_METHODS = ("exact", "bounces")
+#: View-factor operators (vfoperator): by facet count, exact sparse matrix, compressed.
+VIEW_FACTOR_METHODS = ("auto", "exact", "compressed")
 #: Moon orientation models (ephemeris.moon_rotation).
 MOON_FRAMES = ("iau2009", "de421")
 #: Sun-direction corrections (ephemeris.sun_position_moon_fixed).

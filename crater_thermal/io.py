@@ -295,11 +295,13 @@ def run_dataset(mesh, times, *, solar_incident, ir_incident, solar_direct, surfa
 
     flux = {"units": "W m-2"}
     data_vars = {
-        "solar_incident": (("time", "facet"), solar_incident, dict(flux, long_name="direct + scattered shortwave irradiance")),
+        "solar_incident": (("time", "facet"), solar_incident,
+                           dict(flux, long_name="direct + scattered shortwave irradiance")),
         "ir_incident": (("time", "facet"), ir_incident, dict(flux, long_name="longwave irradiance from the terrain")),
         "solar_direct": (("time", "facet"), solar_direct, dict(flux, long_name="direct solar irradiance")),
         "surface_temperature": (("time", "facet"), surface_temperature, {"units": "K"}),
-        "sun_direction": (("time", "xyz"), sun_direction, {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
+        "sun_direction": (("time", "xyz"), sun_direction,
+                          {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
         "sun_distance": (("time",), sun_distance_au, {"units": "au"}),
     }
     data_vars.update(mesh_variables(mesh))

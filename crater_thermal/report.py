@@ -35,21 +35,26 @@ from crater_thermal.progress import bar
 
 #: Figure files written to ``figures/`` (3-D snapshots are added when rendering works).
 FIGURES = {
-    "fig7_4_incident_flux.png": "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. 7.4).",
-    "fig7_5_temperature.png": "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5).",
+    "fig7_4_incident_flux.png": (
+        "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. "
+        "7.4)."),
+    "fig7_5_temperature.png": (
+        "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5)."),
     "fig7_6_loose_minus_nominal.png": "Loose minus nominal surface temperature over the run, night shaded (Fig. 7.6).",
     "fig7_7a_density_grid.png": "Night-time median difference to nominal on the floor over the density grid, top x bottom density; nominal outlined (Fig. 7.7a).",
     "fig7_7b_regions.png": "Night-time (per facet) median loose minus nominal by crater region and illumination class "
                            "(and latitude), bars = quartiles (Fig. 7.7b).",
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
-    "fig7_9_quartiles.png": "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9).",
+    "fig7_9_quartiles.png": (
+        "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9)."),
     "detectability.png": "Probability of detecting loose vs nominal (night medians) against dwell time, per "
                          "instrument and region, at the stated false-alarm rate (instrument.py).",
     "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), "
                                 "at the reference dwell.",
 }
 SNAPSHOTS = {
-    "map3d_temperature.png": "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction.",
+    "map3d_temperature.png": (
+        "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction."),
     "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
 }
 
@@ -78,19 +83,26 @@ SUMMARY_KEYS = {
     "loose_profile": "str|null: the loose profile label (800/1100 if replayed).",
     "rock_profile": "str|null: the rock profile label, if replayed.",
     "threshold_K": "float [K]: |dT| threshold for the *_frac_abs_dT_above_threshold statistics.",
-    "night_median_dT_K": "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region facets.",
+    "night_median_dT_K": (
+        "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region "
+        "facets."),
     "night_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, night.",
     "night_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, night.",
     "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (night_definition: facet directly lit, "
                        "or Sun above the crater centre's horizon).",
     "day_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, day.",
     "day_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, day.",
-    "night_frac_abs_dT_above_threshold": "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K.",
+    "night_frac_abs_dT_above_threshold": (
+        "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K."),
     "night_median_T_nominal_K": "{region: float|null} [K]: night-time median nominal surface temperature.",
     "max_abs_night_median_dT_K": "{profile: float} [K]: largest per-facet |night-time median difference|.",
-    "density_grid_floor_night_median_dT_K": "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night medians (Fig. 7.7a).",
-    "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
-    "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
+    "density_grid_floor_night_median_dT_K": (
+        "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night "
+        "medians (Fig. 7.7a)."),
+    "latitude_night_median_dT_K": (
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude."),
+    "latitude_day_median_dT_K": (
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude."),
     "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each "
                                   "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
     "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: "
@@ -350,7 +362,8 @@ def _fig_fluxes(A, path):
         i = A.facets[key]
         a = ax[k, 0]
         _shade_night(a, A.days, A.night)
-        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange", label="solar incident (direct + scattered)")
+        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange",
+               label="solar incident (direct + scattered)")
         a.plot(A.days, A.run["ir_incident"].values[:, i], color="tab:red", label="IR emitted by the crater, incident")
         a.set_ylabel("flux [W m-2]")
         a.set_title(_facet_title(A, key), fontsize=10)
@@ -696,6 +709,33 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
     fig.suptitle(f"{A.meta.get('dem_source', 'DEM')} ({crs_name}), centre {A.lat:g} deg, "
                  f"{float(A.run.attrs.get('lon_deg', np.nan)):g} deg", fontsize=10)
     fig.savefig(path)
+
+
+def site_summary(A) -> Optional[dict]:
+    """The DEM site of a run (summary.json ``site``), or None for an idealized crater / mesh file."""
+    if not is_site(A):
+        return None
+    m = A.meta
+    inner = np.asarray(A.run["inner"].values, bool) if "inner" in A.run else np.ones(A.run.sizes["facet"], bool)
+    keys = ("dem_source", "crs_name", "center_lat_deg", "center_lon_deg", "reference_radius_m", "radius_km",
+            "resolution_m", "outer_radius_km", "outer_resolution_m", "height_kind", "dem_pixel_m")
+    out = {k: m.get(k) for k in keys}
+    out.update(n_inner=int(inner.sum()), n_outer=int((~inner).sum()))
+    return out
+
+
+def _html_site(site: dict) -> str:
+    """One paragraph describing a DEM site (replaces the crater-region explanation)."""
+    ring = (f"; outer ring to {site['outer_radius_km']:g} km at {site['outer_resolution_m']:.4g} m "
+            f"({site['n_outer']} facets: shadows and radiation only, not analysed)"
+            if site.get("outer_radius_km") else "")
+    return (f"<p><b>Site</b> from the DEM <code>{html.escape(str(site['dem_source']))}</code> "
+            f"({html.escape(str(site['crs_name']))}, {site['dem_pixel_m']:.3g} m pixels, values read as "
+            f"{html.escape(str(site['height_kind']))}): centre {site['center_lat_deg']:g} deg, "
+            f"{site['center_lon_deg']:g} deg; analysed disk of {site['radius_km']:g} km at "
+            f"{site['resolution_m']:.4g} m ({site['n_inner']} facets){ring}. Vertices are true 3-D positions in the "
+            "centre's east/north/up frame (curvature included). Regions are classes by illumination over the run, "
+            "by slope and by the direction the slope faces; the maps are in the DEM's projected coordinates.</p>")
 
 
 def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:

@@ -8,7 +8,6 @@ import sys
 
 import numpy as np
 import pytest
-import xarray as xr
 from PIL import Image
 
 from crater_thermal import report as rp
@@ -100,7 +99,8 @@ def test_summary_values_match_an_independent_computation(report_dir, files):
     assert not (run["solar_direct"].values[:, floor] > 0).any()
     hours = (run["time"].values - run["time"].values[0]) / np.timedelta64(1, "h")
     floor_night = hours >= 24.0
-    d = (rep["surface_temperature"].sel(profile="800/1100") - rep["surface_temperature"].sel(profile="1300/1800")).values
+    T = rep["surface_temperature"]
+    d = (T.sel(profile="800/1100") - T.sel(profile="1300/1800")).values
     expect = np.median(d[floor_night][:, floor])
     # same numbers through a different path: agreement to float rounding (1e-9 K)
     assert s["night_definition"] == "facet" and s["night_min_dark_hours"] == 24.0
