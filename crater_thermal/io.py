@@ -22,8 +22,9 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 import xarray as xr
@@ -54,27 +55,38 @@ def check_output(path: str | os.PathLike, overwrite: bool = False) -> Path:
     return path
 
 
+@contextmanager
+def atomic_output(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success it is renamed onto ``path`` (atomic).
+
+    The caller writes the whole file at the yielded path. If anything fails (or the process is
+    killed) ``path`` keeps its earlier content; the temporary file is removed on an exception.
+    The result gets ordinary permissions (0666 minus the umask), not mkstemp's 0600.
+    """
+    path = check_output(path, overwrite)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _encoding(ds: xr.Dataset) -> dict:
+    return {name: dict(_ENCODING) for name, var in ds.data_vars.items() if var.dtype.kind == "f" and var.size > 1000}
+
+
 def write_dataset_atomic(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False) -> Path:
     """Write ``ds`` to netCDF4 at ``path`` atomically (temporary file in the same folder, then rename).
 
     An interrupted write never leaves a half-written file at ``path`` nor damages an earlier one.
     """
-    path = check_output(path, overwrite)
-    encoding = {
-        name: dict(_ENCODING)
-        for name, var in ds.data_vars.items()
-        if var.dtype.kind == "f" and var.size > 1000
-    }
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=encoding)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are ordinary files
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    with atomic_output(path, overwrite) as tmp:
+        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=_encoding(ds))
+    return Path(path)
 
 
 def _umask() -> int:
@@ -97,6 +109,137 @@ def save_npz_atomic(path: str | os.PathLike, **arrays: Any) -> Path:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+# ----------------------------------------------------------------------------- streaming (bounded memory)
+
+
+def chunk_shape(shape: tuple, time_axis: int, time_rows: int, target_bytes: int = 1 << 20) -> tuple:
+    """HDF5 chunk shape for a large variable: ``time_rows`` along time, about ``target_bytes`` of float64
+    per chunk along the last (facet) axis, 1 along any leading axis (e.g. ``profile``)."""
+    out = [1] * len(shape)
+    out[time_axis] = max(1, min(int(time_rows), int(shape[time_axis])))
+    out[-1] = max(1, min(int(shape[-1]), target_bytes // (8 * out[time_axis])))
+    return tuple(out)
+
+
+@contextmanager
+def stream_dataset(ds: xr.Dataset, path: str | os.PathLike, variables: Mapping[str, tuple], *,
+                   overwrite: bool = False, time_rows: int = 24) -> Iterator[Callable]:
+    """Write a dataset whose large variables arrive in pieces, never whole in memory; atomic.
+
+    ``ds`` holds everything small (coordinates, mesh, attributes) and is written first; each entry
+    ``name: (dims, shape, attrs)`` of ``variables`` becomes a float64 variable chunked along time
+    (``time_rows`` samples) and facet (about 1 MB per chunk), compressed like every large variable.
+    Yields ``write(name, key, values)`` which stores ``values`` at ``var[key]`` (a tuple of slices).
+    The file appears at ``path`` only when the block exits without an exception.
+    """
+    import netCDF4
+
+    with atomic_output(path, overwrite) as tmp:
+        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=_encoding(ds))
+        nc = netCDF4.Dataset(tmp, "a")
+        try:
+            created = {}
+            for name, (dims, shape, attrs) in variables.items():
+                for dim, size in zip(dims, shape):
+                    if dim not in nc.dimensions:
+                        nc.createDimension(dim, size)
+                    elif len(nc.dimensions[dim]) != size:
+                        raise ValueError(f"{name}: dimension {dim} has {len(nc.dimensions[dim])}, not {size}")
+                t_axis = list(dims).index("time") if "time" in dims else 0
+                var = nc.createVariable(name, "f8", dims, fill_value=np.nan,
+                                        chunksizes=chunk_shape(tuple(shape), t_axis, time_rows), **_ENCODING)
+                var.setncatts(dict(attrs))
+                created[name] = var
+
+            def write(name, key, values):
+                created[name][key] = np.asarray(values, dtype=np.float64)
+
+            yield write
+        finally:
+            nc.close()
+
+
+class SegmentStore:
+    """Crash-safe scratch store for ``(rows, columns)`` series that grow block by block.
+
+    A folder of ``.npy`` files, one per (series, block of ``block`` rows), each written to a temporary
+    name and renamed: a process killed at any instant leaves every block whole or absent, never torn.
+    (An HDF5/netCDF4 file killed while being written can lose its metadata and with it every earlier
+    block, which is why an unfinished run keeps its results here and the netCDF file is written from
+    these blocks at the end.) Writing a block again replaces it; a block may hold fewer rows than
+    ``block`` (the last one, or a partial one saved at a checkpoint).
+    """
+
+    def __init__(self, folder: str | os.PathLike, block: int):
+        self.folder = Path(folder)
+        self.block = int(block)
+        if self.block < 1:
+            raise ValueError(f"block must be >= 1 row, got {block}")
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    def _file(self, name: str, b: int) -> Path:
+        return self.folder / f"{name}.{b:08d}.npy"
+
+    def write(self, name: str, k0: int, rows: np.ndarray) -> None:
+        """Store ``rows`` as rows ``k0 ..`` of series ``name`` (``k0`` a multiple of ``block``)."""
+        if k0 % self.block or len(rows) > self.block:
+            raise ValueError(f"{name}: rows {k0}..{k0 + len(rows)} do not fit block {self.block}")
+        target = self._file(name, k0 // self.block)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=self.folder)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.save(fh, np.ascontiguousarray(rows))
+            os.replace(tmp, target)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+    def write_rows(self, name: str, k0: int, rows: np.ndarray) -> None:
+        """Store rows ``k0 .. k0 + len(rows) - 1`` of ``name``, split at block boundaries (any ``k0``;
+        a block only partly covered is read, merged and written back)."""
+        k, end = int(k0), int(k0) + len(rows)
+        while k < end:
+            b0 = k // self.block * self.block
+            b1 = min(end, b0 + self.block)
+            part = rows[k - k0:b1 - k0]
+            if k > b0:
+                head = self.read(name, b0, k)
+                part = np.concatenate([head, part])
+            self.write(name, b0, part)
+            k = b1
+
+    def read(self, name: str, k0: int, k1: int) -> np.ndarray:
+        """Rows ``k0 .. k1 - 1`` of series ``name`` (FluxFileError if a block is missing or short)."""
+        parts = []
+        k = int(k0)
+        while k < k1:
+            b = k // self.block
+            f = self._file(name, b)
+            try:
+                arr = np.load(f, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise FluxFileError(f"scratch store {self.folder}: block {f.name} unreadable ({exc})") from None
+            lo, hi = k - b * self.block, min(k1 - b * self.block, self.block)
+            if arr.shape[0] < hi:
+                raise FluxFileError(f"scratch store {self.folder}: {f.name} has {arr.shape[0]} rows, need {hi}")
+            parts.append(arr[lo:hi])
+            k = b * self.block + hi
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def mark(self, name: str) -> None:
+        """Record that a stage finished (an empty marker file, written atomically)."""
+        (self.folder / f"{name}.done").touch()
+
+    def marked(self, name: str) -> bool:
+        return (self.folder / f"{name}.done").exists()
+
+    def remove(self) -> None:
+        """Delete the store and everything in it."""
+        import shutil
+
+        shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def mesh_variables(mesh) -> dict:
@@ -150,22 +293,32 @@ def write_steady(path, mesh, results: Mapping[str, np.ndarray], attrs: Mapping[s
     return write_dataset_atomic(ds, path, overwrite)
 
 
-def run_dataset(mesh, times, *, solar_incident, ir_incident, solar_direct, surface_temperature,
+#: Attributes of the run dataset's (time, facet) variables (shared by the in-memory and streamed writers).
+RUN_SERIES_ATTRS = {
+    "solar_incident": {"units": "W m-2", "long_name": "direct + scattered shortwave irradiance"},
+    "ir_incident": {"units": "W m-2", "long_name": "longwave irradiance from the terrain"},
+    "solar_direct": {"units": "W m-2", "long_name": "direct solar irradiance"},
+    "surface_temperature": {"units": "K"},
+}
+
+
+def run_dataset(mesh, times, *, solar_incident=None, ir_incident=None, solar_direct=None, surface_temperature=None,
                 sun_direction, sun_distance_au, attrs: Mapping[str, Any], extra: Mapping | None = None
                 ) -> xr.Dataset:
     """Assemble the run dataset (contract schema). Arrays are ``(n_times, n_facets)`` unless noted.
 
-    ``extra`` adds variables as ``name: (dims, data, attrs)``.
+    ``extra`` adds variables as ``name: (dims, data, attrs)``. A (time, facet) variable given as None is
+    left out (a streamed run adds it block by block with :func:`stream_dataset`, attributes from
+    ``RUN_SERIES_ATTRS``).
     """
-    flux = {"units": "W m-2"}
-    data_vars = {
-        "solar_incident": (("time", "facet"), solar_incident, dict(flux, long_name="direct + scattered shortwave irradiance")),
-        "ir_incident": (("time", "facet"), ir_incident, dict(flux, long_name="longwave irradiance from the terrain")),
-        "solar_direct": (("time", "facet"), solar_direct, dict(flux, long_name="direct solar irradiance")),
-        "surface_temperature": (("time", "facet"), surface_temperature, {"units": "K"}),
+    series = {"solar_incident": solar_incident, "ir_incident": ir_incident, "solar_direct": solar_direct,
+              "surface_temperature": surface_temperature}
+    data_vars = {name: (("time", "facet"), value, dict(RUN_SERIES_ATTRS[name]))
+                 for name, value in series.items() if value is not None}
+    data_vars.update({
         "sun_direction": (("time", "xyz"), sun_direction, {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
         "sun_distance": (("time",), sun_distance_au, {"units": "au"}),
-    }
+    })
     data_vars.update(mesh_variables(mesh))
     if extra:
         data_vars.update(extra)
@@ -219,12 +372,22 @@ def _check_var(ds, path, name, dims, units) -> None:
             raise FluxFileError(f"{path}: variable '{name}' has units '{got}', expected '{units[0]}'")
     if var.dtype.kind not in "fc":
         return
-    # block by block along the first dimension, so a lazily opened multi-GB variable is never whole in memory
-    for i in range(var.shape[0]) if var.ndim == 3 else [slice(None)]:
-        values = np.asarray(var[i].values)
+    for values in _blocks(var):
         if not np.all(np.isfinite(values)):
             bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
             raise FluxFileError(f"{path}: variable '{name}' has {bad} NaN/inf values")
+
+
+def _blocks(var, max_bytes: int = 64 << 20):
+    """The values of a (lazily opened) variable, block by block along its first dimension, each block
+    at most about ``max_bytes``: a multi-GB variable is never whole in memory."""
+    if var.ndim == 0:
+        yield np.asarray(var.values)
+        return
+    row = max(1, int(np.prod(var.shape[1:])) * var.dtype.itemsize)
+    step = max(1, max_bytes // row)
+    for i in range(0, var.shape[0], step):
+        yield np.asarray(var[i:i + step].values)
 
 
 def _check_time(ds, path) -> None:
@@ -256,26 +419,29 @@ def _check_attr_range(ds, path, name, lo, hi, default=None) -> None:
         raise FluxFileError(f"{path}: attribute '{name}' = {value} outside [{lo}, {hi}]")
 
 
-def read_flux_dataset(path) -> xr.Dataset:
+def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
     """Open and validate a flux dataset (any file with ``time``, ``solar_incident``, ``ir_incident``).
 
-    Raises :class:`FluxFileError` naming the problem: unreadable file, missing variable, wrong dims or
-    units, NaN/inf, non-monotonic time, albedo/emissivity attributes out of range.
+    ``load=False`` keeps the variables on disk (read when used; validation reads them block by block),
+    for runs too large to hold in memory. Raises :class:`FluxFileError` naming the problem: unreadable
+    file, missing variable, wrong dims or units, NaN/inf, non-monotonic time, albedo/emissivity
+    attributes out of range.
     """
-    ds = _open(path, "flux")
+    ds = _open(path, "flux", load=load)
     _check_time(ds, path)
     for name in ("solar_incident", "ir_incident"):
         _check_var(ds, path, name, ("time", "facet"), FLUX_UNITS)
-    if np.any(ds["solar_incident"].values < 0) or np.any(ds["ir_incident"].values < 0):
-        raise FluxFileError(f"{path}: negative irradiance in solar_incident or ir_incident")
+        if any(np.any(v < 0) for v in _blocks(ds[name])):
+            raise FluxFileError(f"{path}: negative irradiance in solar_incident or ir_incident")
     _check_attr_range(ds, path, "albedo", 0.0, 1.0)
     _check_attr_range(ds, path, "emissivity", 1e-6, 1.0)
     return ds
 
 
-def open_run(path) -> xr.Dataset:
-    """Open and validate a run dataset (flux schema + surface temperatures + mesh)."""
-    ds = read_flux_dataset(path)
+def open_run(path, load: bool = True) -> xr.Dataset:
+    """Open and validate a run dataset (flux schema + surface temperatures + mesh); ``load`` as in
+    :func:`read_flux_dataset`."""
+    ds = read_flux_dataset(path, load=load)
     _check_var(ds, path, "surface_temperature", ("time", "facet"), TEMPERATURE_UNITS)
     for name in ("mesh_vertices", "mesh_faces", "area"):
         if name not in ds:

@@ -307,7 +307,12 @@ def _view_factor_cache_dir() -> str:
 
 @dataclass
 class Forcing:
-    """Everything a case's coupled run needs before conduction starts (all SI)."""
+    """Everything a case's coupled run needs before conduction starts (all SI).
+
+    The sunlight series (``direct``, ``solar``) run over spin-up + record, the join sample once:
+    held in memory (``compute_forcing``), or kept on disk block by block in ``store`` (a streamed
+    run: ``direct`` and ``solar`` are None, rows come from :meth:`rows`).
+    """
 
     mesh: object
     F: object  # sparse (nf, nf) or None
@@ -315,12 +320,18 @@ class Forcing:
     times: np.ndarray  # (nt,) datetime64[ns], the recorded period
     sun_dirs: np.ndarray  # (ns + nt - 1, 3) over spin-up + record (shared sample once)
     sun_dist_m: np.ndarray
-    direct: np.ndarray  # (ns + nt - 1, nf) [W m-2]
-    solar: np.ndarray  # direct + scattered [W m-2]
+    direct: np.ndarray | None = None  # (ns + nt - 1, nf) [W m-2]
+    solar: np.ndarray | None = None  # direct + scattered [W m-2]
+    store: object = None  # io.SegmentStore with series "direct" and "solar" (streamed runs)
 
     @property
     def n_spin(self) -> int:
         return len(self.spin_times)
+
+    @property
+    def record_offset(self) -> int:
+        """Row of the record's first sample in the spin-up + record series."""
+        return max(self.n_spin - 1, 0)
 
     def split(self, arr):
         """(spin-up part, record part) of a series over spin-up + record (the join sample is in both)."""
@@ -329,10 +340,16 @@ class Forcing:
             return arr[:0], arr
         return arr[:ns], arr[ns - 1:]
 
+    def rows(self, name: str, k0: int, k1: int) -> np.ndarray:
+        """Rows ``k0 .. k1 - 1`` of ``"direct"`` or ``"solar"`` over spin-up + record [W m-2]."""
+        if self.store is not None:
+            return self.store.read(name, k0, k1)
+        return getattr(self, name)[k0:k1]
 
-def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
-    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window."""
-    from crater_thermal import ephemeris, geometry, illumination, radiosity, raytrace, viewfactors  # noqa: F401
+
+def case_geometry(case, timer: Timer, progress=None):
+    """Mesh, ray tracer and view-factor matrix (None for flat ground or no visible pairs)."""
+    from crater_thermal import raytrace, viewfactors
 
     with timer("geometry"):
         mesh = case_mesh(case)
@@ -344,6 +361,13 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
                                                progress=progress_enabled(progress))
             if F.nnz == 0:
                 F = None
+    return mesh, tracer, F
+
+
+def case_sun(case, timer: Timer):
+    """Spin-up and record times (datetime64[ns]) and the Sun's direction and distance [m] over both."""
+    from crater_thermal import ephemeris
+
     step_s = float(case.steps.flux_step_hours) * 3600.0
     with timer("ephemeris"):
         times = ephemeris.time_grid(case.period.start, case.period.end, step_s)
@@ -357,21 +381,65 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
         sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(
             all_times, case.location.lat_deg, case.location.lon_deg, moon_frame=case.sun.moon_frame,
             correction=case.sun.correction, moon_kernels=case.sun.moon_kernels)
-    with timer("direct"):
-        disk = None if case.sun.point_sun else illumination.sun_disk(
+    return spin_times, times, sun_dirs, sun_dist
+
+
+class Sunlight:
+    """Direct and scattered sunlight of a case for any range of samples (the scattering solver is
+    factorised once)."""
+
+    def __init__(self, case, mesh, tracer, F):
+        from crater_thermal import illumination, radiosity
+
+        self.case, self.mesh, self.tracer = case, mesh, tracer
+        self.disk = None if case.sun.point_sun else illumination.sun_disk(
             **({"n_rings": case.sun.n_rings} if getattr(case.sun, "n_rings", None) else {}),
             law=case.sun.limb_darkening)
-        direct = illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
-                                                solar_constant=case.sun.solar_constant_W_m2,
-                                                disk=disk, progress=progress_enabled(progress))
-    with timer("radiosity"):
-        if F is None:
-            solar = direct
-        else:
-            scat = radiosity.ScatteringSolver(F, case.surface.albedo, method=case.scattering.method,
-                                              n_bounces=case.scattering.n_bounces)
-            solar = scat.solar_incident(direct)
+        self.scat = None if F is None else radiosity.ScatteringSolver(
+            F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces)
+
+    def __call__(self, sun_dirs, sun_dist_m, timer: Timer, progress=None):
+        """``(direct, solar)`` (n, nf) [W m-2] for Sun directions (n, 3) and distances (n,) [m]."""
+        from crater_thermal import illumination
+
+        with timer("direct"):
+            direct = illumination.direct_irradiance(self.mesh, self.tracer, sun_dirs, sun_dist_m,
+                                                    solar_constant=self.case.sun.solar_constant_W_m2,
+                                                    disk=self.disk, progress=progress_enabled(progress))
+        with timer("radiosity"):
+            solar = direct if self.scat is None else self.scat.solar_incident(direct)
+        return direct, solar
+
+
+def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
+    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window,
+    in memory (a run streams them instead: :func:`run_case`)."""
+    mesh, tracer, F = case_geometry(case, timer, progress)
+    spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
+    direct, solar = Sunlight(case, mesh, tracer, F)(sun_dirs, sun_dist, timer, progress)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
+
+
+#: Memory for (time, facet) blocks [MB] when a case does not set ``[output] chunk_mb``.
+DEFAULT_CHUNK_MB = 256.0
+#: Float64 (block, n_facets) arrays alive at once in the worst stage of a run (sunlight: direct,
+#: scattered and the solver's work arrays; record: sunlight, T, IR and a block being merged).
+_RUN_BUFFERS = 6
+#: Time samples per HDF5 chunk of a written run (4 days at 4 h), and the block alignment.
+TIME_CHUNK = 24
+
+
+def block_rows(n_cols: int, budget_bytes: float, n_buffers: int = _RUN_BUFFERS, align: int = TIME_CHUNK) -> int:
+    """Time samples per block so that ``n_buffers`` float64 (block, n_cols) arrays fit ``budget_bytes``
+    (at least 1; a multiple of ``align`` when it is larger than that)."""
+    rows = max(1, int(budget_bytes // (8.0 * n_buffers * max(1, n_cols))))
+    return rows // align * align if rows >= align else rows
+
+
+def chunk_bytes(case) -> float:
+    """The case's memory budget for (time, facet) blocks [bytes] (``[output] chunk_mb``)."""
+    mb = getattr(case.output, "chunk_mb", None)
+    return float(DEFAULT_CHUNK_MB if mb is None else mb) * 2**20
 
 
 def _case_fingerprint(case) -> str:
@@ -380,13 +448,60 @@ def _case_fingerprint(case) -> str:
     return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
 
 
+def _scratch_path(out_path) -> str:
+    return str(out_path) + ".partial"
+
+
+def run_window(stepper: CoupledStepper, times_s: np.ndarray, solar_rows: Callable, block: int,
+               ir0: np.ndarray | None = None, on_ir: Callable | None = None, on_step: Callable | None = None):
+    """Coupled steps through a window of samples from the solver's state (at sample 0), block by block.
+
+    Parameters
+    ----------
+    times_s : (n,) [s]
+    solar_rows : ``solar_rows(k0, k1)`` -> (k1 - k0, nf) solar irradiance [W m-2] of samples k0..k1-1.
+    block : samples per block (memory: a few (block, nf) float64 arrays).
+    ir0 : IR at sample 0 [W m-2]; default the IR of the solver's surface temperatures.
+    on_ir : ``on_ir(k0, rows)`` receives the IR [W m-2] of samples k0 .. k0 + len(rows) - 1, one call
+        per block (k0 a multiple of ``block``), before the next block is computed.
+    on_step : ``on_step(k)`` after sample k is computed.
+
+    Returns
+    -------
+    IR [W m-2] at the last sample (the surface temperature is the solver's).
+    """
+    n = len(times_s)
+    T = stepper.solver.surface_temperature.copy()
+    ir = stepper.ir(T) if ir0 is None else ir0
+    for b0 in range(0, n, block):
+        b1 = min(n, b0 + block)
+        sol = solar_rows(b0, min(n, b1 + 1))
+        rows = np.empty((b1 - b0, len(ir))) if on_ir is not None else None
+        if rows is not None:
+            rows[0] = ir
+        for k in range(b0, min(b1, n - 1)):
+            T, ir = stepper.step(sol[k - b0], sol[k + 1 - b0], ir, times_s[k + 1] - times_s[k])
+            if rows is not None and k + 1 < b1:
+                rows[k + 1 - b0] = ir
+            if on_step is not None:
+                on_step(k + 1)
+        if rows is not None:
+            on_ir(b0, rows)
+        del sol, rows
+    return ir
+
+
 def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
              timer: Timer | None = None):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
 
-    The state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and when
-    the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the same
-    numbers as an uninterrupted run. Returns the output path.
+    Memory stays bounded by ``[output] chunk_mb`` (default 256 MB) for the (time, facet) series, not by
+    run length x facets: sunlight is computed, and temperatures and IR are kept, in blocks of time
+    samples, in a crash-safe scratch store ``OUT.partial/`` (one file per block, written atomically);
+    the netCDF file is written from it block by block at the end (temporary name, then rename).
+    The solver state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and
+    when the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the
+    same numbers as an uninterrupted run. Returns the output path.
     """
     from pathlib import Path
 
@@ -407,8 +522,34 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     if ckpt is None:
         io.check_output(out_path, overwrite)
     timer = timer or Timer()
-    fc = compute_forcing(case, timer, progress)
-    mesh, nf = fc.mesh, fc.mesh.n_facets
+    mesh, tracer, F = case_geometry(case, timer, progress)
+    spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
+    nf = mesh.n_facets
+    block = block_rows(nf, chunk_bytes(case))
+    if ckpt is not None and int(ckpt.get("block", -1)) != block:
+        raise ConfigError(f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
+                          f"samples, this run uses {block}; run again without --resume")
+    scratch = Path(_scratch_path(out_path))
+    store = io.SegmentStore(scratch, block)
+    if ckpt is None:
+        store.remove()
+        store = io.SegmentStore(scratch, block)
+    fc = Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, store=store)
+    n_all = len(sun_dirs)
+    if not store.marked("sunlight"):
+        sunlight = Sunlight(case, mesh, tracer, F)
+        all_times = np.concatenate([spin_times[:-1], times]) if len(spin_times) else times
+        with progress_bar("sunlight", n_all, progress) as update:
+            for k0 in range(0, n_all, block):
+                k1 = min(n_all, k0 + block)
+                direct, solar = sunlight(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
+                with timer("io"):
+                    store.write("direct", k0, direct)
+                    store.write("solar", k0, solar)
+                del direct, solar
+                update(k1 - k0, info=str(all_times[k1 - 1])[:16])
+        store.mark("sunlight")
+    del tracer
     albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
     nominal = thermal.parse_profile(case.surface.nominal_profile)
     solver_kw = {}
@@ -417,123 +558,180 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     solver = thermal.ColumnSolver([nominal] * nf, property_set=case.surface.property_set, emissivity=eps,
                                   geothermal_flux=case.surface.geothermal_flux_W_m2, **solver_kw)
     stepper = CoupledStepper(solver, fc.F, albedo, eps)
-    spin_solar, rec_solar = fc.split(fc.solar)
     t0 = fc.times[0]
     spin_t = seconds_since(fc.spin_times, t0)
     rec_t = seconds_since(fc.times, t0)
-    nt = len(fc.times)
+    nt, ns, off = len(fc.times), fc.n_spin, fc.record_offset
     every = int(getattr(case.output, "checkpoint_interval_steps", 0) or 0)
-    mode = case.period.spinup
-    T0 = case.period.initial_temperature_K
-    tol_K = case.period.periodic_tol_K
+    save_spin = bool(getattr(case.output, "save_spinup_fluxes", True)) and ns > 0
 
-    def save_ckpt(phase, k, out_T, out_ir, extra):
+    def save_ckpt(k, info):
         with timer("io"):
-            io.save_npz_atomic(ckpt_path, fingerprint=np.array(fingerprint), phase=np.array(phase), k=np.array(k),
-                               state=solver.state(), out_T=out_T[:k + 1], out_ir=out_ir[:k + 1], **extra)
+            io.save_npz_atomic(ckpt_path, fingerprint=np.array(fingerprint), phase=np.array("record"),
+                               k=np.array(k), block=np.array(block), state=solver.state(),
+                               start_method=np.array(info["start_method"]),
+                               iterations=np.array(info["iterations"]),
+                               residual=np.asarray(info["residual"], float))
 
-    spin_info: dict = {}
-    spin_ir = None
+    # ---- start of the record
     if ckpt is not None:
-        spin_ir = ckpt.get("spin_ir")
         spin_info = {"start_method": str(ckpt["start_method"]), "iterations": int(ckpt["iterations"]),
                      "residual": ckpt["residual"]}
+        k0 = int(ckpt["k"])
+        solver.set_state(ckpt["state"])
+        ir_k = store.read("ir", k0, k0 + 1)[0]
     else:
         with timer("conduction_spinup"):
-            spin_info, spin_ir = _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K,
-                                          progress)
-    # ---- recorded period
-    out_T = np.empty((nt, nf))
-    out_ir = np.empty((nt, nf))
-    if ckpt is not None:
-        k0 = int(ckpt["k"])
-        out_T[:k0 + 1] = ckpt["out_T"]
-        out_ir[:k0 + 1] = ckpt["out_ir"]
-        solver.set_state(ckpt["state"])
-    else:
+            spin_info, ir_start = _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
         k0 = 0
-        out_T[0] = solver.surface_temperature
-        out_ir[0] = spin_ir[-1] if spin_ir is not None and len(spin_ir) else stepper.ir(out_T[0])
-    extra = {"start_method": np.array(spin_info["start_method"]), "iterations": np.array(spin_info["iterations"]),
-             "residual": np.asarray(spin_info["residual"], float)}
-    if spin_ir is not None:
-        extra["spin_ir"] = spin_ir
-    if ckpt is None:
-        save_ckpt("record", 0, out_T, out_ir, extra)
-    with progress_bar("run " + case.name, nt - 1 - k0, progress) as update:
-        with timer("conduction_record"):
-            for k in range(k0, nt - 1):
-                out_T[k + 1], out_ir[k + 1] = stepper.step(rec_solar[k], rec_solar[k + 1], out_ir[k],
-                                                           rec_t[k + 1] - rec_t[k])
-                if every and (k + 1) % every == 0 and k + 1 < nt - 1:
-                    save_ckpt("record", k + 1, out_T, out_ir, extra)
-                update(1, info=str(fc.times[k + 1])[:16])
-    # ---- write
+        ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
+        with timer("io"):
+            store.write("T", 0, solver.surface_temperature[None, :])
+            store.write("ir", 0, ir_k[None, :])
+        save_ckpt(0, spin_info)
+    # ---- recorded period, block by block; rows k0+1 .. are buffered and flushed to the store
+    pend_T = np.empty((block, nf))
+    pend_ir = np.empty((block, nf))
+    pend0, n_pend = k0 + 1, 0  # first buffered row, rows buffered
+
+    def flush():
+        nonlocal pend0, n_pend
+        if n_pend:
+            with timer("io"):
+                store.write_rows("T", pend0, pend_T[:n_pend])
+                store.write_rows("ir", pend0, pend_ir[:n_pend])
+        pend0, n_pend = pend0 + n_pend, 0
+
+    sol, w0 = None, 0
+    with progress_bar("record " + case.name, nt - 1 - k0, progress) as update:
+        for k in range(k0, nt - 1):
+            if sol is None or k + 1 >= w0 + len(sol):
+                sol = None
+                w0 = k
+                with timer("io"):
+                    sol = fc.rows("solar", off + k, off + min(nt, k + block + 1))
+            with timer("conduction_record"):
+                T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
+            pend_T[n_pend], pend_ir[n_pend] = T1, ir_k
+            n_pend += 1
+            if (pend0 + n_pend) % block == 0:
+                flush()
+            if every and (k + 1) % every == 0 and k + 1 < nt - 1:
+                flush()
+                save_ckpt(k + 1, spin_info)
+            update(1, info=str(fc.times[k + 1])[:16])
+        flush()
+    del pend_T, pend_ir, sol
+    # ---- write run.nc from the store, block by block
     with timer("io"):
-        spin_direct, rec_direct = fc.split(fc.direct)
-        spin_dirs, rec_dirs = fc.split(fc.sun_dirs)
-        _, rec_dist = fc.split(fc.sun_dist_m)
         from crater_thermal.constants import AU
 
+        _, rec_dirs = fc.split(fc.sun_dirs)
+        _, rec_dist = fc.split(fc.sun_dist_m)
         extra_vars = {"start_residual": (("facet",), np.asarray(spin_info["residual"], float),
                                          {"units": "K", "long_name": "max over the column of |T(end) - T(start)| "
                                           "of the spin-up window's last period"})}
-        if getattr(case.output, "save_spinup_fluxes", True) and fc.n_spin:
-            extra_vars["spinup_solar_incident"] = (("spinup_time", "facet"), spin_solar, {"units": "W m-2"})
-            extra_vars["spinup_ir_incident"] = (("spinup_time", "facet"), spin_ir, {"units": "W m-2"})
-        ds = io.run_dataset(
-            mesh, fc.times, solar_incident=rec_solar, ir_incident=out_ir, solar_direct=rec_direct,
-            surface_temperature=out_T, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU,
-            attrs={"case_name": case.name, "case_toml": case.toml_text, "albedo": albedo, "emissivity": eps,
-                   "lat_deg": float(case.location.lat_deg), "lon_deg": float(case.location.lon_deg),
-                   "property_set": case.surface.property_set, "nominal_profile": nominal.label,
-                   "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
-                   "start_method": spin_info["start_method"], "spinup_iterations": int(spin_info["iterations"]),
-                   "spinup_years": float(case.period.spinup_years),
-                   "initial_temperature_K": T0, "timing_s": dict(timer.split)},
-            extra=extra_vars)
-        if fc.n_spin:
+        attrs = {"case_name": case.name, "case_toml": case.toml_text, "albedo": albedo, "emissivity": eps,
+                 "lat_deg": float(case.location.lat_deg), "lon_deg": float(case.location.lon_deg),
+                 "property_set": case.surface.property_set, "nominal_profile": nominal.label,
+                 "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
+                 "start_method": spin_info["start_method"], "spinup_iterations": int(spin_info["iterations"]),
+                 "spinup_years": float(case.period.spinup_years),
+                 "initial_temperature_K": case.period.initial_temperature_K, "timing_s": dict(timer.split)}
+        ds = io.run_dataset(mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs,
+                            extra=extra_vars)
+        if ns:
             ds = ds.assign_coords(spinup_time=fc.spin_times)
-        io.write_dataset_atomic(ds, out_path, overwrite=True if ckpt is not None else overwrite)
+        # (name, dims, rows, reader of rows k0..k1-1)
+        series = [("solar_incident", "time", nt, lambda a, b: store.read("solar", off + a, off + b)),
+                  ("ir_incident", "time", nt, lambda a, b: store.read("ir", a, b)),
+                  ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
+                  ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b))]
+        if save_spin:
+            series += [("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
+                       ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b))]
+        variables = {name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}))
+                     for name, dim, n, _ in series}
+        with io.stream_dataset(ds, out_path, variables, overwrite=True if ckpt is not None else overwrite,
+                               time_rows=min(TIME_CHUNK, block)) as write:
+            for name, _, n, read in series:
+                for a in range(0, n, block):
+                    b = min(n, a + block)
+                    write(name, (slice(a, b), slice(None)), read(a, b))
     if ckpt_path.exists():
         ckpt_path.unlink()
+    store.remove()
     return out_path
 
 
-def _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K, progress):
-    """Bring the columns to the start of the record. Returns (info, spin-up IR series or None)."""
+def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> np.ndarray:
+    """Time mean over sunlight rows k0..k1-1, block by block: ``fn(solar_rows)`` gives a block's mean (nf,)."""
+    total = None
+    for a in range(k0, k1, block):
+        b = min(k1, a + block)
+        part = fn(fc.rows("solar", a, b)) * (b - a)
+        total = part if total is None else total + part
+    return total / max(1, k1 - k0)
+
+
+def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
+    """Bring the columns to the start of the record, streaming the spin-up window in blocks.
+
+    Writes the spin-up IR series to ``fc.store`` (series ``spin_ir``) when ``save_spin``.
+    Returns (info, IR at the record's first sample or None when there is no spin-up window).
+    """
     from crater_thermal import thermal
 
     ns = len(spin_t)
+    T0 = case.period.initial_temperature_K
+    tol_K = case.period.periodic_tol_K
+    mode = case.period.spinup
+    es = stepper.emissivity * SIGMA
     if ns == 0:
         if T0 is not None:
             solver.set_uniform(float(T0))
             method = f"uniform {float(T0)} K, no spin-up"
         else:
-            solver.set_equilibrium(stepper.absorbed(fc.solar, 0.0 * fc.solar))
+            n_all = len(fc.sun_dirs)
+            ts = _mean_over_rows(fc, 0, n_all, block,
+                                 lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, 0.0)))
+            solver.set_equilibrium(surface_K=ts)
             method = "equilibrium estimate, no spin-up"
         return {"start_method": method, "iterations": 0, "residual": np.full(fc.mesh.n_facets, np.nan)}, None
     # first guess of the absorbed flux: sunlight plus the IR of a radiative-equilibrium crater
-    guess_T = (np.maximum(stepper.absorbed(spin_solar, 0.0), 1e-3) / (stepper.emissivity * SIGMA)) ** 0.25
-    guess_ir = stepper.ir(guess_T.mean(axis=0)) if fc.F is not None else 0.0
-    absorbed_guess = stepper.absorbed(spin_solar, guess_ir)
-    holder = {}
+    guess_T = _mean_over_rows(fc, 0, ns, block,
+                              lambda sol: np.mean((np.maximum(stepper.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0))
+    guess_ir = stepper.ir(guess_T) if fc.F is not None else 0.0
+    eq_surface = _mean_over_rows(fc, 0, ns, block,
+                                 lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, guess_ir)))
+    holder: dict = {}
 
-    def period_map(x):
-        solver.set_state(x)
-        _, ir = stepper.run(spin_t, spin_solar, record=True)
-        holder["ir"] = ir
-        return solver.state()
+    def keep_ir(k0, rows):
+        if save_spin:
+            fc.store.write("spin_ir", k0, rows)
+        if k0 + len(rows) == ns:
+            holder["ir"] = rows[-1].copy()
+
+    n_maps = [0]
+
+    def one_window(update, label):
+        n_maps[0] += 1
+        run_window(stepper, spin_t, lambda a, b: fc.rows("solar", a, b), block, on_ir=keep_ir,
+                   on_step=lambda k: update(1, info=f"{label} {n_maps[0]}"))
 
     if mode == "periodic":
         if T0 is not None:
             solver.set_uniform(float(T0))
         else:
-            solver.set_equilibrium(absorbed_guess)
-        info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
-        x_end = period_map(solver.state()) if "ir" not in holder else None
-        if x_end is not None:
-            solver.set_state(x_end)
+            solver.set_equilibrium(surface_K=eq_surface)
+        # ETA: the shooting usually converges in about 4-6 windows; the bar grows if it needs more
+        with progress_bar("spin-up (periodic)", 5 * (ns - 1), progress) as update:
+            def period_map(x):
+                solver.set_state(x)
+                one_window(update, "window")
+                return solver.state()
+
+            info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
         residual = np.asarray(info["residual_K"], float)
         return {"start_method": f"periodic steady state over {case.period.spinup_years} yr "
                                 f"(tolerance {tol_K} K)", "iterations": int(info["iterations"]),
@@ -543,9 +741,10 @@ def _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K, pro
         solver.set_uniform(float(T0))
         method = f"fixed spin-up {case.period.spinup_years} yr from uniform {float(T0)} K"
     else:
-        solver.set_equilibrium(absorbed_guess)
+        solver.set_equilibrium(surface_K=eq_surface)
         method = f"fixed spin-up {case.period.spinup_years} yr from the equilibrium estimate"
     x0 = solver.state()
-    _, ir = stepper.run(spin_t, spin_solar, record=True)
+    with progress_bar("spin-up (fixed)", ns - 1, progress) as update:
+        one_window(update, "window")
     residual = np.max(np.abs(solver.state() - x0), axis=1)
-    return {"start_method": method, "iterations": 1, "residual": residual}, ir
+    return {"start_method": method, "iterations": 1, "residual": residual}, holder["ir"]

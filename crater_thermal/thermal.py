@@ -590,15 +590,27 @@ class ColumnSolver:
         fidx = np.arange(self.ncol, dtype=np.int64) % nf
         return np.ascontiguousarray(a), fidx
 
-    def equilibrium_profile(self, absorbed) -> np.ndarray:
+    def equilibrium_surface(self, absorbed) -> np.ndarray:
+        """Time mean of ((absorbed + G) / (eps sigma))^1/4 [K] per forcing column of an absorbed-flux
+        series (nt, n) [W m-2]; the surface of :meth:`equilibrium_profile`. Means of consecutive blocks
+        of a long series, weighted by their lengths, give the same estimate without holding it whole."""
+        a = np.asarray(absorbed, dtype=np.float64)
+        es = max(self.emissivity, 1e-3) * SIGMA
+        return np.mean(((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es) ** 0.25, axis=0)
+
+    def equilibrium_profile(self, absorbed=None, surface_K=None) -> np.ndarray:
         """Equilibrium estimate (ncol, nz) [K] from an absorbed-flux series (nt, ncol or divisor).
 
-        Surface: time mean of ((absorbed + G) / (eps sigma))^1/4; below, the steady geothermal
+        Surface: time mean of ((absorbed + G) / (eps sigma))^1/4 (or ``surface_K`` (n,) [K], that mean
+        computed block by block with :meth:`equilibrium_surface`); below, the steady geothermal
         profile of the discrete column, dT/dz = G / k(T) integrated link by link (Picard, 4 passes).
         """
-        a, fidx = self._forcing(absorbed)
-        es = max(self.emissivity, 1e-3) * SIGMA
-        ts = np.mean(((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es) ** 0.25, axis=0)
+        if surface_K is None:
+            a, fidx = self._forcing(absorbed)
+            ts = self.equilibrium_surface(a)
+        else:
+            ts = np.asarray(surface_K, dtype=np.float64)
+            _, fidx = self._forcing(ts[None, :])
         ts = np.maximum(ts[fidx], 10.0)
         T = np.empty((self.ncol, self.nz))
         T[:, 0] = ts
@@ -613,9 +625,9 @@ class ColumnSolver:
             T[:, l + 1] = np.maximum(t1, 1.0)
         return T
 
-    def set_equilibrium(self, absorbed) -> None:
+    def set_equilibrium(self, absorbed=None, surface_K=None) -> None:
         """Start from :meth:`equilibrium_profile` of the forcing series (the default start)."""
-        self.T = self.equilibrium_profile(absorbed)
+        self.T = self.equilibrium_profile(absorbed, surface_K)
         self._initialised = True
 
     # -- time stepping -----------------------------------------------------------------------
