@@ -81,6 +81,8 @@ Schema (units in the key names; defaults in brackets; "-" = required)::
     checkpoint_interval_steps int [0] checkpoint every n flux steps (0: only after spin-up),
                                       0 <= n <= 10_000_000
     save_spinup_fluxes bool [true]    also store the spin-up window's fluxes (replays then start exactly as the run did)
+    chunk_mb          float [256]     memory [MB] for the run's (time, facet) blocks (sunlight, temperatures, IR are
+                                      kept and written in blocks of time samples), 0.01 <= chunk_mb <= 1e6
 
 The dataclass fields carry the TOML key names (units in the names); SI
 conveniences are properties (``Case.flux_step_s``, ``Period.spinup_s``, ...).
@@ -282,6 +284,7 @@ class Output:
 
     checkpoint_interval_steps: int = 0
     save_spinup_fluxes: bool = True
+    chunk_mb: float = 256.0
 
 
 @dataclass(frozen=True)
@@ -705,6 +708,7 @@ def _build_case(raw: dict, text: str, base_dir: Optional[Path], path: Optional[P
     output = Output(
         checkpoint_interval_steps=sec.number("checkpoint_interval_steps", 0, lo=0, hi=10_000_000, integer=True),
         save_spinup_fluxes=sec.boolean("save_spinup_fluxes", True),
+        chunk_mb=sec.number("chunk_mb", 256.0, lo=0.01, hi=1e6),
     )
     sec.finish()
 

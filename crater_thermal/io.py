@@ -123,16 +123,39 @@ def chunk_shape(shape: tuple, time_axis: int, time_rows: int, target_bytes: int 
     return tuple(out)
 
 
+class _StreamWriter:
+    """What :func:`stream_dataset` yields: ``writer(name, key, values)`` stores a block of a large
+    variable; ``writer.set_attrs(mapping)`` adds global attributes known only at the end."""
+
+    def __init__(self, nc, variables):
+        self._nc, self._vars = nc, variables
+
+    def __call__(self, name: str, key: tuple, values) -> None:
+        var = self._vars[name]
+        var[key] = np.asarray(values, dtype=var.dtype)
+
+    def set_attrs(self, attrs: Mapping[str, Any]) -> None:
+        for key, value in attrs.items():
+            if value is None:
+                continue
+            if isinstance(value, bool):
+                value = int(value)
+            elif isinstance(value, dict):
+                value = json.dumps(value, default=float)
+            self._nc.setncattr(key, value)
+
+
 @contextmanager
 def stream_dataset(ds: xr.Dataset, path: str | os.PathLike, variables: Mapping[str, tuple], *,
-                   overwrite: bool = False, time_rows: int = 24) -> Iterator[Callable]:
+                   overwrite: bool = False, time_rows: int = 24) -> Iterator[_StreamWriter]:
     """Write a dataset whose large variables arrive in pieces, never whole in memory; atomic.
 
     ``ds`` holds everything small (coordinates, mesh, attributes) and is written first; each entry
-    ``name: (dims, shape, attrs)`` of ``variables`` becomes a float64 variable chunked along time
-    (``time_rows`` samples) and facet (about 1 MB per chunk), compressed like every large variable.
-    Yields ``write(name, key, values)`` which stores ``values`` at ``var[key]`` (a tuple of slices).
-    The file appears at ``path`` only when the block exits without an exception.
+    ``name: (dims, shape, attrs[, dtype])`` of ``variables`` becomes a variable (float64 unless
+    ``dtype`` says otherwise) chunked along time (``time_rows`` samples) and facet (about 1 MB per
+    chunk), compressed like every large variable. Yields a :class:`_StreamWriter`:
+    ``write(name, key, values)`` stores ``values`` at ``var[key]`` (a tuple of slices). The file
+    appears at ``path`` only when the block exits without an exception.
     """
     import netCDF4
 
@@ -141,22 +164,20 @@ def stream_dataset(ds: xr.Dataset, path: str | os.PathLike, variables: Mapping[s
         nc = netCDF4.Dataset(tmp, "a")
         try:
             created = {}
-            for name, (dims, shape, attrs) in variables.items():
+            for name, spec in variables.items():
+                dims, shape, attrs = spec[:3]
+                dtype = np.dtype(spec[3] if len(spec) > 3 else "f8")
                 for dim, size in zip(dims, shape):
                     if dim not in nc.dimensions:
                         nc.createDimension(dim, size)
                     elif len(nc.dimensions[dim]) != size:
                         raise ValueError(f"{name}: dimension {dim} has {len(nc.dimensions[dim])}, not {size}")
                 t_axis = list(dims).index("time") if "time" in dims else 0
-                var = nc.createVariable(name, "f8", dims, fill_value=np.nan,
+                var = nc.createVariable(name, dtype, dims, fill_value=dtype.type(np.nan),
                                         chunksizes=chunk_shape(tuple(shape), t_axis, time_rows), **_ENCODING)
                 var.setncatts(dict(attrs))
                 created[name] = var
-
-            def write(name, key, values):
-                created[name][key] = np.asarray(values, dtype=np.float64)
-
-            yield write
+            yield _StreamWriter(nc, created)
         finally:
             nc.close()
 
@@ -178,16 +199,18 @@ class SegmentStore:
         if self.block < 1:
             raise ValueError(f"block must be >= 1 row, got {block}")
         self.folder.mkdir(parents=True, exist_ok=True)
+        self._dir = str(self.folder)
 
-    def _file(self, name: str, b: int) -> Path:
-        return self.folder / f"{name}.{b:08d}.npy"
+    def _file(self, name: str, b: int) -> str:
+        # plain strings: pathlib interns every path part, a dictionary that grows with the block count
+        return os.path.join(self._dir, f"{name}.{b:08d}.npy")
 
     def write(self, name: str, k0: int, rows: np.ndarray) -> None:
         """Store ``rows`` as rows ``k0 ..`` of series ``name`` (``k0`` a multiple of ``block``)."""
         if k0 % self.block or len(rows) > self.block:
             raise ValueError(f"{name}: rows {k0}..{k0 + len(rows)} do not fit block {self.block}")
         target = self._file(name, k0 // self.block)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=self.folder)
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=self._dir)
         try:
             with os.fdopen(fd, "wb") as fh:
                 np.save(fh, np.ascontiguousarray(rows))
@@ -220,10 +243,12 @@ class SegmentStore:
             try:
                 arr = np.load(f, allow_pickle=False)
             except (OSError, ValueError) as exc:
-                raise FluxFileError(f"scratch store {self.folder}: block {f.name} unreadable ({exc})") from None
+                raise FluxFileError(f"scratch store {self.folder}: block {os.path.basename(f)} unreadable "
+                                    f"({exc})") from None
             lo, hi = k - b * self.block, min(k1 - b * self.block, self.block)
             if arr.shape[0] < hi:
-                raise FluxFileError(f"scratch store {self.folder}: {f.name} has {arr.shape[0]} rows, need {hi}")
+                raise FluxFileError(f"scratch store {self.folder}: {os.path.basename(f)} has {arr.shape[0]} "
+                                    f"rows, need {hi}")
             parts.append(arr[lo:hi])
             k = b * self.block + hi
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
@@ -330,12 +355,14 @@ def run_dataset(mesh, times, *, solar_incident=None, ir_incident=None, solar_dir
 
 def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_temperature,
                    attrs: Mapping[str, Any] | None = None) -> xr.Dataset:
-    """Assemble the replay dataset: ``surface_temperature(profile, time, facet)`` [K] plus the run's mesh."""
+    """Assemble the replay dataset: ``surface_temperature(profile, time, facet)`` [K] plus the run's mesh
+    (``surface_temperature=None`` leaves it out, for :func:`stream_dataset` to add block by block)."""
     data_vars = {
-        "surface_temperature": (("profile", "time", "facet"), surface_temperature, {"units": "K"}),
         "rho_top": (("profile",), np.asarray(rho_top, float), {"units": "kg m-3"}),
         "rho_bottom": (("profile",), np.asarray(rho_bottom, float), {"units": "kg m-3"}),
     }
+    if surface_temperature is not None:
+        data_vars["surface_temperature"] = (("profile", "time", "facet"), surface_temperature, {"units": "K"})
     for name in ("mesh_vertices", "mesh_faces", "area", "normal", "centroid", "sun_direction", "sun_distance"):
         if name in run:
             data_vars[name] = run[name].variable
@@ -354,8 +381,9 @@ def _open(path, what: str, load: bool = True) -> xr.Dataset:
     if not path.is_file():
         raise FluxFileError(f"{what} file {path} does not exist")
     try:
-        ds = xr.open_dataset(path, engine="netcdf4")
-        return ds.load() if load else ds
+        if not load:  # lazily, and without caching whole variables once touched
+            return xr.open_dataset(path, engine="netcdf4", cache=False)
+        return xr.open_dataset(path, engine="netcdf4").load()
     except Exception as exc:  # netCDF4/HDF5 raise many types for a corrupt file
         raise FluxFileError(f"cannot read {what} file {path}: {type(exc).__name__}: {exc}") from None
 

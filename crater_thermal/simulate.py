@@ -25,12 +25,38 @@ import os
 import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from crater_thermal.constants import SIGMA
 from crater_thermal.errors import ConfigError, FluxFileError
+
+
+# ----------------------------------------------------------------------------- memory budget
+
+
+#: Memory for (time, facet) blocks [MB] when a case does not set ``[output] chunk_mb``.
+DEFAULT_CHUNK_MB = 256.0
+#: Float64 (block, n_facets) arrays alive at once in the worst stage of a run (sunlight: direct,
+#: scattered and the solver's work arrays; record: sunlight, T, IR and a block being merged).
+_RUN_BUFFERS = 6
+#: Time samples per HDF5 chunk of a written run (4 days at 4 h), and the block alignment.
+TIME_CHUNK = 24
+
+
+def block_rows(n_cols: int, budget_bytes: float, n_buffers: int = _RUN_BUFFERS, align: int = TIME_CHUNK) -> int:
+    """Time samples per block so that ``n_buffers`` float64 (block, n_cols) arrays fit ``budget_bytes``
+    (at least 1; a multiple of ``align`` when it is larger than that)."""
+    rows = max(1, int(budget_bytes // (8.0 * n_buffers * max(1, n_cols))))
+    return rows // align * align if rows >= align else rows
+
+
+def chunk_bytes(case) -> float:
+    """The case's memory budget for (time, facet) blocks [bytes] (``[output] chunk_mb``)."""
+    mb = getattr(case.output, "chunk_mb", None)
+    return float(DEFAULT_CHUNK_MB if mb is None else mb) * 2**20
 
 
 # ----------------------------------------------------------------------------- progress
@@ -153,22 +179,29 @@ def seconds_since(times: np.ndarray, t0: np.datetime64) -> np.ndarray:
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
                   fixed_spinup: bool = False, chunk_columns: int = 50_000, progress: bool | None = None,
-                  tol_K: float = 0.01):
+                  tol_K: float = 0.01, chunk_mb: float = DEFAULT_CHUNK_MB, write: Callable | None = None):
     """Replay saved fluxes against several density profiles (no coupling: the IR is the saved one).
+
+    Columns (profile x facet) are solved in batches of at most ``chunk_columns``; each batch reads the
+    fluxes in blocks of time samples sized so that the forcing and temperature blocks stay within
+    ``chunk_mb`` [MB] (the whole series is read once and kept when it fits). With ``write`` the
+    temperatures are handed over block by block and never held whole.
 
     Parameters
     ----------
-    flux_ds : validated flux / run dataset (``io.read_flux_dataset``).
+    flux_ds : validated flux / run dataset (``io.read_flux_dataset``; may be opened lazily).
     profiles : list of ``thermal.Profile``.
     initial_temperature : [K] uniform start, then the spin-up window's fluxes if the file has them
         (the thesis procedure). None (default): periodic steady state over the spin-up window (or over
         the record itself when the file has no spin-up fluxes).
     fixed_spinup : with no ``initial_temperature``: start from the equilibrium estimate and run the
         spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
+    write : ``write(profiles_slice, times_slice, facets_slice, T)`` receives float32 surface
+        temperatures [K] of shape (profiles, times, facets); None: return them all.
 
     Returns
     -------
-    T : (n_profiles, n_times, n_facets) float32 surface temperatures [K]; info : dict
+    T : (n_profiles, n_times, n_facets) float32 surface temperatures [K] (None with ``write``); info : dict
     """
     from crater_thermal import thermal
 
@@ -179,43 +212,98 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     times = flux_ds["time"].values
     t0 = times[0]
     t_rec = seconds_since(times, t0)
-    abs_rec = (1 - albedo) * flux_ds["solar_incident"].values + eps * flux_ds["ir_incident"].values
     has_spin = "spinup_solar_incident" in flux_ds
-    if has_spin:
-        t_spin = seconds_since(flux_ds["spinup_time"].values, t0)
-        abs_spin = ((1 - albedo) * flux_ds["spinup_solar_incident"].values
-                    + eps * flux_ds["spinup_ir_incident"].values)
-    nt, nf = abs_rec.shape
+    t_spin = seconds_since(flux_ds["spinup_time"].values, t0) if has_spin else t_rec
+    nt, nf = flux_ds.sizes["time"], flux_ds.sizes["facet"]
     n_prof = len(profiles)
-    out = np.empty((n_prof, nt, nf), np.float32)
-    per_chunk = max(1, chunk_columns // nf)
+    out = None
+    if write is None:
+        out = np.empty((n_prof, nt, nf), np.float32)
+
+        def write(ps, ts, fs, T):
+            out[ps, ts, fs] = T
+
+    n_fb = max(1, min(nf, int(chunk_columns)))  # facets per batch
+    per_chunk = max(1, int(chunk_columns) // n_fb)  # profiles per batch
     fixed = initial_temperature is not None or fixed_spinup
     start = ("uniform" if initial_temperature is not None else "equilibrium") + " + fixed spin-up" if fixed \
         else "periodic"
-    info = {"start": start,
-            "periodic_iterations": [], "periodic_residual_K": []}
-    with progress_bar("replay", n_prof, progress) as update:
-        for p0 in range(0, n_prof, per_chunk):
-            chunk = list(profiles[p0:p0 + per_chunk])
-            cols = [p for p in chunk for _ in range(nf)]
-            solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
-            spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
-            # (nt, nf) forcing serves every profile: column j of the solver uses forcing column j % nf
-            if fixed:
-                if initial_temperature is not None:
-                    solver.set_uniform(float(initial_temperature))
+    info = {"start": start, "periodic_iterations": [], "periodic_residual_K": []}
+    names = {"spin": ("spinup_solar_incident", "spinup_ir_incident") if has_spin else None,
+             "rec": ("solar_incident", "ir_incident")}
+    n_batches = -(-nf // n_fb) * -(-n_prof // per_chunk)
+    spin_windows = 1 if fixed else 5  # ETA: a periodic start usually takes about 4-6 windows
+    work = n_batches * ((spin_windows * (len(t_spin) - 1) if (has_spin or not fixed) else 0) + nt - 1)
+    with progress_bar("replay", work, progress) as update:
+        for f0 in range(0, nf, n_fb):
+            f1 = min(nf, f0 + n_fb)
+            nfb = f1 - f0
+            ncols_max = nfb * min(per_chunk, n_prof)
+            # per sample: two float64 flux reads + absorbed (3 x 8 B per facet), float32 T per column
+            rows = max(2, int(chunk_mb * 2**20 // (24 * nfb + 8 * ncols_max)))
+            cache: dict = {}
+
+            def absorbed(which, k0, k1, f0=f0, f1=f1, rows=rows, cache=cache):
+                """Absorbed flux [W m-2] of samples k0..k1-1 of the spin-up or record window, this batch's facets."""
+                n_all = len(t_spin) if which == "spin" else nt
+                if n_all <= rows:  # the whole window fits the budget: read it once
+                    if which not in cache:
+                        sol, ir = names[which]
+                        cache[which] = ((1 - albedo) * flux_ds[sol][:, f0:f1].values
+                                        + eps * flux_ds[ir][:, f0:f1].values)
+                    return cache[which][k0:k1]
+                sol, ir = names[which]
+                return ((1 - albedo) * flux_ds[sol][k0:k1, f0:f1].values
+                        + eps * flux_ds[ir][k0:k1, f0:f1].values)
+
+            spin_which = "spin" if has_spin else "rec"
+
+            def window(solver, which, t, record_into=None):
+                """Run the columns through a window block by block (rows overlap by one sample)."""
+                n = len(t)
+                for a in range(0, n - 1, rows - 1):
+                    b = min(n, a + rows)
+                    T = solver.run_series(t[a:b], absorbed(which, a, b), record=record_into is not None)
+                    if record_into is not None:
+                        record_into(a, T)
+                    update(b - 1 - a)
+
+            for p0 in range(0, n_prof, per_chunk):
+                chunk = list(profiles[p0:p0 + per_chunk])
+                cols = [p for p in chunk for _ in range(nfb)]
+                solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
+                n_sp = len(t_spin)
+                eq = None
+                if initial_temperature is None:
+                    eq = sum(solver.equilibrium_surface(absorbed(spin_which, a, min(n_sp, a + rows)))
+                             * (min(n_sp, a + rows) - a) for a in range(0, n_sp, rows)) / n_sp
+                # (nt, nfb) forcing serves every profile: column j of the solver uses forcing column j % nfb
+                if fixed:
+                    if initial_temperature is not None:
+                        solver.set_uniform(float(initial_temperature))
+                    else:
+                        solver.set_equilibrium(surface_K=eq)
+                    if has_spin:
+                        window(solver, "spin", t_spin)
                 else:
-                    solver.set_equilibrium(spin_a)
-                if has_spin:
-                    solver.run_series(spin_t, spin_a, record=False)
-            else:
-                solver.set_equilibrium(spin_a)
-                pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
-                info["periodic_iterations"].append(int(pinfo["iterations"]))
-                info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
-            T = solver.run_series(t_rec, abs_rec)
-            out[p0:p0 + len(chunk)] = T.reshape(nt, len(chunk), nf).transpose(1, 0, 2)
-            update(len(chunk), info=f"{p0 + len(chunk)}/{n_prof} profiles")
+                    solver.set_equilibrium(surface_K=eq)
+
+                    def period_map(x, solver=solver):
+                        solver.set_state(x)
+                        window(solver, spin_which, t_spin)
+                        return solver.state()
+
+                    pinfo = thermal.periodic_state(solver, period_map, tol_K=tol_K)
+                    info["periodic_iterations"].append(int(pinfo["iterations"]))
+                    info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
+
+                def record_into(a, T, p0=p0, nch=len(chunk), f0=f0, f1=f1):
+                    T = np.asarray(T, np.float32).reshape(len(T), nch, f1 - f0).transpose(1, 0, 2)
+                    lo = 0 if a == 0 else 1  # blocks overlap by one sample
+                    write(slice(p0, p0 + nch), slice(a + lo, a + len(T[0])), slice(f0, f1), T[:, lo:])
+
+                window(solver, "rec", t_rec, record_into)
+                del solver
     return out, info
 
 
@@ -278,25 +366,33 @@ def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, all
 
 def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_temperature=None,
                 fixed_spinup=False, property_set=None, allow_inverted=False, output, overwrite=False,
-                progress=None):
-    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically."""
+                progress=None, chunk_mb: float = DEFAULT_CHUNK_MB):
+    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
+
+    The fluxes are read and the temperatures written block by block (memory about ``chunk_mb`` [MB]
+    plus the solver's columns, whatever the run's length and size)."""
     from crater_thermal import io
 
     io.check_output(output, overwrite)  # fail before any work
     if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
         raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
     profiles = resolve_profiles(labels, density_grid, allow_inverted)
-    ds = io.read_flux_dataset(flux_path)
-    T, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
-                            fixed_spinup=fixed_spinup, progress=progress)
+    ds = io.read_flux_dataset(flux_path, load=False)
     tops, bottoms = zip(*(profile_densities(p) for p in profiles))
-    out = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, T,
-                            attrs={"replay_start": info["start"],
-                                   "periodic_iterations": info["periodic_iterations"] or None,
-                                   "periodic_residual_K": info["periodic_residual_K"] or None,
-                                   "initial_temperature_K": initial_temperature,
-                                   "ir_assumption": "saved nominal IR (thesis 7.2)"})
-    return io.write_dataset_atomic(out, output, overwrite)
+    skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
+    shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
+    variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
+    with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=TIME_CHUNK) as stream:
+        _, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
+                                fixed_spinup=fixed_spinup, progress=progress, chunk_mb=chunk_mb,
+                                write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T))
+        stream.set_attrs({"replay_start": info["start"],
+                          "periodic_iterations": info["periodic_iterations"] or None,
+                          "periodic_residual_K": info["periodic_residual_K"] or None,
+                          "initial_temperature_K": initial_temperature,
+                          "ir_assumption": "saved nominal IR (thesis 7.2)"})
+    ds.close()
+    return Path(output)
 
 
 def _view_factor_cache_dir() -> str:
@@ -418,28 +514,6 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
     direct, solar = Sunlight(case, mesh, tracer, F)(sun_dirs, sun_dist, timer, progress)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
-
-
-#: Memory for (time, facet) blocks [MB] when a case does not set ``[output] chunk_mb``.
-DEFAULT_CHUNK_MB = 256.0
-#: Float64 (block, n_facets) arrays alive at once in the worst stage of a run (sunlight: direct,
-#: scattered and the solver's work arrays; record: sunlight, T, IR and a block being merged).
-_RUN_BUFFERS = 6
-#: Time samples per HDF5 chunk of a written run (4 days at 4 h), and the block alignment.
-TIME_CHUNK = 24
-
-
-def block_rows(n_cols: int, budget_bytes: float, n_buffers: int = _RUN_BUFFERS, align: int = TIME_CHUNK) -> int:
-    """Time samples per block so that ``n_buffers`` float64 (block, n_cols) arrays fit ``budget_bytes``
-    (at least 1; a multiple of ``align`` when it is larger than that)."""
-    rows = max(1, int(budget_bytes // (8.0 * n_buffers * max(1, n_cols))))
-    return rows // align * align if rows >= align else rows
-
-
-def chunk_bytes(case) -> float:
-    """The case's memory budget for (time, facet) blocks [bytes] (``[output] chunk_mb``)."""
-    mb = getattr(case.output, "chunk_mb", None)
-    return float(DEFAULT_CHUNK_MB if mb is None else mb) * 2**20
 
 
 def _case_fingerprint(case) -> str:
