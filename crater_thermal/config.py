@@ -1,91 +1,44 @@
 """Case files: TOML in, frozen dataclasses out, validated at the edge.
 
-A case file describes one simulation. Every key, its unit, default and allowed
-range is listed below (and in ``cases/README.md``). Unknown sections or keys,
-wrong types and out-of-range values raise :class:`~crater_thermal.errors.ConfigError`
-with one line naming the key, the value and what is allowed; dates outside the
-ephemeris raise :class:`~crater_thermal.errors.EphemerisRangeError` naming the key.
+A case file describes one simulation. Every key is declared once, in :data:`SCHEMA` below (one
+:class:`Key` per line: section, name, type, default, unit, allowed range or values, meaning). From
+that table come
 
-Schema (units in the key names; defaults in brackets; "-" = required)::
+* the validation and defaults of :func:`load_case` / :func:`loads_case`: unknown sections or keys,
+  wrong types and out-of-range values raise :class:`~crater_thermal.errors.ConfigError` with one line
+  naming the key, the value and what is allowed; dates outside the ephemeris (including the spin-up
+  window) raise :class:`~crater_thermal.errors.EphemerisRangeError` naming the key;
+* the fields of the section dataclasses (:class:`Crater`, :class:`Location`, ... ; the field names
+  are the TOML key names, units in the names; SI conveniences are properties such as
+  ``Case.flux_step_s`` or ``Period.spinup_s``);
+* the key table of ``cases/README.md`` (``python -m crater_thermal.config --markdown`` prints it,
+  ``--update cases/README.md`` rewrites it; ``tests/test_config.py`` checks the README matches).
 
-    name        str     [file stem]   case name (labels outputs)
-    description str     [""]          free text
+Allowed names (limb-darkening laws, property sets, ...) are declared in :mod:`crater_thermal.choices`
+and re-exported by the modules that implement them; density profiles are checked with the parser of
+:mod:`crater_thermal.profiles`, the one the thermal model uses. So this module imports nothing above
+the base layer (no ephemeris, skyfield, numba): the ephemeris's usable span is data in ``choices``.
 
-    [crater]
-    kind        str     ["crater", or "mesh" if `mesh` is given]
-                        "crater": idealized crater, thesis Table 7.1 (Pike 1977)
-                        "flat":   horizontal flat surface, no crater (thesis Fig. 7.9)
-                        "mesh":   a mesh file
-    diameter_km float   -             rim diameter, 0 < D <= 15 km (kind "crater" only)
-    facets      int     [502]         triangles, 20 <= n <= 1_000_000 (kind "crater" only)
-    surround_km float   [0.0]         width of the flat plain around the rim, 0 <= w <= 100 km
-                                      (kind "crater" only)
-    mesh        str     -             path of a .ply/.obj/.stl mesh [m, x east, y north, z up],
-                                      relative to the case file (kind "mesh" only; must exist)
+Adding a key
+------------
+Add one line to :data:`SCHEMA`, e.g.::
 
-    [location]
-    lat_deg     float   -             planetocentric latitude, -90 <= lat <= 90 deg
-    lon_deg     float   [0.0]         east longitude, -360 <= lon <= 360 deg
+    Key("surface", "roughness_deg", "float", 0.0, "mean slope of unresolved roughness", unit="deg", lo=0, hi=45),
 
-    [period]
-    start       date    -             first recorded instant, ISO 8601 ("2019-01-01" or
-                                      "2019-01-01T00:00:00", UTC; a TOML date also works)
-    end         date    -             last recorded instant (> start)
-    spinup      str     ["periodic"]  "periodic": converge to the periodic steady state of the
-                                      forcing over the `spinup_years` before `start`;
-                                      "fixed": the thesis procedure, simulate `spinup_years`
-                                      before `start` once, from `initial_temperature_K` or
-                                      (if absent) the equilibrium estimate
-    spinup_years float  [1.0 periodic, 3.0 fixed]
-                                      length of the spin-up window [yr of 365.25 d];
-                                      periodic: 29.5/365.25 (about a synodic month) <= y <= 50;
-                                      fixed: 0 <= y <= 300 (window limited by the ephemeris)
-    spinup_days float   -             alternative to spinup_years [d] (give one of them)
-    initial_temperature_K float [none] uniform start temperature, 1 <= T <= 1000 K
-                                      (fixed: the start; periodic: the first guess)
-    periodic_tol_K float [0.01]       periodic convergence tolerance, 1e-6 <= tol <= 10 K
+and regenerate the README table (``python -m crater_thermal.config --update cases/README.md``). The
+section's dataclass gets the field ``roughness_deg`` (the schema default as its default), the loader
+validates it, the README documents it. Key types: ``str``, ``choice`` (with ``choices=``), ``float``,
+``int`` (with ``lo``/``hi``, ``lo_open``/``hi_open``, ``unit``), ``bool``, ``date``, ``file`` /
+``folder`` (paths relative to the case file, must exist), ``profile`` (a density profile label),
+``profiles`` (a list of them), ``grid`` (a density grid). A key that applies only to some values of
+another key of its section says so with ``only=("kind", ("crater",))``: it is refused elsewhere,
+and if it has no default it is required where it applies. A default that depends on other keys is a
+function of the values read so far (``lo`` and ``hi`` may be too); give ``default_doc`` /
+``allowed_doc`` for the README then. Checks across keys go into :data:`_SECTION_CHECKS` or
+:func:`_check_case`.
 
-    [steps]
-    flux_step_hours   float [4.0]     flux (boundary condition) step, 0 < h <= 24 h (thesis 4 h)
-    conduction_step_s float [solver default]
-                                      largest conduction sub-step, 0 < dt <= flux step [s]
-
-    [surface]
-    albedo            float [0.12]    Bond albedo, 0 <= A < 1
-    emissivity        float [0.98]    infrared emissivity, 0 < eps <= 1
-    property_set      str   ["apollo"] "apollo" (thesis) | "hayne2017"
-    geothermal_flux_W_m2 float [0.033] heat flux into the column bottom, 0 <= q <= 1 W m-2
-    nominal_profile   str   ["1300/1800"] density profile of the coupled run: "TOP/BOTTOM"
-                                      [kg m-3, 100..4000], "rock" or "hayne2017"
-
-    [sun]
-    limb_darkening    str   ["linear"] "linear" | "quadratic" | "neckel_labs" | "uniform"
-    point_sun         bool  [false]   true: a point Sun instead of the extended disk
-    n_rings           int   [illumination default] rings of the Sun-disk model, 1..100
-    solar_constant_W_m2 float [1361.0] irradiance at 1 au, 1000 <= S <= 2000 W m-2
-    moon_frame        str   ["iau2009"] Moon orientation: "iau2009" | "de421"
-    moon_kernels      str   [none]    folder with moon_080317.tf and moon_pa_de421_1900-2050.bpc,
-                                      relative to the case file (required for "de421")
-    correction        str   ["apparent"] Sun direction: "apparent" | "light_time" | "geometric"
-
-    [scattering]
-    method            str   ["exact"] "exact" (radiosity solve) | "bounces" (thesis: 3)
-    n_bounces         int   [3]       bounces for method "bounces", 1..100
-
-    [replay]
-    profiles          list of str [[]] profiles replayed on the saved nominal fluxes
-                                      (labels as for nominal_profile)
-    density_grid      str   [none]    "LO:HI:STEP" [kg m-3], 100 <= LO <= HI <= 4000, STEP > 0
-
-    [output]
-    checkpoint_interval_steps int [0] checkpoint every n flux steps (0: only after spin-up),
-                                      0 <= n <= 10_000_000
-    save_spinup_fluxes bool [true]    also store the spin-up window's fluxes (replays then start exactly as the run did)
-    chunk_mb          float [256]     memory [MB] for the run's (time, facet) blocks (sunlight, temperatures, IR are
-                                      kept and written in blocks of time samples), 0.01 <= chunk_mb <= 1e6
-
-The dataclass fields carry the TOML key names (units in the names); SI
-conveniences are properties (``Case.flux_step_s``, ``Period.spinup_s``, ...).
+Adding a section: an entry in :data:`SECTIONS`, a class decorated with ``@_section("name")`` (its
+fields come from the schema) and a field of that class in :class:`Case`.
 """
 
 from __future__ import annotations
@@ -94,6 +47,7 @@ import dataclasses
 import datetime as _dt
 import math
 import re
+import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,14 +55,9 @@ from typing import Any, Mapping, Optional, Tuple
 
 import numpy as np
 
-from crater_thermal.constants import (
-    ALBEDO,
-    EMISSIVITY,
-    GEOTHERMAL_FLUX,
-    SOLAR_CONSTANT,
-    YEAR,
-)
-from crater_thermal.errors import ConfigError, EphemerisRangeError
+from crater_thermal import choices, profiles
+from crater_thermal.constants import ALBEDO, EMISSIVITY, GEOTHERMAL_FLUX, SOLAR_CONSTANT, YEAR
+from crater_thermal.errors import ConfigError, EphemerisRangeError, ProfileError
 
 __all__ = [
     "Crater",
@@ -121,32 +70,275 @@ __all__ = [
     "Replay",
     "Output",
     "Case",
+    "Key",
+    "SCHEMA",
+    "SECTIONS",
+    "REQUIRED",
     "load_case",
     "loads_case",
     "dump_toml",
+    "schema_markdown",
     "CRATER_KINDS",
     "SPINUP_MODES",
     "PROPERTY_SETS",
     "LIMB_DARKENING_LAWS",
     "SCATTERING_METHODS",
+    "MOON_FRAMES",
+    "SUN_CORRECTIONS",
 ]
 
-CRATER_KINDS = ("crater", "flat", "mesh")
-SPINUP_MODES = ("periodic", "fixed")
-PROPERTY_SETS = ("apollo", "hayne2017")
-LIMB_DARKENING_LAWS = ("linear", "quadratic", "neckel_labs", "uniform")
-SCATTERING_METHODS = ("exact", "bounces")
-MOON_FRAMES = ("iau2009", "de421")
-SUN_CORRECTIONS = ("apparent", "light_time", "geometric")
+# the allowed names, re-exported for compatibility (declared in crater_thermal.choices)
+CRATER_KINDS = choices.CRATER_KINDS
+SPINUP_MODES = choices.SPINUP_MODES
+PROPERTY_SETS = choices.PROPERTY_SETS
+LIMB_DARKENING_LAWS = choices.LIMB_DARKENING_LAWS
+SCATTERING_METHODS = choices.SCATTERING_METHODS
+MOON_FRAMES = choices.MOON_FRAMES
+SUN_CORRECTIONS = choices.SUN_CORRECTIONS
 
-_PROFILE_RE = re.compile(r"^\s*(\d+(?:\.\d*)?)\s*/\s*(\d+(?:\.\d*)?)\s*$")
-_GRID_RE = re.compile(r"^\s*(\d+(?:\.\d*)?)\s*:\s*(\d+(?:\.\d*)?)\s*:\s*(\d+(?:\.\d*)?)\s*$")
 _MIN_PERIODIC_DAYS = 29.5  # [d] shortest periodic spin-up window (about one synodic month)
-_DENSITY_RANGE = (100.0, 4000.0)  # [kg m-3] sanity bounds for labels; thermal.py checks physics
+
+
+# ---------------------------------------------------------------- the schema
+class _Required:
+    def __repr__(self) -> str:
+        return "REQUIRED"
+
+
+#: Default of a key that has none: the case file must give it.
+REQUIRED = _Required()
+_DERIVE = object()
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key of a case file.
+
+    Attributes
+    ----------
+    section : str
+        TOML table (``""`` for the top level).
+    name : str
+        Key name (units in the name: ``lat_deg``, ``flux_step_hours``); also the dataclass field.
+    type : str
+        ``str``, ``choice``, ``float``, ``int``, ``bool``, ``date``, ``file``, ``folder``, ``profile``,
+        ``profiles`` or ``grid`` (see the module docstring).
+    default : value, :data:`REQUIRED`, or callable(values) -> value
+        Used when the key is absent. A callable gets the section's values read so far (a mapping with
+        ``given(name)``, true when the file has that key).
+    doc : str
+        Meaning (README column "meaning").
+    unit : str
+        Unit of numbers, for messages and the README.
+    lo, hi : number, callable(values) -> number, or None
+        Allowed range (inclusive unless ``lo_open`` / ``hi_open``).
+    choices : tuple of str
+        Allowed values of a ``choice`` key.
+    only : (key, values) or None
+        The key applies only when that other key of the section has one of ``values``.
+    default_doc, allowed_doc : str or None
+        README text for a computed default or range.
+    field : bool
+        False for an input-only key that is not a dataclass field (``period.spinup_days``).
+    field_default : value
+        The dataclass field's default when it differs from ``default`` (a computed default, or the
+        value of a key that does not apply).
+    """
+
+    section: str
+    name: str
+    type: str
+    default: Any = None
+    doc: str = ""
+    unit: str = ""
+    lo: Any = None
+    hi: Any = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: Tuple[str, ...] = ()
+    only: Optional[Tuple[str, Tuple[str, ...]]] = None
+    default_doc: Optional[str] = None
+    allowed_doc: Optional[str] = None
+    field: bool = True
+    field_default: Any = _DERIVE
+
+    @property
+    def dotted(self) -> str:
+        return f"{self.section}.{self.name}" if self.section else self.name
+
+    @property
+    def dataclass_default(self) -> Any:
+        """Default of the dataclass field (:data:`REQUIRED`: the field has none)."""
+        if self.field_default is not _DERIVE:
+            return self.field_default
+        if self.only is not None or callable(self.default):
+            return None
+        return self.default
+
+
+def _spinup_limits(v) -> Tuple[float, float]:
+    """Allowed spin-up window [yr]: a periodic state needs at least one lunar day of forcing."""
+    if v["spinup"] == "periodic":
+        return _MIN_PERIODIC_DAYS * 86400.0 / YEAR, 50.0
+    return 0.0, 300.0
+
+
+_YR_TO_D = YEAR / 86400.0
+_DATE_SPAN = (f"{np.datetime_as_string(choices.EPHEMERIS_START, unit='D')} … "
+              f"{np.datetime_as_string(choices.EPHEMERIS_END, unit='D')} UTC")
+_RHO = profiles.DENSITY_LIMITS
+_PROFILE_ALLOWED = (f'`"TOP/BOTTOM"` ({_RHO[0]:g} … {_RHO[1]:g} kg m⁻³, top ≤ bottom), `"RHO"`, `"rock"`, '
+                    '`"hayne2017"`')
+K = Key
+
+#: Every key of a case file, in file order within each section.
+SCHEMA: Tuple[Key, ...] = (
+    K("", "name", "str", lambda v: v.default_name, "case name, labels outputs", default_doc="file stem",
+      allowed_doc="non-empty", field=False),
+    K("", "description", "str", "", "free text", field=False),
+    # [crater]
+    K("crater", "kind", "choice", lambda v: "mesh" if v.given("mesh") else "crater",
+      "idealized crater (thesis Table 7.1, Pike 1977) / flat horizontal surface, no crater (Fig. 7.9) / "
+      "a mesh file", choices=choices.CRATER_KINDS, default_doc='`"crater"` (`"mesh"` if `mesh` is given)',
+      field_default="crater"),
+    K("crater", "diameter_km", "float", REQUIRED, "rim diameter", unit="km", lo=0.0, hi=15.0, lo_open=True,
+      only=("kind", ("crater",))),
+    K("crater", "facets", "int", 502, "number of triangles", lo=20, hi=1_000_000, only=("kind", ("crater",))),
+    K("crater", "surround_km", "float", 0.0, "width of flat plain meshed around the rim", unit="km", lo=0.0,
+      hi=100.0, only=("kind", ("crater",)), field_default=0.0),
+    K("crater", "mesh", "file", REQUIRED, "`.ply`/`.obj`/`.stl` in metres, x east, y north, z up; "
+      "**relative to the case file**", only=("kind", ("mesh",))),
+    # [location]
+    K("location", "lat_deg", "float", REQUIRED, "planetocentric latitude of the crater centre", unit="deg",
+      lo=-90.0, hi=90.0),
+    K("location", "lon_deg", "float", 0.0, "east longitude", unit="deg", lo=-360.0, hi=360.0),
+    # [period]
+    K("period", "start", "date", REQUIRED, 'first recorded instant (`"2019-01-01"`, `"2019-01-01T04:00:00"`; '
+      "UTC)", allowed_doc=_DATE_SPAN),
+    K("period", "end", "date", REQUIRED, "last recorded instant", allowed_doc="> `start`, in range"),
+    K("period", "spinup", "choice", "periodic", "periodic: converge to the periodic steady state of the "
+      "forcing over the `spinup_years` before `start`; fixed: simulate that window once (thesis) from "
+      "`initial_temperature_K` or the equilibrium estimate", choices=choices.SPINUP_MODES),
+    K("period", "spinup_years", "float", lambda v: 1.0 if v["spinup"] == "periodic" else 3.0,
+      "spin-up window [years of 365.25 d]", unit="yr", lo=lambda v: _spinup_limits(v)[0],
+      hi=lambda v: _spinup_limits(v)[1], default_doc="1.0 (periodic), 3.0 (fixed)",
+      allowed_doc="periodic 29.5 d … 50 yr; fixed 0 … 300 yr; the window must start inside the ephemeris",
+      field_default=1.0),
+    K("period", "spinup_days", "float", None, "alternative to `spinup_years` (give one)", unit="d",
+      lo=lambda v: _spinup_limits(v)[0] * _YR_TO_D, hi=lambda v: _spinup_limits(v)[1] * _YR_TO_D,
+      default_doc="—", allowed_doc="same, in days", field=False),
+    K("period", "initial_temperature_K", "float", None, "uniform start (fixed) or first guess (periodic); "
+      "none = equilibrium estimate", unit="K", lo=1.0, hi=1000.0),
+    K("period", "periodic_tol_K", "float", 0.01, "periodic-state convergence tolerance", unit="K", lo=1e-6,
+      hi=10.0),
+    # [steps]
+    K("steps", "flux_step_hours", "float", 4.0, "interval between flux (boundary condition) samples "
+      "(thesis 4 h)", unit="h", lo=0.0, hi=24.0, lo_open=True),
+    K("steps", "conduction_step_s", "float", None, "largest conduction sub-step", unit="s", lo=0.0,
+      hi=lambda v: v["flux_step_hours"] * 3600.0, lo_open=True, default_doc="solver default",
+      allowed_doc="0 < dt ≤ flux step [s]"),
+    # [surface]
+    K("surface", "albedo", "float", ALBEDO, "Bond albedo (constant)", lo=0.0, hi=1.0, hi_open=True),
+    K("surface", "emissivity", "float", EMISSIVITY, "infrared emissivity", lo=0.0, hi=1.0, lo_open=True),
+    K("surface", "property_set", "choice", "apollo", "heat capacity / conductivity models",
+      choices=choices.PROPERTY_SETS),
+    K("surface", "geothermal_flux_W_m2", "float", GEOTHERMAL_FLUX, "heat flux into the bottom of the 2 m "
+      "column", unit="W m-2", lo=0.0, hi=1.0),
+    K("surface", "nominal_profile", "profile", "1300/1800", "density profile of the coupled run",
+      allowed_doc=_PROFILE_ALLOWED),
+    # [sun]
+    K("sun", "limb_darkening", "choice", "linear", "limb-darkening law of the disk",
+      choices=choices.LIMB_DARKENING_LAWS),
+    K("sun", "point_sun", "bool", False, "point Sun instead of the extended disk"),
+    K("sun", "n_rings", "int", None, "rings of the disk model", lo=1, hi=100, default_doc="illumination default"),
+    K("sun", "solar_constant_W_m2", "float", SOLAR_CONSTANT, "irradiance at 1 au (scaled by (1 au / r)²)",
+      unit="W m-2", lo=1000.0, hi=2000.0),
+    K("sun", "moon_frame", "choice", "iau2009", "Moon orientation model (ephemeris/README.md)",
+      choices=choices.MOON_FRAMES),
+    K("sun", "moon_kernels", "folder", None, "holds `moon_080317.tf` and `moon_pa_de421_1900-2050.bpc`; "
+      'required for `"de421"`; relative to the case file'),
+    K("sun", "correction", "choice", "apparent", "which Sun direction (ephemeris/README.md)",
+      choices=choices.SUN_CORRECTIONS),
+    # [scattering]
+    K("scattering", "method", "choice", "exact", "radiosity solve, or a fixed number of bounces (thesis: 3)",
+      choices=choices.SCATTERING_METHODS),
+    K("scattering", "n_bounces", "int", 3, 'bounces for `"bounces"`', lo=1, hi=100),
+    # [replay]
+    K("replay", "profiles", "profiles", (), "profiles replayed on the saved nominal fluxes",
+      allowed_doc="labels as for `nominal_profile`"),
+    K("replay", "density_grid", "grid", None, 'all two-layer profiles on that grid (top ≤ bottom), e.g. '
+      '`"800:2000:100"`', allowed_doc=f'`"LO:HI:STEP"`, {_RHO[0]:g} ≤ LO ≤ HI ≤ {_RHO[1]:g}, STEP > 0, at most '
+      f"{profiles.MAX_GRID_DENSITIES} densities [kg m⁻³]"),
+    # [output]
+    K("output", "checkpoint_interval_steps", "int", 0, "checkpoint every n flux steps (0: only after the "
+      "spin-up)", lo=0, hi=10_000_000),
+    K("output", "save_spinup_fluxes", "bool", True, "also store the spin-up window's fluxes, so that replays "
+      "start exactly as the run did"),
+    K("output", "chunk_mb", "float", 256.0, "memory for the run's (time, facet) series: sunlight, temperatures "
+      "and IR are computed, kept and written in blocks of time samples that fit it, whatever the run's length "
+      "and size", unit="MB", lo=0.01, hi=1e6),
+)
+del K
+
+
+@dataclass(frozen=True)
+class SectionSpec:
+    """A TOML table of the case file: its name, whether the file must have it, a README note."""
+
+    name: str
+    required: bool = False
+
+
+#: The sections, in the order they are read and documented.
+SECTIONS: Tuple[SectionSpec, ...] = (
+    SectionSpec("crater", required=True),
+    SectionSpec("location", required=True),
+    SectionSpec("period", required=True),
+    SectionSpec("steps"),
+    SectionSpec("surface"),
+    SectionSpec("sun"),
+    SectionSpec("scattering"),
+    SectionSpec("replay"),
+    SectionSpec("output"),
+)
+
+_ANNOTATIONS = {"str": "str", "choice": "str", "float": "float", "int": "int", "bool": "bool",
+                "date": "np.datetime64", "file": "Path", "folder": "Path", "profile": "str",
+                "profiles": "Tuple[str, ...]", "grid": "str"}
+_SECTION_CLASSES: dict = {}
+
+
+def _keys(section: str) -> Tuple[Key, ...]:
+    return tuple(k for k in SCHEMA if k.section == section)
+
+
+def _section(name: str):
+    """Class decorator: a frozen dataclass whose fields are the schema's keys of section ``name``."""
+
+    def deco(cls):
+        ann = {}
+        for key in _keys(name):
+            if not key.field:
+                continue
+            default = key.dataclass_default
+            ann[key.name] = _ANNOTATIONS[key.type] if default is not None else f"Optional[{_ANNOTATIONS[key.type]}]"
+            if default is not REQUIRED:
+                setattr(cls, key.name, default)
+        cls.__annotations__ = ann
+        lines = [f"    {k.name} : {ann[k.name]}" + (f" [{k.unit}]" if k.unit else "") + f"\n        {k.doc}"
+                 for k in _keys(name) if k.field]
+        cls.__doc__ = (cls.__doc__ or "").rstrip() + "\n\n    Fields (from :data:`SCHEMA`)\n    " \
+            + "-" * 28 + "\n" + "\n".join(lines) + "\n"
+        cls = dataclass(frozen=True)(cls)
+        _SECTION_CLASSES[name] = cls
+        return cls
+
+    return deco
 
 
 # ---------------------------------------------------------------- dataclasses
-@dataclass(frozen=True)
+# Fields come from SCHEMA (same names, defaults, in schema order); the docstrings say what they hold.
+@_section("crater")
 class Crater:
     """Terrain of the case.
 
@@ -156,12 +348,6 @@ class Crater:
     surround_km : float [km]  flat plain around the rim (kind "crater")
     mesh : Path or None  absolute path of the mesh file (kind "mesh")
     """
-
-    kind: str = "crater"
-    diameter_km: Optional[float] = None
-    facets: Optional[int] = None
-    surround_km: float = 0.0
-    mesh: Optional[Path] = None
 
     @property
     def n_facets(self) -> Optional[int]:
@@ -173,31 +359,22 @@ class Crater:
         return None if self.diameter_km is None else self.diameter_km * 1e3
 
 
-@dataclass(frozen=True)
+@_section("location")
 class Location:
-    """Crater centre: planetocentric latitude and east longitude [deg]."""
-
-    lat_deg: float
-    lon_deg: float = 0.0
+    """Crater centre: planetocentric latitude ``lat_deg`` and east longitude ``lon_deg`` [deg]."""
 
 
-@dataclass(frozen=True)
+@_section("period")
 class Period:
     """Recorded period and spin-up.
 
     start, end : numpy.datetime64[ns] (UTC)  first and last recorded instant
     spinup : "periodic" | "fixed"
-    spinup_years : float [yr of 365.25 d]  spin-up window before ``start``
+    spinup_years : float [yr of 365.25 d]  spin-up window before ``start`` (also when the file
+        gives ``spinup_days``)
     initial_temperature_K : float or None [K]
     periodic_tol_K : float [K]
     """
-
-    start: np.datetime64
-    end: np.datetime64
-    spinup: str = "periodic"
-    spinup_years: float = 1.0
-    initial_temperature_K: Optional[float] = None
-    periodic_tol_K: float = 0.01
 
     @property
     def spinup_s(self) -> float:
@@ -215,12 +392,10 @@ class Period:
         return float((self.end - self.start) / np.timedelta64(1, "s"))
 
 
-@dataclass(frozen=True)
+@_section("steps")
 class Steps:
-    """Time steps: flux step [h] and optional largest conduction sub-step [s]."""
-
-    flux_step_hours: float = 4.0
-    conduction_step_s: Optional[float] = None
+    """Time steps: flux step ``flux_step_hours`` [h], optional largest conduction sub-step
+    ``conduction_step_s`` [s]."""
 
     @property
     def flux_step_s(self) -> float:
@@ -228,15 +403,10 @@ class Steps:
         return self.flux_step_hours * 3600.0
 
 
-@dataclass(frozen=True)
+@_section("surface")
 class Surface:
-    """Surface and subsurface properties (see PHYSICS.md)."""
-
-    albedo: float = ALBEDO
-    emissivity: float = EMISSIVITY
-    property_set: str = "apollo"
-    geothermal_flux_W_m2: float = GEOTHERMAL_FLUX
-    nominal_profile: str = "1300/1800"
+    """Surface and subsurface properties (see PHYSICS.md): albedo, emissivity, property set,
+    geothermal flux [W m-2], nominal density profile label."""
 
     @property
     def geothermal_flux(self) -> float:
@@ -244,17 +414,9 @@ class Surface:
         return self.geothermal_flux_W_m2
 
 
-@dataclass(frozen=True)
+@_section("sun")
 class Sun:
     """Sun model and ephemeris options."""
-
-    limb_darkening: str = "linear"
-    point_sun: bool = False
-    n_rings: Optional[int] = None
-    solar_constant_W_m2: float = SOLAR_CONSTANT
-    moon_frame: str = "iau2009"
-    moon_kernels: Optional[Path] = None
-    correction: str = "apparent"
 
     @property
     def solar_constant(self) -> float:
@@ -262,29 +424,19 @@ class Sun:
         return self.solar_constant_W_m2
 
 
-@dataclass(frozen=True)
+@_section("scattering")
 class Scattering:
     """Scattered sunlight: exact radiosity or ``n_bounces`` bounces."""
 
-    method: str = "exact"
-    n_bounces: int = 3
 
-
-@dataclass(frozen=True)
+@_section("replay")
 class Replay:
-    """Profiles replayed on the saved nominal fluxes."""
-
-    profiles: Tuple[str, ...] = ()
-    density_grid: Optional[str] = None
+    """Profiles replayed on the saved nominal fluxes (labels) and an optional density grid."""
 
 
-@dataclass(frozen=True)
+@_section("output")
 class Output:
     """Output options."""
-
-    checkpoint_interval_steps: int = 0
-    save_spinup_fluxes: bool = True
-    chunk_mb: float = 256.0
 
 
 @dataclass(frozen=True)
@@ -387,7 +539,7 @@ def _strip_derived(raw: dict) -> dict:
     return {k: (dict(v) if isinstance(v, dict) else v) for k, v in raw.items()}
 
 
-# ---------------------------------------------------------------- validation helpers
+# ---------------------------------------------------------------- reading one section
 def _fmt_range(lo, hi, lo_open=False, hi_open=False, unit=""):
     if lo is None and hi is None:
         s = "any finite number"
@@ -498,39 +650,88 @@ class _Section:
                       f"allowed keys{' in [' + self.name + ']' if self.name else ''}: {allowed}")
 
 
+class _Values(dict):
+    """The values of a section read so far (key -> value), for computed defaults and ranges."""
+
+    def __init__(self, raw: dict, default_name: str = ""):
+        super().__init__()
+        self.raw = raw
+        self.default_name = default_name
+
+    def given(self, name: str) -> bool:
+        """True when the case file has key ``name`` in this section."""
+        return name in self.raw
+
+
+def _resolve(x, values):
+    return x(values) if callable(x) else x
+
+
+def _read_key(sec: _Section, key: Key, values: _Values, base_dir: Optional[Path]) -> Any:
+    """Validate one key of a section; return its value (its default if absent)."""
+    k = key.name
+    if key.only is not None:
+        other, allowed = key.only
+        if values[other] not in allowed:
+            sec.used.add(k)
+            if sec.has(k):
+                which = " or ".join(repr(a) for a in allowed)
+                sec.fail(f"{sec.key(k)} = {sec.data[k]!r} is not used with {other} = {values[other]!r}; "
+                         f"it applies to {other} = {which} only")
+            return key.dataclass_default
+    if key.default is REQUIRED and not sec.has(k):
+        when = f" ({key.only[0]} = {values[key.only[0]]!r})" if key.only is not None else ""
+        sec.used.add(k)
+        sec.fail(f"missing required key {sec.key(k)}{when}")
+    default = None if key.default is REQUIRED else _resolve(key.default, values)
+    t = key.type
+    if t in ("float", "int"):
+        return sec.number(k, default, lo=_resolve(key.lo, values), hi=_resolve(key.hi, values),
+                          lo_open=key.lo_open, hi_open=key.hi_open, unit=key.unit, integer=t == "int")
+    if t == "bool":
+        return sec.boolean(k, default)
+    if t == "str":
+        return sec.string(k, default)
+    if t == "choice":
+        return sec.choice(k, key.choices, default)
+    if t == "date":
+        return sec.date(k)
+    if t in ("file", "folder"):
+        return _resolve_path(sec, k, base_dir, must_be_dir=t == "folder")
+    if t == "profile":
+        return _profile_label(sec, k, sec.raw(k, default))
+    if t == "profiles":
+        labels = sec.raw(k, list(default))
+        if not isinstance(labels, list):
+            sec.fail(f"{sec.key(k)} = {labels!r} has the wrong type ({type(labels).__name__}); "
+                     "expected a list of labels such as [\"800/1100\", \"rock\"]")
+        return tuple(_profile_label(sec, k, v, i) for i, v in enumerate(labels))
+    if t == "grid":
+        return _density_grid(sec, k, default)
+    raise TypeError(f"schema key {key.dotted}: unknown type {t!r}")  # a schema bug, not user input
+
+
 def _profile_label(sec: _Section, k: str, v: Any, index: Optional[int] = None) -> str:
+    """A density profile label, checked by the profile parser the thermal model uses."""
     key = sec.key(k) + (f"[{index}]" if index is not None else "")
     if not isinstance(v, str):
         sec.fail(f"{key} = {v!r} has the wrong type ({type(v).__name__}); expected a profile label "
                  "such as \"1300/1800\", \"rock\" or \"hayne2017\"")
-    label = v.strip()
-    if label in ("rock", "hayne2017"):
-        return label
-    m = _PROFILE_RE.match(label)
-    if not m:
-        sec.fail(f"{key} = {v!r} is not a profile label; allowed: \"TOP/BOTTOM\" densities in kg m-3 "
-                 "(e.g. \"1300/1800\"), \"rock\" or \"hayne2017\"")
-    lo, hi = _DENSITY_RANGE
-    for rho in (float(m.group(1)), float(m.group(2))):
-        if not lo <= rho <= hi:
-            sec.fail(f"{key} = {v!r} has a density {rho:g} out of range; allowed: "
-                     f"{lo:g} <= rho <= {hi:g} [kg m-3]")
-    return label
+    try:
+        profiles.parse_profile(v)
+    except ProfileError as exc:
+        sec.fail(f"{key} = {v!r} is not allowed: {exc}")
+    return v.strip()
 
 
-def _density_grid(sec: _Section, k: str) -> Optional[str]:
-    v = sec.string(k, None)
+def _density_grid(sec: _Section, k: str, default: Optional[str]) -> Optional[str]:
+    v = sec.string(k, default)
     if v is None:
         return None
-    m = _GRID_RE.match(v)
-    if not m:
-        sec.fail(f"{sec.key(k)} = {v!r} is not a density grid; allowed: \"LO:HI:STEP\" in kg m-3, "
-                 "e.g. \"800:2000:100\"")
-    lo, hi, step = (float(g) for g in m.groups())
-    rlo, rhi = _DENSITY_RANGE
-    if not (rlo <= lo <= hi <= rhi) or step <= 0:
-        sec.fail(f"{sec.key(k)} = {v!r} out of range; allowed: {rlo:g} <= LO <= HI <= {rhi:g} "
-                 "and STEP > 0 [kg m-3]")
+    try:
+        profiles.grid_densities(v)
+    except ProfileError as exc:
+        sec.fail(f"{sec.key(k)} = {v!r} is not allowed: {exc}")
     return v.strip()
 
 
@@ -551,187 +752,170 @@ def _resolve_path(sec: _Section, k: str, base_dir: Optional[Path], must_be_dir=F
     return p
 
 
-_SECTIONS = ("crater", "location", "period", "steps", "surface", "sun", "scattering", "replay", "output")
+# ---------------------------------------------------------------- checks across keys
+def _check_sun(v: _Values, sec: _Section) -> None:
+    if v["moon_frame"] == "de421" and v["moon_kernels"] is None:
+        sec.fail("sun.moon_frame = 'de421' needs sun.moon_kernels = folder with moon_080317.tf and "
+                 "moon_pa_de421_1900-2050.bpc (not shipped); or use moon_frame = 'iau2009'")
+
+
+def _check_period(v: _Values, sec: _Section) -> None:
+    start, end = v["start"], v["end"]
+    if end <= start:
+        sec.fail(f"period.end = {np.datetime_as_string(end, unit='s')} must be after period.start = "
+                 f"{np.datetime_as_string(start, unit='s')}")
+    if v.given("spinup_years") and v.given("spinup_days"):
+        sec.fail("give period.spinup_years or period.spinup_days, not both")
+    if v["spinup_days"] is not None:
+        v["spinup_years"] = v["spinup_days"] * 86400.0 / YEAR
+
+
+#: Checks across the keys of one section, run after the section is read: f(values, section).
+_SECTION_CHECKS: dict = {"sun": _check_sun, "period": _check_period}
+
+
+def _check_case(case: Case, where: str) -> None:
+    """Checks across sections: the period covers a flux step and lies inside the ephemeris."""
+    if case.period.duration_s < case.steps.flux_step_s:
+        raise ConfigError(f"{where}: period ({case.period.duration_s:g} s) is shorter than one flux step "
+                          f"steps.flux_step_hours = {case.steps.flux_step_hours:g}")
+    lo, hi, what = choices.ephemeris_span(case.sun.moon_frame)
+    allowed = (f"allowed: {np.datetime_as_string(lo, unit='D')} to {np.datetime_as_string(hi, unit='D')} "
+               f"(UTC, {what})")
+    for key, t in (("period.start", case.period.start), ("period.end", case.period.end)):
+        if not lo <= t <= hi:
+            raise EphemerisRangeError(f"{where}: {key} = {np.datetime_as_string(t, unit='s')} is outside the "
+                                      f"ephemeris; {allowed}")
+    first = case.period.spinup_start
+    if first < lo:
+        raise EphemerisRangeError(
+            f"{where}: period.spinup_years = {case.period.spinup_years:g} starts the spin-up at "
+            f"{np.datetime_as_string(first, unit='s')}, outside the ephemeris; {allowed}")
+
+
+# ---------------------------------------------------------------- the builder
+def _read_section(raw: dict, name: str, where: str, base_dir: Optional[Path], default_name: str = "",
+                  required: bool = False) -> _Values:
+    sec = _Section(raw if name == "" else raw.get(name), name, where)
+    if required and name not in raw:
+        sec.fail(f"missing section [{name}]")
+    if name == "":
+        sec.used.update(s.name for s in SECTIONS)
+    values = _Values(sec.data, default_name)
+    for key in _keys(name):
+        values[key.name] = _read_key(sec, key, values, base_dir)
+    check = _SECTION_CHECKS.get(name)
+    if check is not None:
+        check(values, sec)
+    sec.finish()
+    return values
 
 
 def _build_case(raw: dict, text: str, base_dir: Optional[Path], path: Optional[Path],
                 default_name: str) -> Case:
     where = str(path) if path is not None else "<case>"
-    top = _Section(raw, "", where)
-    for s in _SECTIONS:
-        top.used.add(s)
-    name = top.string("name", default_name)
-    if not name or not name.strip():
-        top.fail(f"name = {name!r} must not be empty")
-    description = top.string("description", "")
-    top.finish()
-
-    # [crater]
-    sec = _Section(raw.get("crater"), "crater", where)
-    if "crater" not in raw:
-        sec.fail("missing section [crater]")
-    default_kind = "mesh" if sec.has("mesh") else "crater"
-    kind = sec.choice("kind", CRATER_KINDS, default_kind)
-    crater_keys = ("diameter_km", "facets", "surround_km")
-    if kind == "crater":
-        if sec.has("mesh"):
-            sec.fail("crater.mesh is given with kind = 'crater'; use kind = 'mesh' (or drop the mesh key)")
-        crater = Crater(
-            kind="crater",
-            diameter_km=sec.number("diameter_km", lo=0.0, hi=15.0, lo_open=True, unit="km", required=True),
-            facets=sec.number("facets", 502, lo=20, hi=1_000_000, integer=True),
-            surround_km=sec.number("surround_km", 0.0, lo=0.0, hi=100.0, unit="km"),
-        )
-    else:
-        for k in crater_keys:
-            if sec.has(k):
-                sec.fail(f"crater.{k} = {sec.data[k]!r} is not used with kind = {kind!r}; "
-                         f"it applies to kind = 'crater' only")
-        if kind == "flat":
-            if sec.has("mesh"):
-                sec.fail("crater.mesh is given with kind = 'flat'; use kind = 'mesh'")
-            crater = Crater(kind="flat")
-        else:
-            if not sec.has("mesh"):
-                sec.fail("missing required key crater.mesh (kind = 'mesh')")
-            crater = Crater(kind="mesh", mesh=_resolve_path(sec, "mesh", base_dir))
-    sec.finish()
-
-    # [location]
-    sec = _Section(raw.get("location"), "location", where)
-    if "location" not in raw:
-        sec.fail("missing section [location]")
-    location = Location(
-        lat_deg=sec.number("lat_deg", lo=-90.0, hi=90.0, unit="deg", required=True),
-        lon_deg=sec.number("lon_deg", 0.0, lo=-360.0, hi=360.0, unit="deg"),
-    )
-    sec.finish()
-
-    # [sun] first: the Moon frame decides the usable date range
-    sec = _Section(raw.get("sun"), "sun", where)
-    moon_frame = sec.choice("moon_frame", MOON_FRAMES, "iau2009")
-    moon_kernels = _resolve_path(sec, "moon_kernels", base_dir, must_be_dir=True)
-    if moon_frame == "de421" and moon_kernels is None:
-        sec.fail("sun.moon_frame = 'de421' needs sun.moon_kernels = folder with moon_080317.tf and "
-                 "moon_pa_de421_1900-2050.bpc (not shipped); or use moon_frame = 'iau2009'")
-    sun = Sun(
-        limb_darkening=sec.choice("limb_darkening", LIMB_DARKENING_LAWS, "linear"),
-        point_sun=sec.boolean("point_sun", False),
-        n_rings=sec.number("n_rings", None, lo=1, hi=100, integer=True),
-        solar_constant_W_m2=sec.number("solar_constant_W_m2", SOLAR_CONSTANT, lo=1000.0, hi=2000.0,
-                                       unit="W m-2"),
-        moon_frame=moon_frame,
-        moon_kernels=moon_kernels,
-        correction=sec.choice("correction", SUN_CORRECTIONS, "apparent"),
-    )
-    sec.finish()
-
-    # [period]
-    sec = _Section(raw.get("period"), "period", where)
-    if "period" not in raw:
-        sec.fail("missing section [period]")
-    start, end = sec.date("start"), sec.date("end")
-    if end <= start:
-        sec.fail(f"period.end = {np.datetime_as_string(end, unit='s')} must be after period.start = "
-                 f"{np.datetime_as_string(start, unit='s')}")
-    spinup = sec.choice("spinup", SPINUP_MODES, "periodic")
-    # a periodic state needs at least one lunar day of forcing (29.5 d)
-    min_years = _MIN_PERIODIC_DAYS * 86400.0 / YEAR if spinup == "periodic" else 0.0
-    max_years = 50.0 if spinup == "periodic" else 300.0
-    if sec.has("spinup_years") and sec.has("spinup_days"):
-        sec.fail("give period.spinup_years or period.spinup_days, not both")
-    if sec.has("spinup_days"):
-        days = sec.number("spinup_days", lo=min_years * YEAR / 86400.0, hi=max_years * 365.25, unit="d")
-        spinup_years = days * 86400.0 / YEAR
-        sec.used.add("spinup_years")
-    else:
-        sec.used.add("spinup_days")
-        spinup_years = sec.number("spinup_years", 1.0 if spinup == "periodic" else 3.0,
-                                  lo=min_years, hi=max_years, unit="yr")
-    period = Period(
-        start=start,
-        end=end,
-        spinup=spinup,
-        spinup_years=spinup_years,
-        initial_temperature_K=sec.number("initial_temperature_K", None, lo=1.0, hi=1000.0, unit="K"),
-        periodic_tol_K=sec.number("periodic_tol_K", 0.01, lo=1e-6, hi=10.0, unit="K"),
-    )
-    sec.finish()
-    _check_period_range(period, moon_frame, where)
-
-    # [steps]
-    sec = _Section(raw.get("steps"), "steps", where)
-    flux_h = sec.number("flux_step_hours", 4.0, lo=0.0, hi=24.0, lo_open=True, unit="h")
-    steps = Steps(
-        flux_step_hours=flux_h,
-        conduction_step_s=sec.number("conduction_step_s", None, lo=0.0, hi=flux_h * 3600.0, lo_open=True,
-                                     unit="s"),
-    )
-    sec.finish()
-    if period.duration_s < steps.flux_step_s:
-        raise ConfigError(f"{where}: period ({period.duration_s:g} s) is shorter than one flux step "
-                          f"steps.flux_step_hours = {flux_h:g}")
-
-    # [surface]
-    sec = _Section(raw.get("surface"), "surface", where)
-    surface = Surface(
-        albedo=sec.number("albedo", ALBEDO, lo=0.0, hi=1.0, hi_open=True),
-        emissivity=sec.number("emissivity", EMISSIVITY, lo=0.0, hi=1.0, lo_open=True),
-        property_set=sec.choice("property_set", PROPERTY_SETS, "apollo"),
-        geothermal_flux_W_m2=sec.number("geothermal_flux_W_m2", GEOTHERMAL_FLUX, lo=0.0, hi=1.0, unit="W m-2"),
-        nominal_profile=_profile_label(sec, "nominal_profile", sec.raw("nominal_profile", "1300/1800")),
-    )
-    sec.finish()
-
-    # [scattering]
-    sec = _Section(raw.get("scattering"), "scattering", where)
-    scattering = Scattering(
-        method=sec.choice("method", SCATTERING_METHODS, "exact"),
-        n_bounces=sec.number("n_bounces", 3, lo=1, hi=100, integer=True),
-    )
-    sec.finish()
-
-    # [replay]
-    sec = _Section(raw.get("replay"), "replay", where)
-    labels = sec.raw("profiles", [])
-    if not isinstance(labels, list):
-        sec.fail(f"replay.profiles = {labels!r} has the wrong type ({type(labels).__name__}); "
-                 "expected a list of labels such as [\"800/1100\", \"rock\"]")
-    replay = Replay(
-        profiles=tuple(_profile_label(sec, "profiles", v, i) for i, v in enumerate(labels)),
-        density_grid=_density_grid(sec, "density_grid"),
-    )
-    sec.finish()
-
-    # [output]
-    sec = _Section(raw.get("output"), "output", where)
-    output = Output(
-        checkpoint_interval_steps=sec.number("checkpoint_interval_steps", 0, lo=0, hi=10_000_000, integer=True),
-        save_spinup_fluxes=sec.boolean("save_spinup_fluxes", True),
-        chunk_mb=sec.number("chunk_mb", 256.0, lo=0.01, hi=1e6),
-    )
-    sec.finish()
-
-    return Case(name=name.strip(), crater=crater, location=location, period=period, steps=steps,
-                surface=surface, sun=sun, scattering=scattering, replay=replay, output=output,
-                toml_text=text, path=path, description=description)
+    top = _read_section(raw, "", where, base_dir, default_name=default_name)
+    if not top["name"] or not top["name"].strip():
+        raise ConfigError(f"{where}: name = {top['name']!r} must not be empty")
+    sections = {}
+    for spec in SECTIONS:
+        values = _read_section(raw, spec.name, where, base_dir, required=spec.required)
+        fields = {k.name: values[k.name] for k in _keys(spec.name) if k.field}
+        sections[spec.name] = _SECTION_CLASSES[spec.name](**fields)
+    case = Case(name=top["name"].strip(), description=top["description"], toml_text=text, path=path,
+                **sections)
+    _check_case(case, where)
+    return case
 
 
-def _check_period_range(period: Period, moon_frame: str, where: str) -> None:
-    from crater_thermal import ephemeris
+# ---------------------------------------------------------------- the README table
+def _md_number(x) -> str:
+    if not isinstance(x, float):
+        return f"{x:,}".replace(",", " ")
+    s = re.sub(r"e([+-])0*(\d)", r"e\1\2", f"{x:g}")
+    return "−" + s[1:] if s.startswith("-") else s
 
-    lo, hi, what = ephemeris.ephemeris_range(moon_frame)
-    allowed = (f"allowed: {np.datetime_as_string(lo, unit='D')} to {np.datetime_as_string(hi, unit='D')} "
-               f"(UTC, {what})")
-    for key, t in (("period.start", period.start), ("period.end", period.end)):
-        if not lo <= t <= hi:
-            raise EphemerisRangeError(f"{where}: {key} = {np.datetime_as_string(t, unit='s')} is outside the "
-                                      f"ephemeris; {allowed}")
-    first = period.spinup_start
-    if first < lo:
-        raise EphemerisRangeError(
-            f"{where}: period.spinup_years = {period.spinup_years:g} starts the spin-up at "
-            f"{np.datetime_as_string(first, unit='s')}, outside the ephemeris; {allowed}")
+
+def _md_unit(unit: str) -> str:
+    return unit.replace("m-2", "m⁻²").replace("m-3", "m⁻³")
+
+
+def _md_default(key: Key) -> str:
+    if key.default_doc is not None:
+        return key.default_doc
+    d = key.default
+    if d is REQUIRED:
+        return f"required for `{key.only[1][0]}`" if key.only is not None else "required"
+    if d is None:
+        return "none"
+    if isinstance(d, bool):
+        return "true" if d else "false"
+    if isinstance(d, str):
+        return f'`"{d}"`' if key.type in ("choice", "profile", "grid") else f'"{d}"'
+    if isinstance(d, tuple):
+        return "[]" if not d else "[" + ", ".join(f'"{x}"' for x in d) + "]"
+    if isinstance(d, float):
+        return repr(d)
+    return _md_number(d)
+
+
+def _md_allowed(key: Key) -> str:
+    if key.allowed_doc is not None:
+        return key.allowed_doc
+    if key.type == "choice":
+        return ", ".join(f'`"{c}"`' for c in key.choices)
+    if key.type == "file":
+        return "an existing file"
+    if key.type == "folder":
+        return "an existing folder"
+    if key.type not in ("float", "int") or (key.lo is None and key.hi is None):
+        return ""
+    unit = f" {_md_unit(key.unit)}" if key.unit else ""
+    lo, hi = _md_number(key.lo), _md_number(key.hi)
+    if key.lo_open or key.hi_open:
+        sym = {"albedo": "A", "emissivity": "ε", "diameter_km": "D", "flux_step_hours": "h"}.get(key.name, "x")
+        return f"{lo} {'<' if key.lo_open else '≤'} {sym} {'<' if key.hi_open else '≤'} {hi}{unit}"
+    return f"{lo} … {hi}{unit}"
+
+
+_MD_TYPES = {"str": "string", "choice": "string", "float": "float", "int": "int", "bool": "bool",
+             "date": "ISO date string or TOML date/datetime", "file": "string", "folder": "string",
+             "profile": "string", "profiles": "list of strings", "grid": "string"}
+
+
+def _md_meaning(key: Key) -> str:
+    doc = key.doc
+    if key.only is not None and key.only[0] == "kind":
+        doc += f" (kind {', '.join(f'`{v}`' for v in key.only[1])} only)"
+    return doc
+
+
+def schema_markdown() -> str:
+    """The key tables of cases/README.md (Markdown), generated from :data:`SCHEMA`."""
+    out = ['Units are in the key names. "required" keys have no default. Generated from',
+           "`crater_thermal.config.SCHEMA` by `python -m crater_thermal.config --update cases/README.md`;",
+           "edit the schema, not this table."]
+    for name, title in [("", "top level")] + [(s.name, f"`[{s.name}]`" + (" (required section)" if s.required
+                                                                        else "")) for s in SECTIONS]:
+        out += ["", f"### {title}", "| key | type | default | allowed | meaning |", "|---|---|---|---|---|"]
+        for key in _keys(name):
+            row = [f"`{key.name}`", _MD_TYPES[key.type], _md_default(key), _md_allowed(key), _md_meaning(key)]
+            out.append("| " + " | ".join(row) + " |")
+    return "\n".join(out) + "\n"
+
+
+_MD_BEGIN = "<!-- schema table: begin (generated) -->\n"
+_MD_END = "<!-- schema table: end -->\n"
+
+
+def readme_with_schema(text: str) -> str:
+    """``text`` (cases/README.md) with the part between the schema markers regenerated."""
+    try:
+        a = text.index(_MD_BEGIN) + len(_MD_BEGIN)
+        b = text.index(_MD_END, a)
+    except ValueError:
+        raise ConfigError(f"no schema markers {_MD_BEGIN.strip()!r} ... {_MD_END.strip()!r} in the text") from None
+    return text[:a] + schema_markdown() + text[b:]
 
 
 # ---------------------------------------------------------------- public entry points
@@ -820,3 +1004,29 @@ def dump_toml(raw: Mapping[str, Any]) -> str:
             lines.append(f"[{k}]")
             lines.extend(f"{kk} = {_toml_value(vv)}" for kk, vv in v.items())
     return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    """``python -m crater_thermal.config --markdown`` prints the README key tables;
+    ``--update PATH`` rewrites them in PATH (cases/README.md) between the schema markers."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m crater_thermal.config", description=main.__doc__)
+    g = ap.add_mutually_exclusive_group(required=True)
+    g.add_argument("--markdown", action="store_true", help="print the key tables (Markdown)")
+    g.add_argument("--update", metavar="README", help="regenerate the key tables in this file")
+    args = ap.parse_args(argv)
+    if args.markdown:
+        sys.stdout.write(schema_markdown())
+        return 0
+    p = Path(args.update)
+    old = p.read_text(encoding="utf-8")
+    new = readme_with_schema(old)
+    if new != old:
+        p.write_text(new, encoding="utf-8")
+    print(f"{p}: {'updated' if new != old else 'already current'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -60,6 +60,13 @@ from typing import Iterable, Tuple, Union
 
 import numpy as np
 
+from crater_thermal.choices import (
+    EPHEMERIS_END,
+    EPHEMERIS_START,
+    MOON_FRAMES,
+    SUN_CORRECTIONS,
+    ephemeris_span,
+)
 from crater_thermal.constants import AU, MOON_RADIUS
 from crater_thermal.errors import ConfigError, EphemerisRangeError
 
@@ -84,20 +91,8 @@ __all__ = [
     "subsolar_point_deg",
 ]
 
-#: First usable instant (UTC). DE421 spans JD 2414864.5 to 2471184.5 TDB
-#: (1899-07-29 to 2053-10-09); one day is kept as a margin for the light time
-#: (~499 s) and TT-UTC (up to ~70 s).
-EPHEMERIS_START = np.datetime64("1899-07-30T00:00:00", "ns")
-#: Last usable instant (UTC), see :data:`EPHEMERIS_START`.
-EPHEMERIS_END = np.datetime64("2053-10-08T00:00:00", "ns")
-#: Span of ``moon_pa_de421_1900-2050.bpc`` (UTC, with a one-day margin).
-DE421_LIBRATION_START = np.datetime64("1900-01-02T00:00:00", "ns")
-DE421_LIBRATION_END = np.datetime64("2049-12-31T00:00:00", "ns")
-
-#: Supported Moon orientation models.
-MOON_FRAMES = ("iau2009", "de421")
-#: Supported Sun-direction corrections.
-SUN_CORRECTIONS = ("apparent", "light_time", "geometric")
+# The usable spans and the allowed frames / corrections are declared in crater_thermal.choices (the
+# case schema validates against them without importing this module) and re-exported here.
 #: Kernel files needed by ``moon_frame="de421"`` (text frame kernel, binary PCK).
 DE421_KERNEL_FILES = ("moon_080317.tf", "moon_pa_de421_1900-2050.bpc")
 
@@ -225,10 +220,7 @@ def ephemeris_range(moon_frame: str = "iau2009") -> Tuple[np.datetime64, np.date
     what : str
         e.g. "DE421 (de421.bsp)".
     """
-    if moon_frame == "de421":
-        return (max(EPHEMERIS_START, DE421_LIBRATION_START), min(EPHEMERIS_END, DE421_LIBRATION_END),
-                "DE421 with the moon_pa_de421_1900-2050.bpc librations")
-    return EPHEMERIS_START, EPHEMERIS_END, "DE421 (de421.bsp)"
+    return ephemeris_span(moon_frame)
 
 
 def check_time_range(times: np.ndarray, moon_frame: str = "iau2009", name: str = "times") -> None:

@@ -546,14 +546,17 @@ def _revolve(pieces, n_facets: int, closed: bool, meta: dict) -> Mesh:
     rhs = np.concatenate([T, lam * ref])
     targets = np.linalg.lstsq(A, rhs, rcond=None)[0]
     # a ring's polygon must enclose the previous ring (else the band folds over in projection):
-    # r_k cos(pi / n_k) > r_{k-1}, with a 2 % margin
+    # r_k cos(pi / n_k) > r_{k-1}, with a margin of 2 % of the radial gap r_k - r_{k-1}.  (The margin
+    # was once 2 % of r_{k-1}, which no ring satisfies once the gap is below 2 % of the radius, i.e.
+    # beyond ~50 rings: every request above ~10k facets then failed.)
+    # A closed surface is re-triangulated as a convex hull by its caller: no minimum there.
     n_min = np.full(K, 3, dtype=np.int64)
-    for k in range(1, K):
-        ratio = 1.02 * rings_r[k - 1] / rings_r[k]
-        if ratio < 1.0:
-            n_min[k] = max(3, math.ceil(math.pi / math.acos(ratio)))
-        elif not closed:
+    for k in range(1, K if not closed else 1):
+        r_in, r_out = rings_r[k - 1], rings_r[k]
+        if not r_out > r_in:
             raise MeshError("internal: profile radius must increase outwards")
+        ratio = (r_in + 0.02 * (r_out - r_in)) / r_out
+        n_min[k] = max(3, math.ceil(math.pi / math.acos(ratio)))
     s_prof = np.concatenate([[0.0], np.cumsum(dl)])
     for _attempt in range(200):
         tri = _build_rings(prof, rings, s_prof, targets, n_min, n_facets, closed)

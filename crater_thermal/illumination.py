@@ -51,6 +51,7 @@ from typing import Sequence, Union
 import numba
 import numpy as np
 
+from crater_thermal.choices import LIMB_DARKENING_LAWS
 from crater_thermal.constants import AU, SOLAR_CONSTANT, SUN_RADIUS
 from crater_thermal.errors import ConfigError
 
@@ -127,8 +128,8 @@ LIMB_DARKENING_COEFFS = {
     "quadratic": QUADRATIC_COEFFS,
     "neckel_labs": _neckel_labs_band_coeffs(),
 }
-#: Names of the built-in limb-darkening laws.
-LIMB_DARKENING_LAWS = frozenset(LIMB_DARKENING_COEFFS)
+# LIMB_DARKENING_LAWS, the names of these laws, is declared in crater_thermal.choices (the case
+# schema's list) and re-exported here; tests/test_choices.py checks it names exactly these laws.
 #: Default law.
 DEFAULT_LAW = "linear"
 #: Default number of rings of the sampled disk (see :func:`sun_disk`; 37 patches).
@@ -153,7 +154,7 @@ def law_coefficients(law: LawLike) -> np.ndarray:
         if law not in LIMB_DARKENING_COEFFS:
             raise ConfigError(
                 f"limb_darkening = {law!r} is not a known law; allowed: "
-                f"{', '.join(sorted(LIMB_DARKENING_COEFFS))}"
+                f"{', '.join(LIMB_DARKENING_LAWS)}"
             )
         return np.asarray(LIMB_DARKENING_COEFFS[law], dtype=float)
     coeffs = np.asarray(law, dtype=float).ravel()

@@ -44,6 +44,7 @@ import numpy as np
 
 from crater_thermal.constants import ROCK_DENSITY
 from crater_thermal.errors import ProfileError
+from crater_thermal.profiles import DENSITY_LIMITS, HAYNE_RHO_D, HAYNE_RHO_S, check_density_limits
 
 __all__ = [
     "PROPERTY_SETS", "PropertySet", "DensityExtrapolationWarning", "get_property_set", "constant_set",
@@ -61,8 +62,6 @@ TABLE_7_2 = np.array([
     [1640.0, 0.985e-3, 2.06e-11],
     [1970.0, 1.25e-3, 1.59e-11],
 ])
-#: Densities [kg m-3] accepted at all (outside: ProfileError)
-DENSITY_LIMITS = (500.0, 3500.0)
 #: Densities [kg m-3] covered by Table 7.2 (outside: DensityExtrapolationWarning)
 TABLE_RANGE = (1300.0, 1970.0)
 
@@ -75,10 +74,9 @@ HEMINGWAY_COEFFS = 1000.0 * np.array([-2.3173e-2, 2.1270e-3, 1.5009e-5, -7.3699e
 #: Hayne et al. 2017 polynomial, ascending powers of T [J kg-1 K-1]
 HAYNE_COEFFS = np.array([-3.6125, 2.7431, 2.3616e-3, -1.2340e-5, 8.9093e-9])
 
-#: Hayne et al. 2017 profile parameters
-HAYNE_RHO_S, HAYNE_RHO_D = 1100.0, 1800.0  # [kg m-3]
+#: Hayne et al. 2017 conductivity parameters (their profile's HAYNE_RHO_S, HAYNE_RHO_D, HAYNE_H and the
+#: density limits DENSITY_LIMITS are in crater_thermal.profiles, re-exported here)
 HAYNE_KS, HAYNE_KD = 7.4e-4, 3.4e-3  # [W m-1 K-1]
-HAYNE_H = 0.06  # [m]
 HAYNE_CHI = 2.7  # [-]
 HAYNE_T_REF = 350.0  # [K]
 
@@ -175,11 +173,8 @@ def enthalpy(T, property_set: str | PropertySet = "apollo"):
 def check_density(rho, name: str = "density", warn: bool = True) -> None:
     """Raise ProfileError outside 500-3500 kg m-3; warn (DensityExtrapolationWarning) outside
     the Table 7.2 range 1300-1970 kg m-3 when ``warn``."""
+    check_density_limits(rho, name)
     r = np.atleast_1d(np.asarray(rho, dtype=float))
-    bad = ~np.isfinite(r) | (r < DENSITY_LIMITS[0]) | (r > DENSITY_LIMITS[1])
-    if np.any(bad):
-        raise ProfileError(f"{name}={r[bad][0]!r} kg/m3 is outside the allowed range "
-                           f"{DENSITY_LIMITS[0]:.0f}-{DENSITY_LIMITS[1]:.0f} kg/m3")
     if warn:
         out = (r < TABLE_RANGE[0]) | (r > TABLE_RANGE[1])
         if np.any(out):

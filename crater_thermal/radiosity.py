@@ -25,11 +25,12 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from crater_thermal.choices import SCATTERING_METHODS
 from crater_thermal.constants import ALBEDO, AU, EMISSIVITY, SIGMA, SOLAR_CONSTANT
 from crater_thermal.errors import ConfigError
 
-#: Methods for the scattered sunlight.
-SCATTERING_METHODS = ("exact", "bounces")
+# SCATTERING_METHODS ("exact", "bounces"), the methods for the scattered sunlight, is declared in
+# crater_thermal.choices (the case schema's list) and re-exported here.
 #: Thesis default number of reflections for the "bounces" method.
 DEFAULT_BOUNCES = 3
 

@@ -595,6 +595,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
             raise ConfigError(f"checkpoint {ckpt_path} belongs to a different case; run without --resume")
     if ckpt is None:
         io.check_output(out_path, overwrite)
+    nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
     timer = timer or Timer()
     mesh, tracer, F = case_geometry(case, timer, progress)
     spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
@@ -625,7 +626,6 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         store.mark("sunlight")
     del tracer
     albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
-    nominal = thermal.parse_profile(case.surface.nominal_profile)
     solver_kw = {}
     if getattr(case.steps, "conduction_step_s", None):
         solver_kw["dt_max"] = float(case.steps.conduction_step_s)

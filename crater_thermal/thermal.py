@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -74,11 +73,18 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
-from crater_thermal import materials
-from crater_thermal.constants import (COLUMN_DEPTH, EMISSIVITY, GEOTHERMAL_FLUX, LUNAR_DAY,
-                                      ROCK_DENSITY, SIGMA, TOP_LAYER_THICKNESS)
+from crater_thermal import materials, profiles
+from crater_thermal.constants import (
+    COLUMN_DEPTH,
+    EMISSIVITY,
+    GEOTHERMAL_FLUX,
+    LUNAR_DAY,
+    SIGMA,
+    TOP_LAYER_THICKNESS,
+)
 from crater_thermal.errors import ConfigError, ProfileError, SolverError
 from crater_thermal.kernels import conduction as _k
+from crater_thermal.profiles import HAYNE_LABEL, Profile
 
 __all__ = [
     "Profile", "parse_profile", "density_grid_profiles", "Grid", "make_grid", "skin_depth",
@@ -100,7 +106,6 @@ DEFAULT_GROWTH = 1.15
 #: Temperature [K] at which the nominal top-layer properties set the skin depth for the grid.
 GRID_T_REF = 250.0
 
-HAYNE_LABEL = "hayne2017"
 #: time schemes of the kernel
 SCHEMES = {"euler": _k.SCHEME_BE, "trbdf2": _k.SCHEME_TRBDF2}
 
@@ -108,104 +113,21 @@ SCHEMES = {"euler": _k.SCHEME_BE, "trbdf2": _k.SCHEME_TRBDF2}
 # ----------------------------------------------------------------------------- profiles
 
 
-@dataclass(frozen=True)
-class Profile:
-    """A subsurface density profile.
-
-    Attributes
-    ----------
-    label : str
-        e.g. ``"1300/1800"``, ``"rock"``, ``"hayne2017"``.
-    layers : tuple of (bottom_depth_m, density_kg_m3)
-        Layers from the top; the last one extends to the bottom of the column whatever its
-        bottom depth. For the exponential ``hayne2017`` profile: ``((0.0, rho_s), (2.0, rho(2 m)))``
-        (surface and bottom values, for labelling; the profile itself is ``exponential``).
-    material : ``"regolith"`` or ``"rock"``
-    exponential : (rho_s, rho_d, H_m) or None
-        ``rho(z) = rho_d - (rho_d - rho_s) exp(-z / H)`` [kg m-3] (Hayne et al. 2017).
-    """
-
-    label: str
-    layers: tuple
-    material: str = "regolith"
-    exponential: tuple | None = None
-
-    @property
-    def rho_top(self) -> float:
-        """Density at the surface [kg m-3]."""
-        return float(self.layers[0][1])
-
-    @property
-    def rho_bottom(self) -> float:
-        """Density of the deepest layer (at 2 m for ``hayne2017``) [kg m-3]."""
-        return float(self.layers[-1][1])
-
-    @property
-    def interfaces(self) -> tuple:
-        """Depths [m] of the layer interfaces (where the grid puts a node)."""
-        if self.exponential is not None:
-            return ()
-        return tuple(float(d) for d, _ in self.layers[:-1])
-
-    def mean_density(self, za, zb):
-        """Mean density [kg m-3] between depths ``za < zb`` [m] (arrays, exact integral)."""
-        za = np.asarray(za, dtype=float)
-        zb = np.asarray(zb, dtype=float)
-        return (self._mass_to(zb) - self._mass_to(za)) / (zb - za)
-
-    def mass_between(self, za, zb):
-        """Areal mass [kg m-2] between depths ``za`` and ``zb`` [m]."""
-        return self._mass_to(np.asarray(zb, float)) - self._mass_to(np.asarray(za, float))
-
-    def _mass_to(self, z):
-        z = np.asarray(z, dtype=float)
-        if self.exponential is not None:
-            rs, rd, H = self.exponential
-            return rd * z - (rd - rs) * H * (1.0 - np.exp(-z / H))
-        out = np.zeros_like(z)
-        top = 0.0
-        for i, (bottom, rho) in enumerate(self.layers):
-            b = np.inf if i == len(self.layers) - 1 else float(bottom)
-            out += rho * np.clip(np.minimum(z, b) - top, 0.0, None)
-            top = b
-        return out
+# Profile, its labels and their limits are defined in crater_thermal.profiles (base layer: the case
+# file is validated with the same parser at load time); here the regolith densities outside thesis
+# Table 7.2 also get materials' DensityExtrapolationWarning.
 
 
 def _check_profile(p: Profile, allow_inverted: bool, warn: bool = True) -> Profile:
-    if p.material not in ("regolith", "rock"):
-        raise ProfileError(f"profile {p.label!r}: material={p.material!r}; allowed 'regolith', 'rock'")
-    if not p.layers:
-        raise ProfileError(f"profile {p.label!r}: layers must not be empty")
-    dens = np.array([float(r) for _, r in p.layers])
-    depths = np.array([float(d) for d, _ in p.layers])
-    materials.check_density(dens, name=f"profile {p.label!r} density", warn=False)
-    if p.exponential is None:
-        if np.any(~np.isfinite(depths)) or np.any(depths <= 0) or np.any(np.diff(depths) <= 0):
-            raise ProfileError(f"profile {p.label!r}: layer bottom depths {depths.tolist()} m must be "
-                               "positive and increasing")
-        if len(depths) > 1 and depths[-2] >= COLUMN_DEPTH:
-            raise ProfileError(f"profile {p.label!r}: interface depth {depths[-2]} m must be < "
-                               f"column depth {COLUMN_DEPTH} m")
-    if not allow_inverted and np.any(np.diff(dens) < 0):
-        raise ProfileError(f"profile {p.label!r}: density decreases with depth ({dens.tolist()} kg/m3);"
-                           " allowed: top <= bottom (pass allow_inverted=True to accept)")
+    profiles.check_profile(p, allow_inverted)
     if warn and p.material == "regolith":
-        materials.check_density(dens, name=f"profile {p.label!r} density", warn=True)
+        materials.check_density([r for _, r in p.layers], name=f"profile {p.label!r} density", warn=True)
     return p
-
-
-def _hayne_profile() -> Profile:
-    rs, rd, H = materials.HAYNE_RHO_S, materials.HAYNE_RHO_D, materials.HAYNE_H
-    rho2 = rd - (rd - rs) * math.exp(-COLUMN_DEPTH / H)
-    return Profile(HAYNE_LABEL, ((0.0, rs), (COLUMN_DEPTH, rho2)), "regolith", (rs, rd, H))
-
-
-_NUM = r"\s*([0-9]+(?:\.[0-9]*)?(?:[eE][+-]?[0-9]+)?)\s*"
 
 
 def parse_profile(spec, allow_inverted: bool = False, label: str | None = None,
                   warn: bool = True) -> Profile:
-    """Build a :class:`Profile` from a label or a layer list.
+    """Build a :class:`Profile` from a label or a layer list (:func:`crater_thermal.profiles.parse_profile`).
 
     Parameters
     ----------
@@ -222,33 +144,10 @@ def parse_profile(spec, allow_inverted: bool = False, label: str | None = None,
         Emit :class:`~crater_thermal.materials.DensityExtrapolationWarning` for regolith densities
         outside Table 7.2 (1300-1970 kg m-3). Densities outside 500-3500 raise ProfileError.
     """
-    if isinstance(spec, Profile):
-        return _check_profile(spec, allow_inverted, warn)
-    if isinstance(spec, str):
-        s = spec.strip()
-        if s.lower() == "rock":
-            return Profile("rock", ((COLUMN_DEPTH, ROCK_DENSITY),), "rock")
-        if s.lower() == HAYNE_LABEL:
-            return _check_profile(_hayne_profile(), allow_inverted, warn=False)
-        m2 = re.fullmatch(_NUM + "/" + _NUM, s)
-        m1 = re.fullmatch(_NUM, s)
-        if m2:
-            top, bot = float(m2.group(1)), float(m2.group(2))
-            p = Profile(label or f"{top:g}/{bot:g}", ((TOP_LAYER_THICKNESS, top), (COLUMN_DEPTH, bot)))
-        elif m1:
-            rho = float(m1.group(1))
-            p = Profile(label or f"{rho:g}", ((COLUMN_DEPTH, rho),))
-        else:
-            raise ProfileError(f"profile={spec!r} is not understood; allowed: 'TOP/BOTTOM' densities in "
-                               "kg/m3 (e.g. '1300/1800'), a single density, 'rock', 'hayne2017'")
-        return _check_profile(p, allow_inverted, warn)
-    try:
-        layers = tuple((float(d), float(r)) for d, r in spec)
-    except (TypeError, ValueError):
-        raise ProfileError(f"profile={spec!r} is not a label or a list of (bottom_depth_m, density) "
-                           "pairs") from None
-    lab = label or ",".join(f"{d:g}:{r:g}" for d, r in layers)
-    return _check_profile(Profile(lab, layers), allow_inverted, warn)
+    p = profiles.parse_profile(spec, allow_inverted, label)
+    # the built-in hayne2017 label never warns (its set's conductivity is not Table 7.2)
+    builtin_hayne = isinstance(spec, str) and spec.strip().lower() == HAYNE_LABEL
+    return _check_profile(p, allow_inverted, warn=warn and not builtin_hayne)
 
 
 def density_grid_profiles(spec: str) -> tuple:
@@ -264,22 +163,9 @@ def density_grid_profiles(spec: str) -> tuple:
     tuple of Profile, ordered by top density then bottom density. One
     DensityExtrapolationWarning is emitted if any density lies outside 1300-1970.
     """
-    m = re.fullmatch(_NUM + ":" + _NUM + ":" + _NUM, str(spec))
-    if not m:
-        raise ProfileError(f"density_grid={spec!r} is not 'start:stop:step' in kg/m3 (e.g. '800:2000:100')")
-    a, b, step = (float(g) for g in m.groups())
-    if not (step > 0) or b < a:
-        raise ProfileError(f"density_grid={spec!r}: need step > 0 and start <= stop")
-    n = int(math.floor((b - a) / step + 1e-9)) + 1
-    if n > 1000:
-        raise ProfileError(f"density_grid={spec!r} gives {n} densities; allowed at most 1000")
-    dens = a + step * np.arange(n)
+    dens = profiles.grid_densities(spec)
     materials.check_density(dens, name=f"density_grid {spec!r} density", warn=True)
-    out = []
-    for i, top in enumerate(dens):
-        for bot in dens[i:]:
-            out.append(parse_profile(f"{top:g}/{bot:g}", warn=False))
-    return tuple(out)
+    return profiles.density_grid_profiles(spec)
 
 
 # ----------------------------------------------------------------------------- grid

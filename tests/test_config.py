@@ -9,11 +9,12 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO
 from crater_thermal import config
 from crater_thermal.config import Case, load_case, loads_case
 from crater_thermal.constants import YEAR
 from crater_thermal.errors import ConfigError, EphemerisRangeError
+
+from conftest import REPO
 
 CASE_FILES = sorted((REPO / "cases").rglob("*.toml"))
 
@@ -248,3 +249,66 @@ def test_dump_toml_round_trip():
     raw = tomllib.loads(c.toml_text)
     again = loads_case(config.dump_toml(raw), name=c.name)
     assert dataclasses.replace(again, toml_text="", path=None) == dataclasses.replace(c, toml_text="", path=None)
+
+
+# ------------------------------------------------------------------ one schema
+def test_readme_key_table_is_generated_from_the_schema():
+    """cases/README.md's key tables are what `python -m crater_thermal.config --update` writes."""
+    text = (REPO / "cases" / "README.md").read_text(encoding="utf-8")
+    assert config.readme_with_schema(text) == text, (
+        "cases/README.md is stale: run `python -m crater_thermal.config --update cases/README.md`")
+    for key in config.SCHEMA:
+        assert f"| `{key.name}` |" in text
+
+
+def test_markdown_command_prints_the_table():
+    out = subprocess.run([sys.executable, "-m", "crater_thermal.config", "--markdown"], check=True,
+                         capture_output=True, text=True, cwd=REPO).stdout
+    assert out == config.schema_markdown() and "### `[surface]`" in out
+
+
+def test_schema_and_dataclasses_agree():
+    """Every schema key with a field is a dataclass field of its section, with the schema's default."""
+    for spec in config.SECTIONS:
+        cls = config._SECTION_CLASSES[spec.name]
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        keys = [k for k in config.SCHEMA if k.section == spec.name and k.field]
+        assert list(fields) == [k.name for k in keys]
+        for k in keys:
+            want = k.dataclass_default
+            have = fields[k.name].default
+            assert (have is dataclasses.MISSING) if want is config.REQUIRED else have == want, k.dotted
+        assert spec.name in {f.name for f in dataclasses.fields(Case)}
+    assert {k.section for k in config.SCHEMA} == {""} | {s.name for s in config.SECTIONS}
+
+
+def test_config_imports_no_physics_module():
+    """config is in the base layer: loading a case imports neither the physics modules nor skyfield/numba."""
+    code = ("import sys; from crater_thermal import config; config.load_case(sys.argv[1]); "
+            "print(' '.join(sorted(m for m in sys.modules if m.split('.')[0] in ('skyfield', 'numba', 'embreex')"
+            " or m in ('crater_thermal.ephemeris', 'crater_thermal.thermal', 'crater_thermal.materials'))))")
+    out = subprocess.run([sys.executable, "-c", code, str(REPO / "cases" / "default.toml")], check=True,
+                         capture_output=True, text=True, cwd=REPO).stdout
+    assert out.strip() == ""
+
+
+@pytest.mark.parametrize(
+    "line, key, what",
+    [
+        ('nominal_profile = "300/1800"', "surface.nominal_profile", "500-3500"),
+        ('nominal_profile = "1300/3600"', "surface.nominal_profile", "500-3500"),
+        ('nominal_profile = "1800/1300"', "surface.nominal_profile", "decreases with depth"),
+    ],
+)
+def test_profiles_are_checked_by_the_thermal_parser_at_load(line, key, what):
+    """The thermal model's own limits apply when the case is loaded, not after the rays are traced."""
+    with pytest.raises(ConfigError, match=what) as info:
+        loads_case(_with("surface", line))
+    assert key in str(info.value) and "\n" not in str(info.value)
+    with pytest.raises(ConfigError, match=r"replay\.profiles\[1\]"):
+        loads_case(_with("replay", f'profiles = ["rock", {line.split(" = ")[1]}]'))
+    with pytest.raises(ConfigError, match="replay.density_grid.*500-3500"):
+        loads_case(_with("replay", 'density_grid = "400:2000:100"'))
+    # what loads is what the thermal model accepts
+    c = loads_case(_with("replay", 'profiles = ["500/3500", "hayne2017", "rock", "1500"]'))
+    assert c.replay.profiles == ("500/3500", "hayne2017", "rock", "1500")

@@ -31,9 +31,10 @@ def test_closed_sphere_inward_rows_sum_to_one():
     F = view_factor_matrix(m)
     _structure_ok(F, m.n_facets)
     rs = row_sums(F)
-    # a closed cavity: each facet sees the rest of it exactly once (1 % is the brief's tolerance;
-    # the polyhedral sphere gives ~3e-4)
-    assert np.all(np.abs(rs - 1.0) < 0.01)
+    # a closed cavity: each facet sees the rest of it exactly once. Measured max |sum - 1| = 2.8e-4
+    # (mean 4.8e-5) on this 2000-facet polyhedral sphere: the quadrature of adjacent pairs; 1e-3 allows
+    # for a different near-pair rule, 1 % (the brief's tolerance) would hide a lost neighbour
+    assert np.all(np.abs(rs - 1.0) < 1e-3)
     assert rs.max() <= 1.0 + 1e-12  # never more than all of the emission
     assert check_reciprocity(F, m) < 1e-12
 

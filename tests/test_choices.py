@@ -1,0 +1,22 @@
+"""The allowed names of crater_thermal.choices are exactly what the owning modules implement."""
+
+from __future__ import annotations
+
+from crater_thermal import choices, ephemeris, illumination, materials, profiles, radiosity, thermal
+
+
+def test_owning_modules_implement_exactly_the_declared_names():
+    assert set(illumination.LIMB_DARKENING_COEFFS) == set(choices.LIMB_DARKENING_LAWS)
+    assert illumination.LIMB_DARKENING_LAWS is choices.LIMB_DARKENING_LAWS
+    assert tuple(materials.PROPERTY_SETS) == choices.PROPERTY_SETS
+    assert radiosity.SCATTERING_METHODS is choices.SCATTERING_METHODS
+    assert ephemeris.MOON_FRAMES is choices.MOON_FRAMES and ephemeris.SUN_CORRECTIONS is choices.SUN_CORRECTIONS
+    assert ephemeris.ephemeris_range("de421") == choices.ephemeris_span("de421")
+
+
+def test_thermal_uses_the_base_profile_parser():
+    """One parser: the case loader's (profiles) and the thermal model's give the same profile."""
+    assert thermal.Profile is profiles.Profile
+    assert materials.DENSITY_LIMITS is profiles.DENSITY_LIMITS
+    for label in ("1300/1800", "rock", "hayne2017", "1500"):
+        assert thermal.parse_profile(label, warn=False) == profiles.parse_profile(label)
