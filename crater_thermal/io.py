@@ -24,7 +24,7 @@ import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 import xarray as xr
@@ -341,7 +341,8 @@ def run_dataset(mesh, times, *, solar_incident=None, ir_incident=None, solar_dir
     data_vars = {name: (("time", "facet"), value, dict(RUN_SERIES_ATTRS[name]))
                  for name, value in series.items() if value is not None}
     data_vars.update({
-        "sun_direction": (("time", "xyz"), sun_direction, {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
+        "sun_direction": (("time", "xyz"), sun_direction,
+                          {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
         "sun_distance": (("time",), sun_distance_au, {"units": "au"}),
     })
     data_vars.update(mesh_variables(mesh))

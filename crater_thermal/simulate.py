@@ -33,7 +33,6 @@ import numpy as np
 from crater_thermal.constants import SIGMA
 from crater_thermal.errors import ConfigError, FluxFileError
 
-
 # ----------------------------------------------------------------------------- memory budget
 
 
@@ -74,21 +73,53 @@ def progress_enabled(flag: bool | None = None) -> bool:
 @contextmanager
 def progress_bar(description: str, total: float, enabled: bool | None = None):
     """A rich progress bar (with ETA) yielding ``update(advance, info)``; a no-op when disabled."""
-    if not progress_enabled(enabled):
-        yield lambda advance=1, info="": None
-        return
-    from rich.progress import (BarColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                  TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
-                  TextColumn("{task.fields[info]}"), transient=False) as prog:
-        task = prog.add_task(description, total=total, info="")
+    with _bar(description, enabled) as report:
+        if report is None:
+            yield lambda advance=1, info="": None
+            return
+        done = [0]
 
         def update(advance=1, info=""):
-            prog.update(task, advance=advance, info=info)
+            done[0] += advance
+            report(done[0], total)
 
         yield update
+
+
+@contextmanager
+def _bar(description: str, enabled: bool | None = None):
+    """A rich bar on stderr (done/total, elapsed, time left) yielding ``report(done, total)``, or None."""
+    if not progress_enabled(enabled):
+        yield None
+        return
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("eta"), TimeRemainingColumn(), console=Console(stderr=True), transient=False) as prog:
+        task = prog.add_task(description, total=None)
+
+        def report(done, total):
+            prog.update(task, completed=done, total=max(total, done))
+
+        yield report
+
+
+def _stage(progress, description: str):
+    """Context yielding one stage's progress callback ``report(done, total)`` (work units), or None.
+
+    ``progress`` is a reporter (a callable: description -> context manager yielding that callback), or
+    True / False / None for the built-in bar (None: on a terminal only, never in CI)."""
+    if callable(progress):
+        return progress(description)
+    return _bar(description, progress)
 
 
 # ----------------------------------------------------------------------------- coupled stepping
@@ -234,7 +265,8 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     n_batches = -(-nf // n_fb) * -(-n_prof // per_chunk)
     spin_windows = 1 if fixed else 5  # ETA: a periodic start usually takes about 4-6 windows
     work = n_batches * ((spin_windows * (len(t_spin) - 1) if (has_spin or not fixed) else 0) + nt - 1)
-    with progress_bar("replay", work, progress) as update:
+    done = [0]
+    with _stage(progress, f"replay ({n_prof} profiles x {nf} facets)") as report:
         for f0 in range(0, nf, n_fb):
             f1 = min(nf, f0 + n_fb)
             nfb = f1 - f0
@@ -258,7 +290,7 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
 
             spin_which = "spin" if has_spin else "rec"
 
-            def window(solver, which, t, record_into=None):
+            def window(solver, which, t, record_into=None, rows=rows, absorbed=absorbed):
                 """Run the columns through a window block by block (rows overlap by one sample)."""
                 n = len(t)
                 for a in range(0, n - 1, rows - 1):
@@ -266,7 +298,9 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
                     T = solver.run_series(t[a:b], absorbed(which, a, b), record=record_into is not None)
                     if record_into is not None:
                         record_into(a, T)
-                    update(b - 1 - a)
+                    done[0] += b - 1 - a
+                    if report is not None:
+                        report(done[0], max(work, done[0]))
 
             for p0 in range(0, n_prof, per_chunk):
                 chunk = list(profiles[p0:p0 + per_chunk])
@@ -288,7 +322,7 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
                 else:
                     solver.set_equilibrium(surface_K=eq)
 
-                    def period_map(x, solver=solver):
+                    def period_map(x, solver=solver, window=window, spin_which=spin_which):
                         solver.set_state(x)
                         window(solver, spin_which, t_spin)
                         return solver.state()
@@ -613,8 +647,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     n_all = len(sun_dirs)
     if not store.marked("sunlight"):
         sunlight = Sunlight(case, mesh, tracer, F)
-        all_times = np.concatenate([spin_times[:-1], times]) if len(spin_times) else times
-        with progress_bar("sunlight", n_all, progress) as update:
+        with _stage(progress, f"sunlight ({nf} facets)") as report:
             for k0 in range(0, n_all, block):
                 k1 = min(n_all, k0 + block)
                 direct, solar = sunlight(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
@@ -622,7 +655,8 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
                     store.write("direct", k0, direct)
                     store.write("solar", k0, solar)
                 del direct, solar
-                update(k1 - k0, info=str(all_times[k1 - 1])[:16])
+                if report is not None:
+                    report(k1, n_all)
         store.mark("sunlight")
     del tracer
     albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
@@ -677,7 +711,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         pend0, n_pend = pend0 + n_pend, 0
 
     sol, w0 = None, 0
-    with progress_bar("record " + case.name, nt - 1 - k0, progress) as update:
+    with _stage(progress, f"record {case.name}") as report:
         for k in range(k0, nt - 1):
             if sol is None or k + 1 >= w0 + len(sol):
                 sol = None
@@ -693,9 +727,10 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
             if every and (k + 1) % every == 0 and k + 1 < nt - 1:
                 flush()
                 save_ckpt(k + 1, spin_info)
-            update(1, info=str(fc.times[k + 1])[:16])
+            if report is not None:
+                report(k + 1 - k0, nt - 1 - k0)
         flush()
-    del pend_T, pend_ir, sol
+    pend_T = pend_ir = sol = None  # free the buffers before the file is written
     # ---- write run.nc from the store, block by block
     with timer("io"):
         from crater_thermal.constants import AU
@@ -728,10 +763,16 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
                      for name, dim, n, _ in series}
         with io.stream_dataset(ds, out_path, variables, overwrite=True if ckpt is not None else overwrite,
                                time_rows=min(TIME_CHUNK, block)) as write:
-            for name, _, n, read in series:
-                for a in range(0, n, block):
-                    b = min(n, a + block)
-                    write(name, (slice(a, b), slice(None)), read(a, b))
+            n_blocks = sum(-(-n // block) for _, _, n, _ in series)
+            with _stage(progress, f"write {out_path.name}") as report:
+                done = 0
+                for name, _, n, read in series:
+                    for a in range(0, n, block):
+                        b = min(n, a + block)
+                        write(name, (slice(a, b), slice(None)), read(a, b))
+                        done += 1
+                        if report is not None:
+                            report(done, n_blocks)
     if ckpt_path.exists():
         ckpt_path.unlink()
     store.remove()
@@ -788,10 +829,13 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
 
     n_maps = [0]
 
-    def one_window(update, label):
+    def one_window(report, expected):
+        """One pass through the window; progress in steps, out of ``expected`` windows (more if needed)."""
         n_maps[0] += 1
+        done0 = (n_maps[0] - 1) * (ns - 1)
+        total = max(expected, n_maps[0]) * (ns - 1)
         run_window(stepper, spin_t, lambda a, b: fc.rows("solar", a, b), block, on_ir=keep_ir,
-                   on_step=lambda k: update(1, info=f"{label} {n_maps[0]}"))
+                   on_step=None if report is None else lambda k: report(done0 + k, total))
 
     if mode == "periodic":
         if T0 is not None:
@@ -799,10 +843,10 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
         else:
             solver.set_equilibrium(surface_K=eq_surface)
         # ETA: the shooting usually converges in about 4-6 windows; the bar grows if it needs more
-        with progress_bar("spin-up (periodic)", 5 * (ns - 1), progress) as update:
+        with _stage(progress, "spin-up (periodic state)") as report:
             def period_map(x):
                 solver.set_state(x)
-                one_window(update, "window")
+                one_window(report, 5)
                 return solver.state()
 
             info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
@@ -818,7 +862,7 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
         solver.set_equilibrium(surface_K=eq_surface)
         method = f"fixed spin-up {case.period.spinup_years} yr from the equilibrium estimate"
     x0 = solver.state()
-    with progress_bar("spin-up (fixed)", ns - 1, progress) as update:
-        one_window(update, "window")
+    with _stage(progress, "spin-up (fixed)") as report:
+        one_window(report, 1)
     residual = np.max(np.abs(solver.state() - x0), axis=1)
     return {"start_method": method, "iterations": 1, "residual": residual}, holder["ir"]
