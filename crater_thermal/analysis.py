@@ -1,4 +1,4 @@
-"""Analysis of run/replay datasets: night/day, shadow, crater regions, differences, detectability.
+"""Analysis of run/replay datasets: night/day, shadow, crater regions, differences, local time.
 
 This module receives datasets (xarray ``Dataset`` objects from :mod:`crater_thermal.io`) and uses
 only their mapping interface (``ds["name"].values``, ``ds.attrs``): it does not import xarray.
@@ -25,35 +25,15 @@ Conventions (thesis sections 7.2-7.3, ``shared/design/PHYSICS.md``)
 * **Differences** are replayed profile minus nominal profile, per time and facet [K].
   Statistics pool all (time, facet) samples of a region (unweighted by area, as in the thesis).
 
-Instrument model (thesis 7.3, 8.5; :class:`Instrument`)
--------------------------------------------------------
-* NETD scales with the band-integrated Planck radiance derivative:
-  ``NETD(T) = NETD_ref * dL/dT(T_ref) / dL/dT(T)``, ``dL/dT = integral over the band of dB_lambda/dT``.
-  Default Diviner-like: 2 K at 50 K in channel 9 (100-400 um).
-* Averaging n = floor(dwell / integration) independent samples divides NETD by sqrt(n)
-  (integration time 128 ms, Diviner).
-* An absolute calibration offset (5 K at 50 K scenes) shifts both temperatures by the same amount
-  and cancels in a relative difference (:func:`relative_difference`): it does not enter detectability.
-* Pixel mixing, thesis Eq. 8.2 (unit emissivity): ``T_mix = (C T_a^4 + (1 - C) T_b^4)^(1/4)``.
-* Detection at k sigma (default 3) of a difference dT needs ``k * NETD(T_scene) / sqrt(n) <= |dT|``
-  with T_scene the colder of the two scenes (NETD is worse there). The *natural scatter* of
-  rock-free regolith temperatures, 0.94 K (thesis 7.2/7.3, Bandfield et al.), is a property of the
-  scene and does not average down with dwell time: a difference smaller than it is reported as
-  not detectable (the thesis's own criterion compares dT with this 0.94 K). A scene colder than the
-  instrument's lowest detectable temperature (20 K) is also not detectable.
-  Option ``Instrument(scatter_in_quadrature=True)``: the stricter reading, |dT| >= k sqrt(NETD^2/n +
-  0.94^2), so with k = 3 differences below 2.82 K are never detectable.
+Instrument model and detection statistics: :mod:`crater_thermal.instrument`.
 """
 
 from __future__ import annotations
 
 import json
-import math
-from dataclasses import asdict, dataclass
 from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
-import scipy.constants as _sc
 
 from crater_thermal.constants import LOOSE_PROFILE, NOMINAL_PROFILE
 from crater_thermal.errors import ConfigError, FluxFileError
@@ -537,191 +517,21 @@ def latitude_statistics(pairs: Sequence[Tuple[object, object]], threshold_K: flo
     return out
 
 
-# ------------------------------------------------------------------------------ instrument model
+# ------------------------------------------------------------------------------------ local time
 
 
-H_PLANCK = _sc.h
-C_LIGHT = _sc.c
-K_BOLTZMANN = _sc.k
+def local_solar_time_h(sun_direction, lat_deg: float) -> np.ndarray:
+    """Local solar time [h, 0-24; 12 = noon] at the crater centre from the Sun's direction.
 
-
-@dataclass(frozen=True)
-class Instrument:
-    """A thermal radiometer, Diviner-like by default (thesis 7.3; PHYSICS.md "Detectability").
-
-    Attributes
-    ----------
-    netd_ref_K : float [K]      NETD at the reference scene temperature (Diviner: ~2 K at 50 K).
-    t_ref_K : float [K]         reference scene temperature.
-    band_um : (float, float) [um]  band edges (default Diviner channel 9, 100-400 um).
-    integration_s : float [s]   integration time of one sample (Diviner 128 ms).
-    calibration_offset_K : float [K]  absolute calibration accuracy (5 K at 50 K); cancels in differences.
-    min_temperature_K : float [K]  lowest detectable scene temperature (20 K).
-    natural_scatter_K : float [K]  std of rock-free regolith temperatures (0.94 K), the noise floor.
-    k_sigma : float [-]         detection threshold in units of the averaged NETD.
-    scatter_in_quadrature : bool
-        False (default, the thesis's criterion): the natural scatter is a floor, |dT| must exceed it
-        once, and k applies to the instrument noise NETD/sqrt(n) alone. True (stricter): detection
-        needs |dT| >= k sqrt(NETD^2/n + scatter^2), impossible when |dT| <= k * scatter.
+    The Sun vector in the crater frame (x east, y north, z up) is rotated into the Moon-fixed frame of
+    the site's meridian; the hour angle H = atan2(-east, -north sin(lat) + up cos(lat)) [rad] (positive in
+    the afternoon) gives 12 + 12 H / pi. "Hours" are 1/24 of the lunar (synodic) day. Exact for any
+    latitude; at the pole itself it reduces to the Sun's azimuth (noon: Sun toward the far pole's meridian).
     """
-
-    netd_ref_K: float = 2.0
-    t_ref_K: float = 50.0
-    band_um: Tuple[float, float] = (100.0, 400.0)
-    integration_s: float = 0.128
-    calibration_offset_K: float = 5.0
-    min_temperature_K: float = 20.0
-    natural_scatter_K: float = NATURAL_SCATTER_K
-    k_sigma: float = 3.0
-    scatter_in_quadrature: bool = False
-
-    def __post_init__(self):
-        for name in ("netd_ref_K", "t_ref_K", "integration_s", "k_sigma"):
-            val = getattr(self, name)
-            if not (np.isfinite(val) and val > 0):
-                raise ConfigError(f"{name}={val} out of range (0, inf)")
-        for name in ("calibration_offset_K", "min_temperature_K", "natural_scatter_K"):
-            val = getattr(self, name)
-            if not (np.isfinite(val) and val >= 0):
-                raise ConfigError(f"{name}={val} out of range [0, inf)")
-        lo, hi = self.band_um
-        if not (0 < lo < hi):
-            raise ConfigError(f"band_um={self.band_um} must satisfy 0 < low < high [um]")
-
-    def as_dict(self) -> dict:
-        """JSON-serialisable parameters."""
-        d = asdict(self)
-        d["band_um"] = list(self.band_um)
-        return d
-
-
-def planck_dB_dT(wavelength_m, T_K) -> np.ndarray:
-    """Temperature derivative of the Planck spectral radiance B_lambda.
-
-    Parameters
-    ----------
-    wavelength_m : array [m]
-    T_K : array [K] (broadcast with ``wavelength_m``), > 0
-
-    Returns
-    -------
-    dB_lambda/dT [W m-2 sr-1 m-1 K-1] = (2 h c^2 / lambda^5) (x / T) e^-x / (1 - e^-x)^2, x = h c / (lambda k T)
-    """
-    lam = np.asarray(wavelength_m, float)
-    T = np.asarray(T_K, float)
-    x = H_PLANCK * C_LIGHT / (lam * K_BOLTZMANN * T)
-    with np.errstate(over="ignore", under="ignore"):
-        em = np.exp(-x)
-        return 2 * H_PLANCK * C_LIGHT**2 / lam**5 * (x / T) * em / (-np.expm1(-x)) ** 2
-
-
-def band_radiance_derivative(T_K, band_um: Tuple[float, float] = (100.0, 400.0), n: int = 2001) -> np.ndarray:
-    """Band-integrated dL/dT [W m-2 sr-1 K-1] at scene temperature(s) ``T_K`` [K] (trapezoid, log grid)."""
-    T = np.asarray(T_K, float)
-    if np.any(~np.isfinite(T)) or np.any(T <= 0):
-        raise ConfigError(f"T_K must be finite and > 0 K, got min {np.nanmin(T)}")
-    lam = np.geomspace(band_um[0], band_um[1], n) * 1e-6
-    vals = planck_dB_dT(lam[:, None], T.reshape(1, -1))
-    return np.trapezoid(vals, lam, axis=0).reshape(T.shape)
-
-
-def netd(T_K, instrument: Instrument = Instrument()) -> np.ndarray:
-    """NETD [K] at scene temperature ``T_K`` [K]: NETD_ref x dL/dT(T_ref) / dL/dT(T)."""
-    ref = band_radiance_derivative(instrument.t_ref_K, instrument.band_um)
-    return instrument.netd_ref_K * ref / band_radiance_derivative(T_K, instrument.band_um)
-
-
-def n_samples(dwell_s, integration_s: float = 0.128) -> np.ndarray:
-    """Number of independent samples in a dwell: floor(dwell / integration), at least 1."""
-    d = np.asarray(dwell_s, float)
-    if integration_s <= 0:
-        raise ConfigError(f"integration_s={integration_s} out of range (0, inf)")
-    if np.any(d < 0):
-        raise ConfigError(f"dwell_s={d.min()} out of range [0, inf)")
-    # 1e-9 guards against dwell = n * integration rounding down
-    return np.maximum(1, np.floor(d / integration_s + 1e-9)).astype(np.int64)
-
-
-def averaged_netd(netd_K, dwell_s, integration_s: float = 0.128) -> np.ndarray:
-    """NETD [K] after averaging n = floor(dwell / integration) independent samples: NETD / sqrt(n)."""
-    return np.asarray(netd_K, float) / np.sqrt(n_samples(dwell_s, integration_s))
-
-
-def mixed_temperature(T_a_K, T_b_K, fraction_a) -> np.ndarray:
-    """Pixel-mixed brightness temperature, thesis Eq. 8.2 (unit emissivity).
-
-    ``T_mix = (C T_a^4 + (1 - C) T_b^4)^(1/4)`` with C = ``fraction_a`` in [0, 1] the footprint
-    fraction covered by material a [K in, K out].
-    """
-    C = np.asarray(fraction_a, float)
-    if np.any(C < 0) or np.any(C > 1):
-        raise ConfigError(f"fraction_a={C.min() if np.any(C < 0) else C.max()} out of range [0, 1]")
-    Ta, Tb = np.asarray(T_a_K, float), np.asarray(T_b_K, float)
-    if np.any(Ta < 0) or np.any(Tb < 0):
-        raise ConfigError("temperatures must be >= 0 K")
-    return (C * Ta**4 + (1 - C) * Tb**4) ** 0.25
-
-
-def relative_difference(T_a_K, T_b_K, calibration_offset_K: float = 5.0) -> np.ndarray:
-    """Measured T_a - T_b [K] when both carry the same absolute calibration offset.
-
-    The offset (e.g. Diviner's 5 K at 50 K) shifts both measured temperatures equally, so it cancels:
-    relative differences are insensitive to it (thesis 7.3). Absolute temperatures are not.
-    """
-    return (np.asarray(T_a_K, float) + calibration_offset_K) - (np.asarray(T_b_K, float) + calibration_offset_K)
-
-
-def detectability(dT_K: float, T_nominal_K: float, instrument: Instrument = Instrument(),
-                  footprint_fraction: float = 1.0) -> dict:
-    """Dwell time needed to tell a profile from nominal, and whether it can be told at all.
-
-    Parameters
-    ----------
-    dT_K : float [K]
-        Profile minus nominal temperature (e.g. the night-time median of a region).
-    T_nominal_K : float [K]
-        Nominal scene temperature.
-    instrument : Instrument
-    footprint_fraction : float [-]
-        Fraction C of the pixel covered by the off-nominal regolith; the rest is nominal (Eq. 8.2).
-
-    Returns
-    -------
-    dict with ``dT_K`` (input), ``dT_observed_K`` (after mixing), ``T_scene_K`` (colder scene),
-    ``netd_K`` (single sample at T_scene), ``n_samples`` (int or None), ``dwell_time_s`` (float or
-    None when not detectable), ``detectable`` (bool), ``reason`` (str).
-    """
-    T_nom = float(T_nominal_K)
-    T_off = T_nom + float(dT_K)
-    if not (np.isfinite(T_nom) and np.isfinite(T_off)) or T_off <= 0 or T_nom <= 0:
-        return dict(dT_K=float(dT_K), dT_observed_K=None, T_scene_K=None, netd_K=None, n_samples=None,
-                    dwell_time_s=None, detectable=False, reason="no valid temperatures")
-    T_obs = float(mixed_temperature(T_off, T_nom, footprint_fraction))
-    d_obs = float(relative_difference(T_obs, T_nom, instrument.calibration_offset_K))
-    T_scene = min(T_obs, T_nom)
-    out = dict(dT_K=float(dT_K), dT_observed_K=d_obs, T_scene_K=T_scene, netd_K=None, n_samples=None,
-               dwell_time_s=None, detectable=False, reason="")
-    if T_scene < instrument.min_temperature_K:
-        out["reason"] = f"scene colder than the lowest detectable {instrument.min_temperature_K:g} K"
-        return out
-    e = float(netd(T_scene, instrument))
-    out["netd_K"] = e
-    k, sc = instrument.k_sigma, instrument.natural_scatter_K
-    if instrument.scatter_in_quadrature:
-        if abs(d_obs) <= k * sc:
-            out["reason"] = (f"|dT| {abs(d_obs):.3g} K within {k:g} x the natural scatter "
-                             f"{sc:g} K of regolith temperatures")
-            return out
-        # |dT|^2 >= k^2 (NETD^2 / n + sc^2)  <=>  n >= k^2 NETD^2 / (|dT|^2 - k^2 sc^2)
-        n = max(1, math.ceil(k**2 * e**2 / (d_obs**2 - (k * sc) ** 2) - 1e-12))
-        out.update(n_samples=int(n), dwell_time_s=n * instrument.integration_s, detectable=True,
-                   reason=f"{k:g}-sigma with NETD/sqrt(n) and scatter in quadrature")
-        return out
-    if abs(d_obs) <= sc:
-        out["reason"] = (f"|dT| {abs(d_obs):.3g} K within the natural scatter "
-                         f"{sc:g} K of regolith temperatures")
-        return out
-    n = max(1, math.ceil((k * e / abs(d_obs)) ** 2 - 1e-12))
-    out.update(n_samples=int(n), dwell_time_s=n * instrument.integration_s, detectable=True,
-               reason=f"{instrument.k_sigma:g}-sigma with NETD/sqrt(n)")
-    return out
+    s = sun_direction["sun_direction"].values if hasattr(sun_direction, "attrs") else sun_direction
+    s = np.asarray(s, dtype=float)
+    if s.ndim != 2 or s.shape[1] != 3:
+        raise FluxFileError(f"sun_direction must have shape (time, 3), got {s.shape}")
+    phi = np.deg2rad(float(lat_deg))
+    ha = np.arctan2(-s[:, 0], -s[:, 1] * np.sin(phi) + s[:, 2] * np.cos(phi))
+    return np.mod(12.0 + 12.0 * ha / np.pi, 24.0)

@@ -180,24 +180,46 @@ def sweep(
 
 @app.command()
 def report(
-    run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output)."),
-    replay: Path = typer.Argument(..., help="Replay dataset made from RUN."),
+    run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output), or a sweep's output folder."),
+    replay: Optional[Path] = typer.Argument(None, help="Replay dataset made from RUN (omit for a sweep folder)."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder: report.html, figures/, summary.json."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing report.html."),
-    footprint_fraction: float = typer.Option(1.0, help="Pixel fraction of loose regolith (Eq. 8.2) [0-1]."),
+    instrument: List[str] = typer.Option([], "--instrument", help="Preset channel (repeatable): diviner_ch7, "
+                                         "diviner_ch8, diviner_ch9, microbolometer. Default: all."),
+    band_um: Optional[str] = typer.Option(None, "--band-um", help="Add a user channel: LOW:HIGH band edges [um]."),
+    netd_k: Optional[float] = typer.Option(None, "--netd-k", help="User channel: NETD of one integration [K]."),
+    netd_at_k: float = typer.Option(300.0, "--netd-at-k", help="User channel: scene temperature of --netd-k [K]."),
+    integration_s: float = typer.Option(0.128, "--integration-s", help="User channel: one integration [s]."),
+    knee_s: float = typer.Option(60.0, "--knee-s", help="User channel: 1/f knee, dwell where averaging stops [s]."),
+    gain_error: float = typer.Option(0.01, "--gain-error", help="User channel: relative 1-sigma gain error."),
+    footprint_fraction: float = typer.Option(1.0, "--footprint-fraction",
+                                             help="Loose fraction of the candidate footprint [0-1]."),
+    reference_footprints: int = typer.Option(1, "--reference-footprints",
+                                             help="Nominal footprints averaged as the reference."),
+    natural_scatter_k: float = typer.Option(0.94, "--natural-scatter-k",
+                                            help="Footprint-to-footprint scatter of true temperatures [K]."),
+    false_alarm: float = typer.Option(0.01, "--false-alarm", help="False-alarm rate of the one-sided test (0-1)."),
     no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
-    k_sigma: float = typer.Option(3.0, "--k-sigma", help="Detection threshold in units of NETD/sqrt(n)."),
-    netd_ref_k: float = typer.Option(2.0, "--netd-ref-k", help="Detector NETD [K] at 50 K (Diviner ~2 K)."),
-    scatter_in_quadrature: bool = typer.Option(False, "--scatter-in-quadrature",
-                                               help="Stricter: add the 0.94 K natural scatter in quadrature."),
 ) -> None:
-    """Figures (thesis Figs. 7.4-7.9), report.html and summary.json for a run and its replay."""
-    from crater_thermal.analysis import Instrument
+    """Figures (thesis Figs. 7.4-7.9), detection statistics, report.html and summary.json."""
+    from crater_thermal import instrument as ins
+    from crater_thermal.errors import ConfigError
     from crater_thermal.report import make_report
 
-    inst = Instrument(k_sigma=k_sigma, netd_ref_K=netd_ref_k, scatter_in_quadrature=scatter_in_quadrature)
-    path = make_report(run, replay, out, overwrite=overwrite, footprint_fraction=footprint_fraction,
-                       snapshots=not no_snapshots, instrument=inst)
+    insts = [ins.get_instrument(n) for n in instrument]
+    if band_um is not None or netd_k is not None:
+        if band_um is None or netd_k is None:
+            raise ConfigError("a user channel needs both --band-um LOW:HIGH and --netd-k")
+        try:
+            lo, hi = (float(v) for v in band_um.split(":"))
+        except ValueError:
+            raise ConfigError(f"--band-um={band_um!r} must be LOW:HIGH in um, e.g. 8:14") from None
+        insts.append(ins.custom_instrument(lo, hi, netd_k, netd_at_k, integration_s=integration_s, knee_s=knee_s,
+                                           gain_error=gain_error))
+    obs = ins.Observation(footprint_fraction=footprint_fraction, reference_footprints=reference_footprints,
+                          natural_scatter_K=natural_scatter_k, false_alarm=false_alarm)
+    path = make_report(run, replay, out, overwrite=overwrite, instruments=insts or None, observation=obs,
+                       snapshots=not no_snapshots)
     typer.echo(str(path))
 
 

@@ -29,6 +29,7 @@ from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Un
 import numpy as np
 
 from crater_thermal import analysis as an
+from crater_thermal import instrument as ins
 from crater_thermal.errors import ConfigError, CraterThermalError, FluxFileError, OutputExistsError
 
 #: Figure files written to ``figures/`` (3-D snapshots are added when rendering works).
@@ -40,7 +41,10 @@ FIGURES = {
     "fig7_7b_regions.png": "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b).",
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
     "fig7_9_quartiles.png": "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9).",
-    "detectability.png": "Dwell time needed to detect loose vs nominal at k sigma, per region (instrument model, thesis 7.3).",
+    "detectability.png": "Probability of detecting loose vs nominal (night medians) against dwell time, per "
+                         "instrument and region, at the stated false-alarm rate (instrument.py).",
+    "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), "
+                                "at the reference dwell.",
 }
 SNAPSHOTS = {
     "map3d_temperature.png": "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction.",
@@ -49,7 +53,8 @@ SNAPSHOTS = {
 
 #: Top-level keys of summary.json and what they hold (units in the names; regions are analysis.REGIONS).
 SUMMARY_KEYS = {
-    "schema_version": "int: layout version of this file (1).",
+    "schema_version": "int: layout version of this file (2: detection statistics replace the k-sigma "
+                      "detectability of 1).",
     "mesh_hash": "str: mesh hash shared by the run and the replay.",
     "lat_deg": "float [deg]: latitude of the crater (first run if several).",
     "lon_deg": "float [deg]: longitude of the crater.",
@@ -77,10 +82,24 @@ SUMMARY_KEYS = {
     "density_grid_floor_night_median_dT_K": "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night medians (Fig. 7.7a).",
     "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
     "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
-    "latitude_dwell_time_s": "{lat_deg (str): {region: float|null}} [s]: dwell needed to detect loose vs nominal per latitude (null = not detectable).",
-    "instrument": "{netd_ref_K, t_ref_K, band_um, integration_s, calibration_offset_K, min_temperature_K, natural_scatter_K, k_sigma, scatter_in_quadrature}: instrument model parameters (analysis.Instrument).",
-    "footprint_fraction": "float [-]: fraction of the pixel covered by loose regolith (Eq. 8.2 mixing with nominal).",
-    "detectability": "{region: {dT_K, dT_observed_K, T_scene_K, netd_K, n_samples, dwell_time_s (null = not detectable), detectable, reason}}: loose vs nominal from night medians.",
+    "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each "
+                                  "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
+    "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: "
+                   "instrument channels (instrument.Instrument; presets instrument.PRESETS).",
+    "observation": "{footprint_fraction, reference_footprints, natural_scatter_K, false_alarm, target_pd, test}: "
+                   "how the candidate is compared with nominal (instrument.Observation).",
+    "detection_reference_dwell_s": "float [s]: dwell at which |dT|/sigma is evaluated for the best local time.",
+    "detection_dwell_grid_s": "{instrument: [float]} [s]: dwell times of the P_D curves.",
+    "band_signal_night_floor": "{instrument: {band_um, T_K, band_radiance_W_m2_sr, dL_dT_W_m2_sr_K, netd_K, "
+                               "netd_ref_K, t_ref_K}}: what each band receives from the night-time nominal floor "
+                               "(and at 300 K).",
+    "detection": "{instrument: {region: {dT_median_K, dT_q1_K, dT_q3_K, T_nominal_K, mu_K (observed, band-mixed), "
+                 "netd_candidate_K, netd_reference_K, detectable, dwell_s (null = none), n_samples, pd_at_dwell, "
+                 "pd_limit (infinite dwell), limiting_term (instrument.TERMS), sigma_terms_K {term: K}, answer "
+                 "(sentence), pd_vs_dwell [-] on detection_dwell_grid_s, best_local_time_h (null = no samples), "
+                 "best_snr, best_dT_K, best_T_nominal_K, snr_by_local_time [-] (24 lunar-hour bins, |mu|/sigma_0 at "
+                 "detection_reference_dwell_s), dwell_s_scatter_half, dwell_s_scatter_double}}}: loose vs nominal "
+                 "from night-time medians (instrument.dwell_for_detection).",
     "figures": "list[str]: files written under figures/.",
     "snapshot_note": "str|null: why 3-D snapshots are missing, if they are.",
 }
@@ -151,6 +170,7 @@ class _Analysis:
         self.times = np.asarray(run["time"].values).astype("datetime64[ns]")
         self.days = (self.times - self.times[0]).astype(np.int64) / 86400e9
         self.night = an.night_mask(run)
+        self.local_time = an.local_solar_time_h(run, float(run.attrs.get("lat_deg", np.nan)))
         self.regions = an.regions_of(run)
         self.meta = an.mesh_meta(run)
         self.lat = float(run.attrs.get("lat_deg", np.nan))
@@ -175,20 +195,6 @@ class _Analysis:
         self.nom_night = {r: (float(np.median(self.T_nom[self.night][:, self.regions == r]))
                               if self.night.any() and (self.regions == r).any() else None) for r in an.REGIONS}
 
-    def detectability(self, instrument: an.Instrument, footprint_fraction: float) -> dict:
-        """Loose vs nominal per region from night-time medians (analysis.detectability)."""
-        det = {}
-        if self.loose is None:
-            return det
-        for r in an.REGIONS:
-            med = self.night_stats[self.loose][r]["median_K"]
-            if med is None or self.nom_night[r] is None:
-                det[r] = dict(dT_K=med, dT_observed_K=None, T_scene_K=None, netd_K=None, n_samples=None,
-                              dwell_time_s=None, detectable=False, reason="no night-time samples")
-            else:
-                det[r] = an.detectability(med, self.nom_night[r], instrument, footprint_fraction)
-        return det
-
     def profile_T(self, label):
         return an.profile_temperature(self.replay, label)
 
@@ -197,15 +203,83 @@ class _Analysis:
                                self.nominal)
 
 
+# ---------------------------------------------------------------------------------- detection
+
+#: Dwell [s] at which |dT|/sigma is compared across local times (the thesis's one-minute stop, 8.5)
+REFERENCE_DWELL_S = 60.0
+_LT_BINS = 24
+
+
+def _local_time_bins(A, r) -> Tuple[np.ndarray, np.ndarray]:
+    """Per lunar-hour bin (24) medians of loose - nominal [K] and of nominal T [K] in region r (NaN if empty)."""
+    cols = A.regions == r
+    dT, Tn = np.full(_LT_BINS, np.nan), np.full(_LT_BINS, np.nan)
+    if A.loose is None or not cols.any():
+        return dT, Tn
+    b = np.clip(np.floor(A.local_time * _LT_BINS / 24.0), 0, _LT_BINS - 1)
+    for j in range(_LT_BINS):
+        tm = b == j
+        if tm.any():
+            dT[j] = np.median(A.loose_dT[tm][:, cols])
+            Tn[j] = np.median(A.T_nom[tm][:, cols])
+    return dT, Tn
+
+
+def _best_local_time(bins, inst: ins.Instrument, obs: ins.Observation) -> dict:
+    """Local-time bin (1 lunar hour) where |observed dT| / sigma_0 at the reference dwell peaks."""
+    dT, Tn = bins
+    snr = np.full(_LT_BINS, np.nan)
+    ok = np.isfinite(dT) & np.isfinite(Tn) & (Tn > 0) & (Tn + dT > 0)
+    if ok.any():
+        mu, Tc = ins.observed_difference(dT[ok], Tn[ok], inst, obs)
+        snr[ok] = np.abs(mu) / ins.sigma_null(Tc, Tn[ok], REFERENCE_DWELL_S, inst, obs)
+    if not np.isfinite(snr).any():
+        return dict(best_local_time_h=None, best_snr=None, best_dT_K=None, best_T_nominal_K=None,
+                    snr_by_local_time=snr)
+    j = int(np.nanargmax(snr))
+    return dict(best_local_time_h=(j + 0.5) * 24.0 / _LT_BINS, best_snr=float(snr[j]), best_dT_K=float(dT[j]),
+                best_T_nominal_K=float(Tn[j]), snr_by_local_time=snr)
+
+
+def _detection(A, instruments: Sequence[ins.Instrument], obs: ins.Observation, with_time: bool = True) -> dict:
+    """{instrument: {region: ...}} loose vs nominal from the night-time medians (SUMMARY_KEYS["detection"])."""
+    out = {}
+    bins = {r: _local_time_bins(A, r) for r in an.REGIONS} if with_time else {}
+    for inst in instruments:
+        grid = ins.dwell_grid(inst)
+        per = {}
+        for r in an.REGIONS:
+            st = A.night_stats[A.loose][r] if A.loose is not None else {}
+            med, Tn = st.get("median_K"), A.nom_night.get(r)
+            row = dict(dT_median_K=med, dT_q1_K=st.get("q1_K"), dT_q3_K=st.get("q3_K"), T_nominal_K=Tn)
+            if med is None or Tn is None or not Tn + med > 0:
+                row.update(detectable=False, dwell_s=None, answer="no night-time samples", pd_vs_dwell=None,
+                           limiting_term=None)
+                per[r] = row
+                continue
+            row.update(ins.dwell_for_detection(med, Tn, inst, obs))
+            row["pd_vs_dwell"] = ins.detection_probability(med, Tn, grid, inst, obs)
+            for key, f in (("dwell_s_scatter_half", 0.5), ("dwell_s_scatter_double", 2.0)):
+                o = obs.with_scatter(f * obs.natural_scatter_K)
+                row[key] = ins.dwell_for_detection(med, Tn, inst, o)["dwell_s"]
+            if with_time:
+                row.update(_best_local_time(bins[r], inst, obs))
+            per[r] = row
+        out[inst.name] = per
+    return out
+
+
 def _stat(stats, key):
     return {p: {r: s[key] for r, s in by_region.items()} for p, by_region in stats.items()}
 
 
-def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrument, footprint_fraction: float,
-             figures: List[str], snapshot_note: Optional[str]) -> dict:
+def _summary(A: _Analysis, others: Sequence[_Analysis], instruments: Sequence[ins.Instrument],
+             obs: ins.Observation, figures: List[str], snapshot_note: Optional[str]) -> dict:
     nom_night = A.nom_night
     tops, bottoms, grid = A.density_grid()
-    det = A.detectability(instrument, footprint_fraction)
+    det = _detection(A, instruments, obs)
+    T_floor = nom_night.get("floor") or next((v for v in nom_night.values() if v), None)
+    band_T = [T_floor, 300.0] if T_floor else [300.0]
     lat_night, lat_day, lat_dwell = {}, {}, {}
     for B in [A, *others]:
         if B.loose is None:
@@ -213,9 +287,10 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrumen
         key = f"{B.lat:g}"
         lat_night[key] = {r: B.night_stats[B.loose][r]["median_K"] for r in an.REGIONS}
         lat_day[key] = {r: B.day_stats[B.loose][r]["median_K"] for r in an.REGIONS}
-        lat_dwell[key] = {r: v["dwell_time_s"] for r, v in B.detectability(instrument, footprint_fraction).items()}
+        b_det = det if B is A else _detection(B, instruments, obs, with_time=False)
+        lat_dwell[key] = {i: {r: v["dwell_s"] for r, v in per.items()} for i, per in b_det.items()}
     s = dict(
-        schema_version=1,
+        schema_version=2,
         mesh_hash=str(A.run.attrs.get("mesh_hash")),
         lat_deg=A.lat,
         lon_deg=float(A.run.attrs.get("lon_deg", np.nan)),
@@ -244,10 +319,13 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instrument: an.Instrumen
         density_grid_floor_night_median_dT_K=dict(rho_top_kg_m3=tops, rho_bottom_kg_m3=bottoms, dT_K=grid),
         latitude_night_median_dT_K=lat_night,
         latitude_day_median_dT_K=lat_day,
-        latitude_dwell_time_s=lat_dwell,
-        instrument=instrument.as_dict(),
-        footprint_fraction=float(footprint_fraction),
-        detectability=det,
+        latitude_detection_dwell_s=lat_dwell,
+        instruments={i.name: i.as_dict() for i in instruments},
+        observation=obs.as_dict(),
+        detection_reference_dwell_s=REFERENCE_DWELL_S,
+        detection_dwell_grid_s={i.name: ins.dwell_grid(i) for i in instruments},
+        band_signal_night_floor=ins.band_table(band_T, instruments),
+        detection=det,
         figures=list(figures),
         snapshot_note=snapshot_note,
     )
@@ -450,26 +528,69 @@ def _fig_quartiles(all_A, path):
     fig.savefig(path)
 
 
-def _fig_detectability(det: dict, instrument: an.Instrument, path):
-    fig, ax = _figure(1, 1, (10, 4.5))
+def _fig_detectability(summary: dict, path):
+    det, grids, obs = summary["detection"], summary["detection_dwell_grid_s"], summary["observation"]
+    names = list(det)
+    ncol = min(2, max(1, len(names)))
+    nrow = max(1, math.ceil(len(names) / ncol))
+    fig, ax = _figure(nrow, ncol, (6.0 * ncol, 3.6 * nrow), sharey=True)
+    for k, name in enumerate(names):
+        a = ax[k // ncol, k % ncol]
+        x = np.asarray(grids[name], float)
+        for r, row in det[name].items():
+            if row.get("pd_vs_dwell") is None:
+                continue
+            a.plot(x, row["pd_vs_dwell"], lw=1.2, label=r.replace("_", " "))
+        a.axhline(obs["target_pd"], color="k", ls="--", lw=0.8)
+        a.axhline(obs["false_alarm"], color="0.5", ls=":", lw=0.8)
+        a.set_xscale("log")
+        a.set_ylim(0, 1)
+        inst = summary["instruments"][name]
+        a.set_title(f"{name} ({inst['lo_um']:g}-{inst['hi_um']:g} um)", fontsize=9)
+        a.set_xlabel("dwell on each footprint [s]")
+        a.set_ylabel("P_D")
+    for k in range(len(names), nrow * ncol):
+        ax[k // ncol, k % ncol].set_visible(False)
+    ax[0, 0].legend(fontsize=6, loc="upper left")
+    fig.suptitle(f"Loose vs nominal, night medians: one-sided test at {100 * obs['false_alarm']:g}% false alarms "
+                 f"(dotted); dashed: P_D = {obs['target_pd']:g}; natural scatter {obs['natural_scatter_K']:g} K, "
+                 f"{obs['reference_footprints']} reference footprint(s)", fontsize=9)
+    fig.savefig(path)
+
+
+def _best_instrument(summary: dict) -> Optional[str]:
+    """The instrument with the shortest floor dwell (or the highest P_D limit) for the report's time plot."""
+    det = summary["detection"]
+
+    def key(name):
+        row = det[name].get("floor") or next(iter(det[name].values()), {})
+        d = row.get("dwell_s")
+        return (0, d) if d is not None else (1, -(row.get("pd_limit") or 0.0))
+
+    return min(det, key=key) if det else None
+
+
+def _fig_local_time(summary: dict, path):
+    name = _best_instrument(summary)
+    obs = summary["observation"]
+    fig, ax = _figure(1, 1, (9, 4.2))
     a = ax[0, 0]
-    x = np.arange(len(an.REGIONS))
-    dwell = np.array([np.nan if not det.get(r) or det[r]["dwell_time_s"] is None else det[r]["dwell_time_s"]
-                      for r in an.REGIONS])
-    ok = np.isfinite(dwell)
-    bottom = instrument.integration_s / 2
-    a.bar(x[ok], dwell[ok] - bottom, bottom=bottom, color="tab:green", label="detectable: dwell needed")
-    for xi in x[~ok]:
-        a.text(xi, bottom * 1.5, "not\ndetectable", ha="center", va="bottom", fontsize=7, color="tab:red")
-    a.set_yscale("log")
-    a.set_ylim(bottom, max(np.nanmax(dwell) * 3 if ok.any() else 1.0, 1.0))
-    a.axhline(instrument.integration_s, color="k", ls=":", lw=0.8, label=f"one integration ({instrument.integration_s:g} s)")
-    _region_ticks(a, an.REGIONS)
-    a.set_ylabel("dwell time [s]")
-    a.set_title(f"Loose vs nominal at {instrument.k_sigma:g} sigma; NETD {instrument.netd_ref_K:g} K at "
-                f"{instrument.t_ref_K:g} K in {instrument.band_um[0]:g}-{instrument.band_um[1]:g} um; "
-                f"noise floor: {instrument.natural_scatter_K:g} K natural scatter, {instrument.min_temperature_K:g} K minimum", fontsize=9)
-    a.legend(fontsize=8)
+    if name is not None:
+        centres = (np.arange(_LT_BINS) + 0.5) * 24.0 / _LT_BINS
+        for r, row in summary["detection"][name].items():
+            snr = row.get("snr_by_local_time")
+            if snr is None:
+                continue
+            a.plot(centres, [np.nan if v is None else v for v in snr], marker=".", lw=1, label=r.replace("_", " "))
+        a.axhline(float(ins.ndtri(1 - obs["false_alarm"]) + ins.ndtri(obs["target_pd"])), color="k", ls="--",
+                  lw=0.8, label=f"needed for P_D {obs['target_pd']:g} (no gain error)")
+        a.set_title(f"{name}: |observed dT| / sigma at {summary['detection_reference_dwell_s']:g} s dwell, by local "
+                    f"solar time (lat {summary['lat_deg']:g} deg)", fontsize=9)
+        a.legend(fontsize=6, ncol=2)
+    a.set_xlim(0, 24)
+    a.set_xticks(range(0, 25, 3))
+    a.set_xlabel("local solar time [lunar hours; 12 = noon]")
+    a.set_ylabel("|dT| / sigma")
     fig.savefig(path)
 
 
@@ -503,6 +624,50 @@ def _fmt(v, spec=".2f"):
     return "-" if v is None else format(v, spec)
 
 
+def _html_detection(summary: dict) -> str:
+    """The detectability section: which bands see the difference, and per instrument and region the answer."""
+    obs = summary["observation"]
+    parts = ["<h2>Can an instrument tell loose from nominal regolith?</h2>",
+             f"<p>Candidate footprint ({100 * obs['footprint_fraction']:g}% loose, mixed with nominal in band "
+             f"radiance) against {obs['reference_footprints']} nominal reference footprint(s), each observed for the "
+             f"same dwell. Noise terms: instrument NETD(T) (scaled with the band's dB/dT) averaged over the dwell down "
+             f"to a 1/f floor, in both scenes; natural scatter {obs['natural_scatter_K']:g} K per footprint (measured "
+             f"by Diviner on night-time regolith between 60 N and 60 S, about 80-120 K; uncertain by a factor ~2 at "
+             f"40-80 K); calibration gain error on the radiance difference (an offset cancels). Test: "
+             f"{html.escape(obs['test'])}, false-alarm rate {100 * obs['false_alarm']:g}%; the dwell is the shortest "
+             f"with P_D &ge; {obs['target_pd']:g}. Night-time medians of loose minus nominal.</p>"]
+    band = summary["band_signal_night_floor"]
+    rows = []
+    for name, b in band.items():
+        for T, L, e in zip(b["T_K"], b["band_radiance_W_m2_sr"], b["netd_K"]):
+            rows.append([name, f"{b['band_um'][0]:g}-{b['band_um'][1]:g}", f"{T:.1f}", f"{L:.3g}", f"{e:.3g}"])
+    parts.append("<h3>What each band receives (night floor, nominal; and a 300 K scene)</h3>")
+    parts.append(_table(rows, ["instrument", "band [um]", "T [K]", "band radiance [W m-2 sr-1]",
+                               "NETD of one integration [K]"]))
+    for name, per in summary["detection"].items():
+        inst = summary["instruments"][name]
+        rows = []
+        for r, d in per.items():
+            lt = d.get("best_local_time_h")
+            rows.append([r, _fmt(d.get("dT_median_K")),
+                         f"{_fmt(d.get('dT_q1_K'))} .. {_fmt(d.get('dT_q3_K'))}", _fmt(d.get("T_nominal_K"), ".1f"),
+                         _fmt(d.get("netd_candidate_K"), ".3g"),
+                         _fmt(d.get("dwell_s"), ".3g") if d.get("detectable") else "never",
+                         _fmt(d.get("pd_limit")), str(d.get("limiting_term") or "-").replace("_", " "),
+                         "-" if lt is None else f"{lt:.1f} h (|dT|/sigma {d['best_snr']:.2g})",
+                         f"{_fmt(d.get('dwell_s_scatter_half'), '.3g')} / "
+                         f"{_fmt(d.get('dwell_s_scatter_double'), '.3g')}",
+                         d.get("answer", "")])
+        parts.append(f"<h3>{html.escape(name)}: {inst['lo_um']:g}-{inst['hi_um']:g} um, NETD "
+                     f"{inst['netd_ref_K']:.3g} K at {inst['t_ref_K']:g} K per {inst['integration_s']:.3g} s, "
+                     f"1/f knee {inst['knee_s']:g} s, gain error {100 * inst['gain_error']:g}%</h3>"
+                     f"<p><small>{html.escape(inst['source'])}</small></p>")
+        parts.append(_table(rows, ["region", "night median dT [K]", "quartiles [K]", "T nominal [K]",
+                                   "NETD at candidate [K]", "dwell for P_D [s]", "P_D at infinite dwell",
+                                   "limiting term", "best local time", "dwell with scatter x0.5 / x2 [s]", "answer"]))
+    return "\n".join(parts)
+
+
 def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>crater_thermal report</title>",
@@ -521,32 +686,17 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
     if loose:
         rows = []
         for r in summary["regions"]:
-            d = summary["detectability"].get(r, {})
             rows.append([r, str(summary["region_facet_count"][r]),
                          _fmt(summary["night_median_T_nominal_K"][r], ".1f"),
                          _fmt(summary["night_median_dT_K"][loose][r]),
                          f"{_fmt(summary['night_q1_dT_K'][loose][r])} .. {_fmt(summary['night_q3_dT_K'][loose][r])}",
                          _fmt(summary["day_median_dT_K"][loose][r]),
-                         _fmt(summary["night_frac_abs_dT_above_threshold"][loose][r]),
-                         _fmt(d.get("netd_K")), _fmt(d.get("dwell_time_s"), ".3g"),
-                         d.get("reason", "")])
+                         _fmt(summary["night_frac_abs_dT_above_threshold"][loose][r])])
         parts.append(f"<h2>{html.escape(loose)} minus nominal by region</h2>")
         parts.append(_table(rows, ["region", "facets", "night T nominal [K]", "night median dT [K]",
                                    "night quartiles [K]", "day median dT [K]",
-                                   f"night frac |dT|>{summary['threshold_K']:g} K", "NETD [K]", "dwell [s]",
-                                   "detectability"]))
-        inst = summary["instrument"]
-        parts.append(
-            f"<p>Instrument model: NETD {inst['netd_ref_K']:g} K at {inst['t_ref_K']:g} K, scaled with the "
-            f"band-integrated Planck derivative over {inst['band_um'][0]:g}-{inst['band_um'][1]:g} um; "
-            f"{inst['integration_s']:g} s integrations averaged as sqrt(n); {inst['k_sigma']:g}-sigma detection; "
-            + (f"the {inst['natural_scatter_K']:g} K natural scatter of regolith temperatures is added in quadrature "
-               f"(never detectable below {inst['k_sigma'] * inst['natural_scatter_K']:.3g} K)"
-               if inst["scatter_in_quadrature"] else
-               f"differences below the {inst['natural_scatter_K']:g} K natural scatter of regolith temperatures")
-            + f"; scenes below {inst['min_temperature_K']:g} K count as not detectable. The absolute calibration "
-            f"offset ({inst['calibration_offset_K']:g} K) cancels in relative differences. Footprint fraction "
-            f"{summary['footprint_fraction']:g} (Eq. 8.2 mixing with nominal).</p>")
+                                   f"night frac |dT|>{summary['threshold_K']:g} K"]))
+        parts.append(_html_detection(summary))
     if summary["snapshot_note"]:
         parts.append(f"<p><b>Note:</b> {html.escape(summary['snapshot_note'])}</p>")
     for name in summary["figures"]:
@@ -593,27 +743,44 @@ def _install(tmp: Path, out_dir: Path) -> None:
         shutil.rmtree(trash, ignore_errors=True)
 
 
+def sweep_pairs(folder) -> Tuple[List[Path], List[Path]]:
+    """``(runs, replays)`` of a sweep's output folder (``FOLDER/CASE/run.nc`` + ``replay.nc``, see sweep.py).
+
+    Cases without a replay are skipped; sorted by case name. Raises :class:`ConfigError` when none is found.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ConfigError(f"{folder} is not a folder; expected a sweep output folder with CASE/run.nc and "
+                          "CASE/replay.nc")
+    cases = sorted(d for d in folder.iterdir() if (d / "run.nc").is_file() and (d / "replay.nc").is_file())
+    if not cases:
+        raise ConfigError(f"{folder} holds no CASE/run.nc with CASE/replay.nc (a sweep's output folder)")
+    return [d / "run.nc" for d in cases], [d / "replay.nc" for d in cases]
+
+
 def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: Optional[bool] = None,
-                instrument: an.Instrument = an.Instrument(), threshold_K: float = an.NATURAL_SCATTER_K,
-                footprint_fraction: float = 1.0, snapshots: bool = True) -> Path:
+                instruments: Optional[Sequence[ins.Instrument]] = None,
+                observation: ins.Observation = ins.Observation(), threshold_K: float = an.NATURAL_SCATTER_K,
+                snapshots: bool = True) -> Path:
     """Write figures, report.html and summary.json for a run and its replay.
 
     Parameters
     ----------
     run_ds, replay_ds : dataset or path, or equal-length sequences of them (one pair per latitude;
         the first pair drives the single-crater figures, all pairs the latitude comparisons).
+        With ``replay_ds=None``, ``run_ds`` is a sweep's output folder (:func:`sweep_pairs`).
     out_dir : path
         Output folder (created).
     overwrite : bool
         Replace an existing ``out_dir/report.html``.
     progress : bool, optional
         Rich progress bar on stderr; default only when stderr is a terminal.
-    instrument : analysis.Instrument
-        Detector model for the detectability table.
+    instruments : sequence of instrument.Instrument, optional
+        Channels for the detection statistics (default: every preset, ``instrument.PRESETS``).
+    observation : instrument.Observation
+        Footprint fraction, reference footprints, natural scatter, false-alarm rate, target P_D.
     threshold_K : float [K]
         |dT| threshold for the fraction-above statistic (default the 0.94 K natural scatter).
-    footprint_fraction : float [-]
-        Pixel fraction of loose regolith (rest nominal), thesis Eq. 8.2.
     snapshots : bool
         Also render 3-D views with pyvista (a note replaces them if rendering fails).
 
@@ -630,8 +797,11 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
     """
     out_dir = Path(out_dir)
     _refuse_existing(out_dir, overwrite)
-    if not 0.0 <= footprint_fraction <= 1.0:
-        raise ConfigError(f"footprint_fraction={footprint_fraction} out of range [0, 1]")
+    instruments = list(ins.PRESETS.values()) if instruments is None else list(instruments)
+    if not instruments:
+        raise ConfigError("need at least one instrument")
+    if replay_ds is None:
+        run_ds, replay_ds = sweep_pairs(run_ds)
     runs, reps = _as_list(run_ds), _as_list(replay_ds)
     if len(runs) != len(reps) or not runs:
         raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
@@ -639,8 +809,8 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
     try:
         runs = [_track(_open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
         reps = [_track(_open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
-        return _make_report(runs, reps, out_dir, overwrite, progress, instrument, threshold_K,
-                            footprint_fraction, snapshots)
+        return _make_report(runs, reps, out_dir, overwrite, progress, instruments, threshold_K,
+                            observation, snapshots)
     finally:
         for ds in opened:
             ds.close()
@@ -651,7 +821,7 @@ def _track(ds, opened: list):
     return ds
 
 
-def _make_report(runs, reps, out_dir: Path, overwrite, progress, instrument, threshold_K, footprint_fraction,
+def _make_report(runs, reps, out_dir: Path, overwrite, progress, instruments, threshold_K, observation,
                  snapshots) -> Path:
     for run, rep in zip(runs, reps):
         an.check_run(run, an._RUN_VARS + ("solar_incident", "ir_incident"))
@@ -660,10 +830,10 @@ def _make_report(runs, reps, out_dir: Path, overwrite, progress, instrument, thr
     n_steps = n_profiles + len(FIGURES) + 1
     with progress_bar("report: profiles, figures", n_steps, progress) as advance:
         all_A = [_Analysis(r, p, threshold_K, advance) for r, p in zip(runs, reps)]
-        return _write_report(all_A, out_dir, overwrite, advance, instrument, footprint_fraction, snapshots)
+        return _write_report(all_A, out_dir, overwrite, advance, instruments, observation, snapshots)
 
 
-def _write_report(all_A, out_dir: Path, overwrite, advance, instrument, footprint_fraction, snapshots) -> Path:
+def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observation, snapshots) -> Path:
     A = all_A[0]
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -689,9 +859,12 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instrument, footprin
             job(fig_dir / name)
             figures.append(name)
             advance()
-        summary = _summary(A, all_A[1:], instrument, footprint_fraction, figures + ["detectability.png"], None)
-        _fig_detectability(summary["detectability"], instrument, fig_dir / "detectability.png")
+        summary = _summary(A, all_A[1:], instruments, observation, figures, None)
+        _fig_detectability(summary, fig_dir / "detectability.png")
         figures.append("detectability.png")
+        advance()
+        _fig_local_time(summary, fig_dir / "detection_local_time.png")
+        figures.append("detection_local_time.png")
         advance()
         if snapshots:
             try:

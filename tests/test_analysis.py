@@ -1,11 +1,7 @@
-"""Tests of crater_thermal.analysis: masks, regions, differences, statistics, instrument model."""
-
-import math
+"""Tests of crater_thermal.analysis: masks, regions, differences, statistics (instrument: test_instrument.py)."""
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from crater_thermal import analysis as an
 from crater_thermal.errors import ConfigError, FluxFileError
@@ -171,112 +167,10 @@ def test_latitude_statistics(pair):
     assert set(out[-86.0]["night"]) == set(an.REGIONS)
 
 
-# -------------------------------------------------------------------------- instrument model
-
-
-def test_netd_equals_reference_at_reference_temperature():
-    inst = an.Instrument()
-    assert float(an.netd(50.0, inst)) == pytest.approx(2.0, rel=1e-12)
-
-
-def test_netd_narrow_band_matches_hand_planck_ratio():
-    # a 0.01%-wide band at 200 um: the ratio is that of the monochromatic dB/dT
-    inst = an.Instrument(band_um=(200.0, 200.02), netd_ref_K=2.0, t_ref_K=50.0)
-    h, c, k = 6.62607015e-34, 299792458.0, 1.380649e-23
-    lam = 200.01e-6
-
-    def dbdt(T):
-        x = h * c / (lam * k * T)
-        return x * math.exp(x) / (T * (math.exp(x) - 1) ** 2)
-
-    hand = 2.0 * dbdt(50.0) / dbdt(30.0)
-    # band width 1e-4: the ratio varies across it by < 1e-4 relative
-    assert float(an.netd(30.0, inst)) == pytest.approx(hand, rel=1e-4)
-    assert hand > 2.0  # colder scenes are noisier
-
-
-def test_netd_rayleigh_jeans_band_is_temperature_independent():
-    # 1-10 cm at 30-50 K: x = hc/(lambda k T) < 0.05, dB/dT ~ 2ck/lambda^4 (1 - x^2/12): < 1e-3 change
-    inst = an.Instrument(band_um=(1e4, 1e5))
-    assert float(an.netd(30.0, inst)) == pytest.approx(2.0, rel=1e-3)
-
-
-def test_netd_diviner_band_increases_when_colder():
-    v = an.netd(np.array([25.0, 50.0, 100.0]))
-    assert v[0] > v[1] > v[2]
-
-
-def test_sqrt_n_averaging_hand():
-    # one minute at 128 ms: n = floor(60 / 0.128) = floor(468.75) = 468; sqrt(468) = 21.633
-    assert int(an.n_samples(60.0, 0.128)) == 468
-    assert float(an.averaged_netd(2.0, 60.0, 0.128)) == pytest.approx(2.0 / 21.6333, rel=1e-4)
-    assert math.sqrt(468) > 20  # thesis: "more than a factor of 20"
-    assert int(an.n_samples(0.128 * 3, 0.128)) == 3   # exact multiples are not rounded down
-    assert int(an.n_samples(0.05, 0.128)) == 1        # shorter than one integration: one sample
-    with pytest.raises(ConfigError, match="integration_s"):
-        an.n_samples(1.0, 0.0)
-
-
-def test_pixel_mixing_eq_8_2():
-    # hand: 0.5*60^4 + 0.5*40^4 = 0.5*(12 960 000 + 2 560 000) = 7 760 000; ^(1/4) = 52.779 K
-    assert float(an.mixed_temperature(60.0, 40.0, 0.5)) == pytest.approx(52.779, abs=1e-3)
-    assert float(an.mixed_temperature(60.0, 40.0, 1.0)) == pytest.approx(60.0)
-    assert float(an.mixed_temperature(60.0, 40.0, 0.0)) == pytest.approx(40.0)
-    # radiance-weighted: the mix leans towards the warmer material (above the arithmetic mean)
-    assert float(an.mixed_temperature(60.0, 40.0, 0.5)) > 50.0
-    with pytest.raises(ConfigError, match="fraction_a"):
-        an.mixed_temperature(60.0, 40.0, 1.2)
-
-
-@settings(max_examples=60, deadline=None)
-@given(dT=st.floats(-20.0, 20.0), T_nom=st.floats(25.0, 300.0), fraction=st.floats(0.05, 1.0),
-       offset=st.floats(0.0, 10.0))
-def test_calibration_offset_does_not_enter_detectability(dT, T_nom, fraction, offset):
-    """Thesis 7.3: an absolute calibration offset shifts both scenes alike, so the detectability of a
-    difference does not depend on it; what is observed is the Eq. 8.2 pixel mix minus nominal."""
-    a = an.detectability(dT, T_nom, an.Instrument(calibration_offset_K=offset), footprint_fraction=fraction)
-    b = an.detectability(dT, T_nom, an.Instrument(calibration_offset_K=0.0), footprint_fraction=fraction)
-    assert a["detectable"] == b["detectable"] and a["n_samples"] == b["n_samples"]
-    if T_nom + dT > 0:
-        mixed = (fraction * (T_nom + dT) ** 4 + (1 - fraction) * T_nom**4) ** 0.25
-        # float64 rounding of sums of T ~ 300 K and offsets <= 10 K: ~1e-13 K
-        assert a["dT_observed_K"] == pytest.approx(mixed - T_nom, abs=1e-9)
-        assert b["dT_observed_K"] == pytest.approx(mixed - T_nom, abs=1e-9)
-
-
-def test_detectability_hand():
-    inst = an.Instrument()
-    res = an.detectability(-2.5, 50.0, inst)
-    assert res["detectable"] and res["T_scene_K"] == pytest.approx(47.5)
-    e = float(an.netd(47.5, inst))
-    n = math.ceil((3 * e / 2.5) ** 2)
-    assert res["n_samples"] == n and res["dwell_time_s"] == pytest.approx(n * 0.128)
-    # below the 0.94 K natural scatter: never, whatever the dwell
-    low = an.detectability(0.5, 50.0, inst)
-    assert not low["detectable"] and low["dwell_time_s"] is None and "scatter" in low["reason"]
-    cold = an.detectability(-3.0, 19.0, inst)
-    assert not cold["detectable"] and "20" in cold["reason"]
-    # a half-filled pixel (Eq. 8.2) shrinks the observed difference, so it needs longer
-    mixed = an.detectability(-4.0, 50.0, inst, footprint_fraction=0.5)
-    full = an.detectability(-4.0, 50.0, inst)
-    assert abs(mixed["dT_observed_K"]) < abs(full["dT_observed_K"])
-    assert mixed["dwell_time_s"] >= full["dwell_time_s"]
-
-
-def test_detectability_scatter_in_quadrature_hand():
-    inst = an.Instrument(scatter_in_quadrature=True)
-    # 3 x 0.94 = 2.82 K: a 2.5 K difference can never reach 3 sigma
-    assert not an.detectability(-2.5, 50.0, inst)["detectable"]
-    res = an.detectability(-4.0, 50.0, inst)
-    e = float(an.netd(46.0, inst))
-    n = math.ceil(9 * e**2 / (16.0 - 2.82**2))  # hand: k^2 NETD^2 / (dT^2 - (k sc)^2)
-    assert res["detectable"] and res["n_samples"] == n
-    # and then the criterion holds: 3 sqrt(NETD^2/n + 0.94^2) <= 4 K
-    assert 3 * math.sqrt(e**2 / n + 0.94**2) <= 4.0
-
-
-def test_instrument_validation():
-    with pytest.raises(ConfigError, match="netd_ref_K"):
-        an.Instrument(netd_ref_K=-1.0)
-    with pytest.raises(ConfigError, match="band_um"):
-        an.Instrument(band_um=(400.0, 100.0))
+def test_local_solar_time_from_sun_direction():
+    # south pole: noon with the Sun due north, 18 h with it in the west, 6 h in the east
+    s = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    np.testing.assert_allclose(an.local_solar_time_h(s, -90.0), [12.0, 18.0, 6.0, 0.0], atol=1e-12)
+    # equator: Sun at the zenith is noon, on the eastern horizon 6 h; north pole: noon with the Sun south
+    np.testing.assert_allclose(an.local_solar_time_h(np.array([[0, 0, 1.0], [1.0, 0, 0]]), 0.0), [12.0, 6.0])
+    assert float(an.local_solar_time_h(np.array([[0.0, -1.0, 0.0]]), 90.0)[0]) == pytest.approx(12.0)

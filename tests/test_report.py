@@ -55,7 +55,10 @@ def test_summary_has_exactly_the_documented_keys(report_dir):
     assert set(s) == set(rp.SUMMARY_KEYS)
     assert all(isinstance(v, str) and v for v in rp.SUMMARY_KEYS.values())
     assert s["loose_profile"] == "800/1100" and s["rock_profile"] == "rock"
-    assert set(s["detectability"]) == set(s["regions"])
+    assert set(s["detection"]) == set(s["instruments"]) == {"diviner_ch7", "diviner_ch8", "diviner_ch9",
+                                                            "microbolometer"}
+    assert all(set(per) == set(s["regions"]) for per in s["detection"].values())
+    assert s["schema_version"] == 2
 
 
 def test_html_is_self_contained_and_references_every_figure(report_dir):
@@ -100,9 +103,15 @@ def test_summary_values_match_an_independent_computation(report_dir, files):
     grid = s["density_grid_floor_night_median_dT_K"]
     i, j = grid["rho_top_kg_m3"].index(800.0), grid["rho_bottom_kg_m3"].index(1100.0)
     assert grid["dT_K"][i][j] == pytest.approx(expect, abs=1e-9)
-    det = s["detectability"]["floor"]
-    assert det["dT_K"] == pytest.approx(expect, abs=1e-9)
-    assert det["detectable"] == (det["dwell_time_s"] is not None)
+    det = s["detection"]["diviner_ch9"]["floor"]
+    assert det["dT_median_K"] == pytest.approx(expect, abs=1e-9)
+    assert det["detectable"] == (det["dwell_s"] is not None)
+    assert det["limiting_term"] in ("instrument_white", "allan_floor", "natural_scatter", "gain_error")
+    assert len(det["pd_vs_dwell"]) == len(s["detection_dwell_grid_s"]["diviner_ch9"])
+    assert 0.0 <= det["best_local_time_h"] < 24.0
+    # the microbolometer receives ~nothing from a night floor: its NETD there is thousands of K
+    band = s["band_signal_night_floor"]["microbolometer"]
+    assert band["netd_K"][0] > 1e3 and not s["detection"]["microbolometer"]["floor"]["detectable"]
 
 
 def test_refuses_existing_report_and_overwrites_atomically(report_dir, files):
@@ -139,7 +148,26 @@ def test_several_latitudes(files, tmp_path):
     # progress=True: the rich bar must also work (here on a captured, non-terminal stream)
     rp.make_report([run, run2], [rep, make_replay(run2)], tmp_path / "r", progress=True, snapshots=False)
     s = _strict_json(tmp_path / "r" / "summary.json")
-    assert set(s["latitude_night_median_dT_K"]) == {"-86", "-80"} == set(s["latitude_dwell_time_s"])
+    assert set(s["latitude_night_median_dT_K"]) == {"-86", "-80"} == set(s["latitude_detection_dwell_s"])
+    assert set(s["latitude_detection_dwell_s"]["-80"]) == set(s["instruments"])
+
+
+def test_cli_report_takes_a_sweep_folder_and_a_user_band(files, tmp_path):
+    d, run, rep = files
+    sweep = tmp_path / "sweep"
+    for name, r in (("lat86S", run), ("lat80S", make_run(lat_deg=-80.0, n_lunar_days=1.0, n_rings=8))):
+        (sweep / name).mkdir(parents=True)
+        r.to_netcdf(sweep / name / "run.nc")
+        (rep if r is run else make_replay(r)).to_netcdf(sweep / name / "replay.nc")
+    (sweep / "unfinished").mkdir()  # a case without outputs is skipped
+    out = cli("report", sweep, "-o", tmp_path / "r", "--no-snapshots", "--instrument", "diviner_ch9",
+              "--band-um", "8:14", "--netd-k", "0.05", "--reference-footprints", "4")
+    assert out.returncode == 0, out.stderr
+    s = _strict_json(tmp_path / "r" / "summary.json")
+    assert set(s["latitude_night_median_dT_K"]) == {"-86", "-80"}
+    assert set(s["instruments"]) == {"diviner_ch9", "custom"} and s["observation"]["reference_footprints"] == 4
+    bad = cli("report", tmp_path / "r", "-o", tmp_path / "r2")
+    assert bad.returncode == 2 and "sweep" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
 def test_cli_report_quiet_when_not_a_terminal(files, tmp_path):
