@@ -16,6 +16,7 @@ import numpy as np
 
 __all__ = [
     "CRATER_KINDS",
+    "HEIGHT_KINDS",
     "SPINUP_MODES",
     "PROPERTY_SETS",
     "LIMB_DARKENING_LAWS",
@@ -29,8 +30,11 @@ __all__ = [
     "ephemeris_span",
 ]
 
-#: Terrain kinds (simulate.case_mesh; geometry builds each): idealized crater, flat plain, mesh file.
-CRATER_KINDS = ("crater", "flat", "mesh")
+#: Terrain kinds (simulate.case_mesh; geometry or terrain builds each): idealized crater, flat plain, mesh
+#: file, a site of a digital elevation model.
+CRATER_KINDS = ("crater", "flat", "mesh", "dem")
+#: How DEM pixel values are read (terrain): auto-detect, height above the reference sphere, radius.
+HEIGHT_KINDS = ("auto", "height", "radius")
 #: Spin-up procedures (simulate.run_case).
 SPINUP_MODES = ("periodic", "fixed")
 #: Thermophysical property sets (materials.PROPERTY_SETS has one PropertySet per name).

@@ -81,6 +81,85 @@ def mesh_bowl(
 
 
 
+@mesh_app.command("dem")
+def mesh_dem(
+    dem: Path = typer.Argument(..., help="DEM: GeoTIFF, PDS3 .LBL/.IMG (LOLA LDEM_*), any GDAL raster, lunar CRS."),
+    center_lat: float = typer.Option(..., "--center-lat", help="Site centre, planetocentric latitude [deg]."),
+    center_lon: float = typer.Option(..., "--center-lon", help="Site centre, east longitude [deg]."),
+    radius_km: float = typer.Option(..., "--radius-km", help="Radius of the analysed (inner) region [km]."),
+    resolution_m: Optional[float] = typer.Option(None, "--resolution-m",
+                                                 help="Facet edge in the inner region [m] (default: ~10k facets)."),
+    outer_radius_km: Optional[float] = typer.Option(None, "--outer-radius-km",
+                                                    help="Coarser ring for shadows/radiation out to this radius [km]."),
+    outer_resolution_m: Optional[float] = typer.Option(None, "--outer-resolution-m",
+                                                       help="Facet edge in the outer ring [m] (default 4x inner)."),
+    height_kind: str = typer.Option("auto", "--height-kind",
+                                    help="auto | height (above the sphere) | radius (from the Moon's centre)."),
+    max_facets: int = typer.Option(2_000_000, "--max-facets", help="Refuse larger sites (estimated up front)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply keeps the site metadata)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
+) -> None:
+    """Mesh a site of a polar DEM: true 3-D positions in the centre's east/north/up frame [m]."""
+    from crater_thermal import geometry, terrain
+    from crater_thermal.errors import OutputExistsError
+
+    if output.exists() and not overwrite:
+        raise OutputExistsError(f"output {str(output)!r} exists; pass --overwrite to replace it")
+    m = terrain.site_mesh(dem, center_lat, center_lon, radius_km, resolution_m=resolution_m,
+                          outer_radius_km=outer_radius_km, outer_resolution_m=outer_resolution_m,
+                          height_kind=height_kind, max_facets=max_facets)
+    geometry.save_mesh(m, output, overwrite=overwrite)
+    typer.echo(f"wrote {output}: {m.n_facets} facets ({m.meta['n_inner']} inner), "
+               f"{m.meta['resolution_m']:.4g} m, heights read as {m.meta['height_kind']!r}, hash {m.hash}")
+
+
+# ---------------------------------------------------------------- dem (synthetic sites)
+
+dem_app = typer.Typer(no_args_is_help=True, help="Digital elevation models: synthetic polar sites.")
+app.add_typer(dem_app, name="dem")
+
+
+def _parse_crater(text: str) -> tuple:
+    """'D_KM' or 'D_KM@X_KM,Y_KM' -> (diameter_km, x_km, y_km)."""
+    from crater_thermal.errors import ConfigError
+
+    try:
+        d, _, at = text.partition("@")
+        x, y = (at.split(",") if at else ("0", "0"))
+        return float(d), float(x), float(y)
+    except ValueError:
+        raise ConfigError(f"--crater {text!r} must be D_KM or D_KM@X_KM,Y_KM (e.g. 5@2,-3)") from None
+
+
+@dem_app.command("synth")
+def dem_synth(
+    lat_deg: float = typer.Option(..., "--lat-deg", help="Centre latitude [deg], |lat| >= 60."),
+    lon_deg: float = typer.Option(0.0, "--lon-deg", help="Centre east longitude [deg]."),
+    size_km: float = typer.Option(20.0, "--size-km", help="Side of the square raster [km]."),
+    pixel_m: float = typer.Option(40.0, "--pixel-m", help="Pixel size [m] (polar stereographic, true at the pole)."),
+    crater: List[str] = typer.Option([], "--crater", help="D_KM[@X_KM,Y_KM]: idealized crater (Table 7.1), "
+                                     "offset from the centre in map x, y [km]. Repeatable."),
+    roughness: float = typer.Option(0.0, "--roughness", help="RMS height of the self-affine background [m]."),
+    hurst: float = typer.Option(0.9, "--hurst", help="Hurst exponent of the background, [0, 1]."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    output: Path = typer.Option(..., "-o", "--output",
+                                help="site.tif (GeoTIFF, float32 heights) or site.lbl (PDS3 int16 .IMG + .LBL)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
+) -> None:
+    """A synthetic polar site (rough terrain with craters) as a lunar polar-stereographic DEM."""
+    from crater_thermal import terrain
+
+    craters = [_parse_crater(c) for c in crater]
+    z, tr, wkt = terrain.synthetic_heights(lat_deg, lon_deg, size_km, pixel_m, craters=craters,
+                                           roughness_m=roughness, hurst=hurst, seed=seed)
+    if output.suffix.lower() in (".lbl", ".img"):
+        path = terrain.write_pds3(output, z, tr, pole="south" if lat_deg < 0 else "north", overwrite=overwrite)
+    else:
+        path = terrain.write_geotiff(output, z, tr, wkt, overwrite=overwrite)
+    typer.echo(f"wrote {path}: {z.shape[1]} x {z.shape[0]} pixels of {pixel_m:g} m, heights "
+               f"{float(z.min()):.0f} to {float(z.max()):.0f} m")
+
+
 # ---------------------------------------------------------------- steady (radiosity)
 
 

@@ -199,7 +199,8 @@ SCHEMA: Tuple[Key, ...] = (
     # [crater]
     K("crater", "kind", "choice", lambda v: "mesh" if v.given("mesh") else "crater",
       "idealized crater (thesis Table 7.1, Pike 1977) / flat horizontal surface, no crater (Fig. 7.9) / "
-      "a mesh file", choices=choices.CRATER_KINDS, default_doc='`"crater"` (`"mesh"` if `mesh` is given)',
+      "a mesh file / a site of a DEM (`dem` and the keys after it)", choices=choices.CRATER_KINDS,
+      default_doc='`"crater"` (`"mesh"` if `mesh` is given)',
       field_default="crater"),
     K("crater", "diameter_km", "float", REQUIRED, "rim diameter", unit="km", lo=0.0, hi=15.0, lo_open=True,
       only=("kind", ("crater",))),
@@ -208,6 +209,28 @@ SCHEMA: Tuple[Key, ...] = (
       hi=100.0, only=("kind", ("crater",)), field_default=0.0),
     K("crater", "mesh", "file", REQUIRED, "`.ply`/`.obj`/`.stl` in metres, x east, y north, z up; "
       "**relative to the case file**", only=("kind", ("mesh",))),
+    K("crater", "dem", "file", REQUIRED, "digital elevation model: GeoTIFF, PDS3 `.LBL`/`.IMG` (LOLA `LDEM_*`), any "
+      "GDAL raster with a projected lunar CRS; **relative to the case file**", only=("kind", ("dem",))),
+    K("crater", "center_lat_deg", "float", None, "site centre latitude (as `mesh dem --center-lat`); must "
+      "equal `location.lat_deg`, the frame of the Sun vectors", unit="deg", lo=-90.0, hi=90.0,
+      default_doc="`location.lat_deg`", only=("kind", ("dem",))),
+    K("crater", "center_lon_deg", "float", None, "site centre east longitude; must equal `location.lon_deg`",
+      unit="deg", lo=-360.0, hi=360.0, default_doc="`location.lon_deg`", only=("kind", ("dem",))),
+    K("crater", "radius_km", "float", REQUIRED, "radius of the analysed (inner) region about the centre",
+      unit="km", lo=0.0, hi=500.0, lo_open=True, only=("kind", ("dem",))),
+    K("crater", "resolution_m", "float", None, "facet edge in the inner region (equilateral lattice; "
+      "~7.3 (radius/edge)² facets)", unit="m", lo=0.0, hi=1e5, lo_open=True,
+      default_doc="DEM pixel or ~10,000 inner facets, the coarser", only=("kind", ("dem",))),
+    K("crater", "outer_radius_km", "float", None, "coarser ring out to this radius: shadows and radiation from "
+      "distant terrain, not analysed", unit="km", lo=0.0, hi=1000.0, lo_open=True, default_doc="no ring",
+      only=("kind", ("dem",))),
+    K("crater", "outer_resolution_m", "float", None, "facet edge in the outer ring", unit="m", lo=0.0, hi=1e5,
+      lo_open=True, default_doc="4 × `resolution_m`", only=("kind", ("dem",))),
+    K("crater", "height_kind", "choice", "auto", "DEM values are heights above the reference sphere or radii "
+      "from the Moon's centre (LOLA: radius = DN·0.5 m + 1737.4 km); auto: radius if > half the radius",
+      choices=choices.HEIGHT_KINDS, only=("kind", ("dem",))),
+    K("crater", "max_facets", "int", 2_000_000, "refuse a site estimated above this many facets",
+      lo=1, hi=100_000_000, only=("kind", ("dem",))),
     # [location]
     K("location", "lat_deg", "float", REQUIRED, "planetocentric latitude of the crater centre", unit="deg",
       lo=-90.0, hi=90.0),
@@ -342,11 +365,14 @@ def _section(name: str):
 class Crater:
     """Terrain of the case.
 
-    kind : "crater" | "flat" | "mesh"
+    kind : "crater" | "flat" | "mesh" | "dem"
     diameter_km : float or None [km]  rim diameter (kind "crater")
     facets : int or None  number of triangles (kind "crater")
     surround_km : float [km]  flat plain around the rim (kind "crater")
     mesh : Path or None  absolute path of the mesh file (kind "mesh")
+    dem : Path or None  absolute path of the DEM (kind "dem"); center_lat_deg, center_lon_deg [deg] (None:
+        the location), radius_km [km], resolution_m [m], outer_radius_km [km], outer_resolution_m [m],
+        height_kind, max_facets: the site mesh (terrain.site_mesh)
     """
 
     @property
@@ -775,7 +801,19 @@ _SECTION_CHECKS: dict = {"sun": _check_sun, "period": _check_period}
 
 
 def _check_case(case: Case, where: str) -> None:
-    """Checks across sections: the period covers a flux step and lies inside the ephemeris."""
+    """Checks across sections: a DEM site is centred on the location; the period covers a flux step and lies
+    inside the ephemeris."""
+    if case.crater.kind == "dem":
+        for key, loc_key in (("center_lat_deg", "lat_deg"), ("center_lon_deg", "lon_deg")):
+            v, loc = getattr(case.crater, key), getattr(case.location, loc_key)
+            if v is not None and abs(v - loc) > 1e-9:
+                raise ConfigError(f"{where}: crater.{key} = {v:g} differs from location.{loc_key} = {loc:g}; the "
+                                  "site's frame is the location's (give one of them, or the same value)")
+        if case.crater.outer_resolution_m is not None and case.crater.outer_radius_km is None:
+            raise ConfigError(f"{where}: crater.outer_resolution_m needs crater.outer_radius_km")
+        if case.crater.outer_radius_km is not None and case.crater.outer_radius_km <= case.crater.radius_km:
+            raise ConfigError(f"{where}: crater.outer_radius_km = {case.crater.outer_radius_km:g} must exceed "
+                              f"crater.radius_km = {case.crater.radius_km:g}")
     if case.period.duration_s < case.steps.flux_step_s:
         raise ConfigError(f"{where}: period ({case.period.duration_s:g} s) is shorter than one flux step "
                           f"steps.flux_step_hours = {case.steps.flux_step_hours:g}")

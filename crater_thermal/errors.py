@@ -20,6 +20,10 @@ class MeshError(CraterThermalError):
     """A mesh is degenerate, inconsistent, or cannot be read."""
 
 
+class DEMError(CraterThermalError):
+    """A digital elevation model cannot be used: no or wrong CRS, holes, site off the raster, too large."""
+
+
 class EphemerisRangeError(CraterThermalError):
     """A date lies outside the span of the loaded ephemeris."""
 

@@ -1,8 +1,8 @@
 """Crater geometry: idealized lunar crater (thesis Table 7.1), spherical bowl, flat patch, sphere; mesh I/O.
 
-Frame (see INTERFACES.md): x east, y north, z up [m]; origin at the crater centre on the level of the
-surrounding (pre-impact) plain, so the plain is ``z = 0``, the rim crest is at ``+rim_height`` and the
-floor at ``rim_height - depth``.
+Frame (the crater frame of ephemeris.sun_in_crater_frame): x east, y north, z up [m]; origin at the
+crater centre on the level of the surrounding (pre-impact) plain, so the plain is ``z = 0``, the rim
+crest is at ``+rim_height`` and the floor at ``rim_height - depth``.
 
 Idealized crater (Pike 1977 via the Lunar Sourcebook; thesis Table 7.1, section 7.1.1)
 --------------------------------------------------------------------------------------

@@ -89,6 +89,26 @@ def write_dataset_atomic(ds: xr.Dataset, path: str | os.PathLike, overwrite: boo
     return Path(path)
 
 
+def write_bytes_atomic(path: str | os.PathLike, data: bytes, overwrite: bool = False) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename; umask permissions).
+
+    Raises :class:`OutputExistsError` if ``path`` exists and ``overwrite`` is False.
+    """
+    path = check_output(path, overwrite)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -275,7 +295,27 @@ def mesh_variables(mesh) -> dict:
         "area": (("facet",), np.asarray(mesh.areas, float), {"units": "m2"}),
         "normal": (("facet", "xyz"), np.asarray(mesh.normals, float), {"units": "1"}),
         "centroid": (("facet", "xyz"), np.asarray(mesh.centroids, float), {"units": "m"}),
+        "inner": (("facet",), inner_flags(len(mesh.faces), getattr(mesh, "meta", None)).astype(np.int8),
+                  {"units": "1", "flag_values": np.array([0, 1], np.int8), "flag_meanings": "outer inner",
+                   "long_name": "facet of the analysed region (0: outer terrain for shadows and radiation only)"}),
     }
+
+
+def inner_flags(n_facets: int, meta: Mapping[str, Any] | None) -> np.ndarray:
+    """(n_facets,) bool: facets of the analysed region. A DEM site mesh stores its inner facets first and
+    their count as ``meta["n_inner"]``; every other mesh is all inner."""
+    mask = np.ones(int(n_facets), dtype=bool)
+    n_inner = (meta or {}).get("n_inner")
+    if n_inner is not None:
+        mask[int(n_inner):] = False
+    return mask
+
+
+def dataset_inner(ds: xr.Dataset) -> np.ndarray:
+    """(n_facets,) bool ``inner`` flags of a run/replay dataset (all True for files written before the flag)."""
+    if "inner" in ds:
+        return np.asarray(ds["inner"].values).astype(bool)
+    return np.ones(ds.sizes["facet"], dtype=bool)
 
 
 def base_attrs(mesh, **attrs: Any) -> dict:
@@ -364,7 +404,8 @@ def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_tempera
     }
     if surface_temperature is not None:
         data_vars["surface_temperature"] = (("profile", "time", "facet"), surface_temperature, {"units": "K"})
-    for name in ("mesh_vertices", "mesh_faces", "area", "normal", "centroid", "sun_direction", "sun_distance"):
+    for name in ("mesh_vertices", "mesh_faces", "area", "normal", "centroid", "inner", "sun_direction",
+                 "sun_distance"):
         if name in run:
             data_vars[name] = run[name].variable
     out_attrs = dict(run.attrs)

@@ -12,10 +12,21 @@ Two named property sets (:data:`PROPERTY_SETS`):
       with b0, b3 piecewise linear in density through 1300, 1640, 1970 kg m-3 and extrapolated
       linearly from the end segments (:class:`DensityExtrapolationWarning` outside 1300-1970,
       :class:`~crater_thermal.errors.ProfileError` outside 500-3500).
-    * rock (3070 kg m-3): ``k = alpha(T) rho c(T)``, ``alpha = d0 + d1 / T``.
-      **Erratum / assumption:** the thesis prints d0 = 3.05 m2 s-1 and d1 = 0.040 m2 K s-1, 1e6-1e7
-      too large for rock; we adopt d0 = 3.05e-7 m2 s-1 and d1 = 4.0e-5 m2 K s-1 (k ~ 1.0 W m-1 K-1
-      at 300 K, thermal inertia ~1500 J m-2 K-1 s-1/2, as in other lunar rock models).
+    * rock (3070 kg m-3): ``k = alpha(T) rho c(T)``, ``alpha = d0 + d1 / T`` (thesis Eq. 7.5).
+      **Erratum / reading:** the thesis prints d0 = 3.05 m2 s-1 and d1 = 0.040 m2 K s-1 (1e6-1e7 too
+      large for rock) and cites measurements of returned Apollo rocks in vacuum. That law has the form
+      of the fits of Fujii & Osako (1973, Earth Planet. Sci. Lett. 18, 65-71: thermal diffusivity of
+      lunar rocks under atmospheric and vacuum conditions), ``kappa = A + B / T (+ C T^3)`` in cgs units,
+      whose coefficients are of order A ~ 1e-3 cm2 s-1 and B ~ 1 cm2 K s-1 (their basalt in vacuum, as
+      used by other codes: A = 3.03e-3 cm2 s-1, B = 1.30 cm2 K s-1). The thesis does not name its
+      sample. We read its 3.05 as A in 1e-3 cm2 s-1 and 0.040 as B in cm2 K s-1 and convert both to SI
+      the same way (cm2 = 1e-4 m2): d0 = 3.05e-3 cm2 s-1 = 3.05e-7 m2 s-1, d1 = 0.040 cm2 K s-1 =
+      4.0e-6 m2 K s-1. With c(T) above this gives k = 0.29 W m-1 K-1 and thermal inertia
+      sqrt(k rho c) = 497 J m-2 K-1 s-1/2 at 100 K, k = 0.74 and 1313 at 300 K; the Apollo 17 breccia
+      70161 measures 2.9-3.6e-7 m2 s-1, 0.74 W m-1 K-1 and 1231 J m-2 K-1 s-1/2 at 300 K (Cheng et al.
+      2025, Int. J. Thermophys.). (Until issue 12, d1 was 4.0e-5, a factor 1e-3 with no unit behind it:
+      k = 0.60 / 1.02 W m-1 K-1 at 100 / 300 K. Reading both numbers in 1e-3 cm2 units instead, d1 =
+      4e-9, would give k = 0.26 / 0.71: the T-dependence is a small term either way.)
 
 ``"hayne2017"`` (Hayne et al. 2017, JGR Planets 122)
     * heat capacity ``c = -3.6125 + 2.7431 T + 2.3616e-3 T^2 - 1.2340e-5 T^3 + 8.9093e-9 T^4``
@@ -65,9 +76,10 @@ TABLE_7_2 = np.array([
 #: Densities [kg m-3] covered by Table 7.2 (outside: DensityExtrapolationWarning)
 TABLE_RANGE = (1300.0, 1970.0)
 
-#: Rock diffusivity alpha = ROCK_D0 + ROCK_D1 / T [m2 s-1] (thesis Eq. 7.5 with the unit erratum)
-ROCK_D0 = 3.05e-7
-ROCK_D1 = 4.0e-5
+#: Rock diffusivity alpha = ROCK_D0 + ROCK_D1 / T [m2 s-1] (thesis Eq. 7.5; its 3.05 and 0.040 read as
+#: 3.05e-3 cm2 s-1 and 0.040 cm2 K s-1, the units of Fujii & Osako 1973's fits; see the module docstring)
+ROCK_D0 = 3.05e-7  # [m2 s-1]
+ROCK_D1 = 4.0e-6  # [m2 K s-1]
 
 #: Hemingway et al. 1973 polynomial, ascending powers of T, converted to J kg-1 K-1
 HEMINGWAY_COEFFS = 1000.0 * np.array([-2.3173e-2, 2.1270e-3, 1.5009e-5, -7.3699e-8, 9.6552e-11])

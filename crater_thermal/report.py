@@ -98,7 +98,8 @@ SUMMARY_KEYS = {
                  "pd_limit (infinite dwell), limiting_term (instrument.TERMS), sigma_terms_K {term: K}, answer "
                  "(sentence), pd_vs_dwell [-] on detection_dwell_grid_s, best_local_time_h (null = no samples), "
                  "best_snr, best_dT_K, best_T_nominal_K, snr_by_local_time [-] (24 lunar-hour bins, |mu|/sigma_0 at "
-                 "detection_reference_dwell_s), dwell_s_scatter_half, dwell_s_scatter_double}}}: loose vs nominal "
+                 "detection_reference_dwell_s), dwell_s_scatter_half, dwell_s_scatter_double, dwell_s_no_scatter "
+                 "(the band alone: null = the instrument cannot see it)}}}: loose vs nominal "
                  "from night-time medians (instrument.dwell_for_detection).",
     "figures": "list[str]: files written under figures/.",
     "snapshot_note": "str|null: why 3-D snapshots are missing, if they are.",
@@ -259,7 +260,7 @@ def _detection(A, instruments: Sequence[ins.Instrument], obs: ins.Observation, w
                 continue
             row.update(ins.dwell_for_detection(med, Tn, inst, obs))
             row["pd_vs_dwell"] = ins.detection_probability(med, Tn, grid, inst, obs)
-            for key, f in (("dwell_s_scatter_half", 0.5), ("dwell_s_scatter_double", 2.0)):
+            for key, f in (("dwell_s_scatter_half", 0.5), ("dwell_s_scatter_double", 2.0), ("dwell_s_no_scatter", 0.0)):
                 o = obs.with_scatter(f * obs.natural_scatter_K)
                 row[key] = ins.dwell_for_detection(med, Tn, inst, o)["dwell_s"]
             if with_time:
@@ -552,7 +553,8 @@ def _fig_detectability(summary: dict, path):
     for k in range(len(names), nrow * ncol):
         ax[k // ncol, k % ncol].set_visible(False)
     ax[0, 0].legend(fontsize=6, loc="upper left")
-    fig.suptitle(f"Loose vs nominal, night medians: one-sided test at {100 * obs['false_alarm']:g}% false alarms "
+    fig.suptitle(f"Lat {summary['lat_deg']:g} deg, loose vs nominal, night medians: one-sided test at "
+                 f"{100 * obs['false_alarm']:g}% false alarms "
                  f"(dotted); dashed: P_D = {obs['target_pd']:g}; natural scatter {obs['natural_scatter_K']:g} K, "
                  f"{obs['reference_footprints']} reference footprint(s)", fontsize=9)
     fig.savefig(path)
@@ -636,6 +638,18 @@ def _html_detection(summary: dict) -> str:
              f"40-80 K); calibration gain error on the radiance difference (an offset cancels). Test: "
              f"{html.escape(obs['test'])}, false-alarm rate {100 * obs['false_alarm']:g}%; the dwell is the shortest "
              f"with P_D &ge; {obs['target_pd']:g}. Night-time medians of loose minus nominal.</p>"]
+    sees, blind = [], []
+    for name, per in summary["detection"].items():
+        row = per.get("floor") or next((v for v in per.values() if v.get("dT_median_K") is not None), {})
+        if row.get("dT_median_K") is None:
+            continue
+        if row.get("dwell_s_no_scatter") is not None:
+            sees.append(f"{name} (instrument noise alone: {row['dwell_s_no_scatter']:.3g} s)")
+        else:
+            blind.append(f"{name} (NETD {row['netd_candidate_K']:.3g} K at {row['T_candidate_K']:.1f} K)")
+    parts.append("<p><b>Bands that can see the night-time difference on the floor</b> (ignoring natural scatter): "
+                 f"{html.escape(', '.join(sees) or 'none')}. <b>Bands that cannot</b>: "
+                 f"{html.escape(', '.join(blind) or 'none')}.</p>")
     band = summary["band_signal_night_floor"]
     rows = []
     for name, b in band.items():

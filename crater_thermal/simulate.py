@@ -362,7 +362,7 @@ class Timer:
 
 
 def case_mesh(case):
-    """The mesh a case asks for: an idealized crater, a flat patch, or a mesh file [m]."""
+    """The mesh a case asks for: an idealized crater, a flat patch, a mesh file, or a DEM site [m]."""
     from crater_thermal import geometry
 
     c = case.crater
@@ -370,6 +370,13 @@ def case_mesh(case):
         return geometry.load_mesh(c.mesh)
     if getattr(c, "kind", "crater") == "flat":
         return geometry.flat_mesh()
+    if getattr(c, "kind", "crater") == "dem":
+        from crater_thermal import terrain
+
+        return terrain.site_mesh(c.dem, case.location.lat_deg, case.location.lon_deg, c.radius_km,
+                                 resolution_m=c.resolution_m, outer_radius_km=c.outer_radius_km,
+                                 outer_resolution_m=c.outer_resolution_m, height_kind=c.height_kind,
+                                 max_facets=c.max_facets)
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 

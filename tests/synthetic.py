@@ -1,4 +1,5 @@
-"""Small synthetic run and replay datasets in the contract schema (INTERFACES.md), for tests.
+"""Small synthetic run and replay datasets in the schemas of crater_thermal.io (``run_dataset``,
+``replay_dataset``), for tests.
 
 Nothing here is a physics reference: the numbers are only meant to *look* like a polar crater run
 so that analysis, report and viz can be exercised quickly.

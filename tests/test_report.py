@@ -112,6 +112,7 @@ def test_summary_values_match_an_independent_computation(report_dir, files):
     # the microbolometer receives ~nothing from a night floor: its NETD there is thousands of K
     band = s["band_signal_night_floor"]["microbolometer"]
     assert band["netd_K"][0] > 1e3 and not s["detection"]["microbolometer"]["floor"]["detectable"]
+    assert s["detection"]["microbolometer"]["floor"]["dwell_s_no_scatter"] is None
 
 
 def test_refuses_existing_report_and_overwrites_atomically(report_dir, files):

@@ -57,8 +57,8 @@ def _case_numbers(folder: Path) -> dict | None:
     out["day_abs_dT_loose_upper_wall_sunlit_K"] = med(np.abs(loose), day, ["upper_wall_poleward"])
     if rock is not None:
         out["all_abs_dT_rock_floor_K"] = med(np.abs(rock), np.ones_like(night), floor)
-        out["fraction_time_rock_floor_above_20K"] = float(np.mean(np.abs(rock[:, np.isin(regions, floor or [])]) > 20.0)) \
-            if floor else None
+        out["fraction_time_rock_floor_above_20K"] = (
+            float(np.mean(np.abs(rock[:, np.isin(regions, floor or [])]) > 20.0)) if floor else None)
     q = lambda a, m: [float(v) for v in np.percentile(a[m].ravel(), [25, 50, 75])] if m.any() else None  # noqa: E731
     out["night_dT_loose_quartiles_K"] = q(loose, night)
     out["day_dT_loose_quartiles_K"] = q(loose, day)
@@ -87,8 +87,9 @@ def main() -> None:
     (out / "thesis_results.json").write_text(json.dumps(result, indent=2) + "\n")
 
     f = lambda v, n=2: "—" if v is None else f"{v:.{n}f}"  # noqa: E731
-    print("| lat | night floor T nominal [K] | night loose−nominal floor [K] | night loose−nominal sunlit upper wall [K] "
-          "| day \\|loose−nominal\\| floor / wall [K] | \\|rock−nominal\\| floor [K] | 3-yr spin-up: floor T, floor ΔT [K] |")
+    print("| lat | night floor T nominal [K] | night loose−nominal floor [K] "
+          "| night loose−nominal sunlit upper wall [K] | day \\|loose−nominal\\| floor / wall [K] "
+          "| \\|rock−nominal\\| floor [K] | 3-yr spin-up: floor T, floor ΔT [K] |")
     print("|---|---|---|---|---|---|---|")
     for name, c in result["converged"].items():
         fa = result["faithful"].get(name)
@@ -99,7 +100,7 @@ def main() -> None:
     print()
     print("| flat lat | night loose−nominal Q1 / median / Q3 [K] | day loose−nominal Q1 / median / Q3 [K] |")
     print("|---|---|---|")
-    for name, c in result["flat"].items():
+    for c in result["flat"].values():
         n, d = c["night_dT_loose_quartiles_K"], c["day_dT_loose_quartiles_K"]
         fmt = lambda qs: "—" if qs is None else " / ".join(f(v) for v in qs)  # noqa: E731
         print(f"| {c['lat_deg']:g}° | {fmt(n)} | {fmt(d)} |")

@@ -452,7 +452,7 @@ def linear_sweeps(T, a, b, cc, h, Cd, nsteps, forcing):
         cp = np.empty(nz)
         dp = np.empty(nz)
         Tc = T[c].copy()
-        for s in range(nsteps):
+        for _ in range(nsteps):
             bb = b[0] + h
             cp[0] = cc[0] / bb
             dp[0] = (Cd[0] * Tc[0] + forcing) / bb
