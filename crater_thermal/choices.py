@@ -23,6 +23,7 @@ __all__ = [
     "SCATTERING_METHODS",
     "MOON_FRAMES",
     "SUN_CORRECTIONS",
+    "SUN_METHODS",
     "EPHEMERIS_START",
     "EPHEMERIS_END",
     "DE421_LIBRATION_START",
@@ -47,6 +48,9 @@ SCATTERING_METHODS = ("exact", "bounces")
 MOON_FRAMES = ("iau2009", "de421")
 #: Sun-direction corrections (ephemeris.sun_position_moon_fixed).
 SUN_CORRECTIONS = ("apparent", "light_time", "geometric")
+#: Direct-sunlight methods (simulate; horizons.SUN_METHODS): the ray-traced sampled disk
+#: (illumination.direct_irradiance, the reference) or horizon maps (horizons.direct_irradiance_horizon).
+SUN_METHODS = ("rays", "horizon")
 
 #: First usable instant (UTC) of the ephemeris (ephemeris). DE421 spans JD 2414864.5 to 2471184.5
 #: TDB (1899-07-29 to 2053-10-09); one day is kept as a margin for the light time (~499 s) and

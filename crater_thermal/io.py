@@ -1,6 +1,8 @@
-"""Datasets on disk: the flux / run / replay / steady schemas, validation, atomic writes, checkpoints.
+"""Datasets on disk: the flux / run / replay / steady schemas, validation, checkpoints, and the one
+atomic writer (:func:`atomic_output`) that every output of crater_thermal goes through.
 
-This is the only module that imports xarray. Files are netCDF4 with CF-style ``units``
+This is the only module that imports xarray (inside the functions that need it, so that the writer
+and the checks cost no xarray import). Files are netCDF4 with CF-style ``units``
 attributes. The schemas are contracts (see ``ARCHITECTURE.md``):
 
 Flux dataset (the minimum ``replay`` accepts)
@@ -19,18 +21,22 @@ Replay dataset
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import secrets
+import shutil
 import tempfile
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import TYPE_CHECKING, Any, Iterator, Mapping
 
 import numpy as np
-import xarray as xr
 
 from crater_thermal import __version__
-from crater_thermal.errors import FluxFileError, OutputExistsError
+from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
+
+if TYPE_CHECKING:
+    import xarray as xr
 
 #: Accepted spellings of the irradiance unit.
 FLUX_UNITS = ("W m-2", "W m**-2", "W m^-2", "W/m2", "W/m^2", "W m-2 ")
@@ -43,44 +49,137 @@ _ENCODING = {"zlib": True, "complevel": 1}
 # ----------------------------------------------------------------------------- writing
 
 
-def check_output(path: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Refuse an existing output unless ``overwrite``; create the parent folder.
+def check_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False) -> Path:
+    """Check an output path before any work (nothing is created): refuse it if it exists (unless
+    ``overwrite``) or has the wrong kind.
 
-    Returns the output path. Raises :class:`OutputExistsError`.
+    Parameters
+    ----------
+    path : path-like
+        The file (or, with ``folder``, the folder) to write.
+    overwrite : bool
+        Allow replacing an existing output.
+    folder : bool
+        The output is a folder (a file output must not be a folder, and the reverse).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    OutputExistsError
+        ``path`` exists and ``overwrite`` is False.
+    ConfigError
+        ``path`` is a folder where a file is written (or the reverse), or its parent is a file.
     """
     path = Path(path)
+    if path.is_dir() and not folder:
+        raise ConfigError(f"output {path} is a folder; give a file name (e.g. {path / 'out.nc'})")
+    if path.exists() and folder and not path.is_dir():
+        raise ConfigError(f"output {path} is a file; give a folder name")
     if path.exists() and not overwrite:
         raise OutputExistsError(f"output {path} exists; pass --overwrite to replace it")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.parent.exists() and not path.parent.is_dir():
+        raise ConfigError(f"output {path}: {path.parent} is a file, not a folder")
     return path
 
 
-@contextmanager
-def atomic_output(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it is renamed onto ``path`` (atomic).
+def _temporary_sibling(path: Path, folder: bool) -> Path:
+    """Create an empty file (or folder) beside ``path`` with a fresh hidden name and return it.
 
-    The caller writes the whole file at the yielded path. If anything fails (or the process is
-    killed) ``path`` keeps its earlier content; the temporary file is removed on an exception.
-    The result gets ordinary permissions (0666 minus the umask), not mkstemp's 0600.
+    Created with mode 0o666 (0o777 for a folder) so that the process umask alone sets the
+    permissions: one policy for every output.
     """
-    path = check_output(path, overwrite)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}"
+        try:
+            if folder:
+                os.mkdir(tmp, 0o777)
+            else:
+                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            return tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name beside {path}")  # pragma: no cover
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
     try:
-        yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
+        os.fsync(fd)
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        os.close(fd)
 
 
-def _encoding(ds: xr.Dataset) -> dict:
-    return {name: dict(_ENCODING) for name, var in ds.data_vars.items() if var.dtype.kind == "f" and var.size > 1000}
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False) -> Iterator[Path]:
+    """Write an output atomically: the one writer every crater_thermal output goes through.
+
+    Yields a temporary path in the same folder as ``path`` (an empty file, or with ``folder`` an empty
+    folder; the name ends in ``path``'s suffix, so format-sniffing writers work). When the block ends
+    normally the temporary is renamed onto ``path`` (``os.replace``: readers never see a half-written
+    file, and an interrupted write never damages an earlier output); when it raises, the temporary is
+    removed and ``path`` is untouched. Permissions follow the umask (files 0o666, folders 0o777, minus
+    the umask).
+
+    Parameters
+    ----------
+    path : path-like
+        Final output path; its parent folders are created.
+    overwrite : bool
+        Replace an existing output (checked again at the rename, in case one appeared meanwhile).
+    folder : bool
+        The output is a folder; an existing one (with ``overwrite``) is replaced as a whole.
+
+    Raises
+    ------
+    OutputExistsError, ConfigError
+        As :func:`check_output`, before the block runs.
+
+    Examples
+    --------
+    >>> with atomic_output("run.nc", overwrite=True) as tmp:  # doctest: +SKIP
+    ...     ds.to_netcdf(tmp)
+    """
+    path = check_output(path, overwrite, folder)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the folder of output {path}: {exc.strerror or exc}") from None
+    tmp = _temporary_sibling(path, folder)
+    try:
+        yield tmp
+        check_output(path, overwrite, folder)
+        if folder and path.is_dir():
+            old = _temporary_sibling(path, folder=True)
+            os.replace(path, old)  # a folder cannot be renamed onto a non-empty one: swap
+            try:
+                os.replace(tmp, path)
+            except BaseException:
+                os.replace(old, path)
+                raise
+            _remove(old)
+        else:
+            _fsync(tmp)  # the data reach the disk before the name does
+            os.replace(tmp, path)
+    finally:
+        if os.path.lexists(tmp):
+            _remove(tmp)
 
 
 def write_dataset_atomic(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Write ``ds`` to netCDF4 at ``path`` atomically (temporary file in the same folder, then rename).
+    """Write ``ds`` to netCDF4 at ``path`` through :func:`atomic_output`.
 
     An interrupted write never leaves a half-written file at ``path`` nor damages an earlier one.
     """
@@ -89,46 +188,28 @@ def write_dataset_atomic(ds: xr.Dataset, path: str | os.PathLike, overwrite: boo
     return Path(path)
 
 
+def _encoding(ds: xr.Dataset) -> dict:
+    """Compression for the large float variables of ``ds``."""
+    return {name: dict(_ENCODING) for name, var in ds.data_vars.items() if var.dtype.kind == "f" and var.size > 1000}
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes, overwrite: bool = False) -> Path:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename; umask permissions).
+    """Write ``data`` to ``path`` through :func:`atomic_output`.
 
     Raises :class:`OutputExistsError` if ``path`` exists and ``overwrite`` is False.
     """
-    path = check_output(path, overwrite)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    with atomic_output(path, overwrite) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
 
 
 def save_npz_atomic(path: str | os.PathLike, **arrays: Any) -> Path:
-    """Save arrays to an ``.npz`` file atomically (used for checkpoints and caches)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
+    """Save arrays to an ``.npz`` file through :func:`atomic_output`, replacing any earlier one
+    (checkpoints and caches)."""
+    with atomic_output(path, overwrite=True) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return Path(path)
 
 
 # ----------------------------------------------------------------------------- streaming (bounded memory)
@@ -165,7 +246,7 @@ class _StreamWriter:
             self._nc.setncattr(key, value)
 
 
-@contextmanager
+@contextlib.contextmanager
 def stream_dataset(ds: xr.Dataset, path: str | os.PathLike, variables: Mapping[str, tuple], *,
                    overwrite: bool = False, time_rows: int = 24) -> Iterator[_StreamWriter]:
     """Write a dataset whose large variables arrive in pieces, never whole in memory; atomic.
@@ -348,6 +429,8 @@ def write_steady(path, mesh, results: Mapping[str, np.ndarray], attrs: Mapping[s
         ``ir_incident`` [W m-2], each ``(n_facets,)``.
     attrs : global attributes (albedo, emissivity, sun elevation/azimuth, ...).
     """
+    import xarray as xr
+
     units = {"surface_temperature": "K"}
     data_vars = {
         name: (("facet",), np.asarray(value, float), {"units": units.get(name, "W m-2")})
@@ -376,6 +459,8 @@ def run_dataset(mesh, times, *, solar_incident=None, ir_incident=None, solar_dir
     left out (a streamed run adds it block by block with :func:`stream_dataset`, attributes from
     ``RUN_SERIES_ATTRS``).
     """
+    import xarray as xr
+
     series = {"solar_incident": solar_incident, "ir_incident": ir_incident, "solar_direct": solar_direct,
               "surface_temperature": surface_temperature}
     data_vars = {name: (("time", "facet"), value, dict(RUN_SERIES_ATTRS[name]))
@@ -398,6 +483,8 @@ def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_tempera
                    attrs: Mapping[str, Any] | None = None) -> xr.Dataset:
     """Assemble the replay dataset: ``surface_temperature(profile, time, facet)`` [K] plus the run's mesh
     (``surface_temperature=None`` leaves it out, for :func:`stream_dataset` to add block by block)."""
+    import xarray as xr
+
     data_vars = {
         "rho_top": (("profile",), np.asarray(rho_top, float), {"units": "kg m-3"}),
         "rho_bottom": (("profile",), np.asarray(rho_bottom, float), {"units": "kg m-3"}),
@@ -419,6 +506,8 @@ def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_tempera
 
 
 def _open(path, what: str, load: bool = True) -> xr.Dataset:
+    import xarray as xr
+
     path = Path(path)
     if not path.is_file():
         raise FluxFileError(f"{what} file {path} does not exist")
@@ -460,19 +549,19 @@ def _blocks(var, max_bytes: int = 64 << 20):
         yield np.asarray(var[i:i + step].values)
 
 
-def _check_time(ds, path) -> None:
-    if "time" not in ds.coords and "time" not in ds:
-        raise FluxFileError(f"{path}: missing coordinate 'time'")
-    t = np.asarray(ds["time"].values)
+def _check_time(ds, path, name: str = "time") -> None:
+    if name not in ds.coords and name not in ds:
+        raise FluxFileError(f"{path}: missing coordinate '{name}'")
+    t = np.asarray(ds[name].values)
     if t.dtype.kind != "M":
-        raise FluxFileError(f"{path}: 'time' is not a datetime coordinate (dtype {t.dtype})")
+        raise FluxFileError(f"{path}: '{name}' is not a datetime coordinate (dtype {t.dtype})")
     if t.size < 2:
-        raise FluxFileError(f"{path}: 'time' needs at least 2 samples, has {t.size}")
+        raise FluxFileError(f"{path}: '{name}' needs at least 2 samples, has {t.size}")
     if np.any(np.isnat(t)):
-        raise FluxFileError(f"{path}: 'time' has missing values")
+        raise FluxFileError(f"{path}: '{name}' has missing values")
     if np.any(np.diff(t) <= np.timedelta64(0, "ns")):
         i = int(np.argmax(np.diff(t) <= np.timedelta64(0, "ns")))
-        raise FluxFileError(f"{path}: 'time' is not strictly increasing at index {i + 1} ({t[i + 1]})")
+        raise FluxFileError(f"{path}: '{name}' is not strictly increasing at index {i + 1} ({t[i + 1]})")
 
 
 def _check_attr_range(ds, path, name, lo, hi, default=None) -> None:
@@ -492,17 +581,28 @@ def _check_attr_range(ds, path, name, lo, hi, default=None) -> None:
 def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
     """Open and validate a flux dataset (any file with ``time``, ``solar_incident``, ``ir_incident``).
 
+    The optional spin-up window (``spinup_solar_incident``, ``spinup_ir_incident`` on ``spinup_time``,
+    ending at the first ``time``) is checked the same way when present.
+
     ``load=False`` keeps the variables on disk (read when used; validation reads them block by block),
-    for runs too large to hold in memory. Raises :class:`FluxFileError` naming the problem: unreadable
-    file, missing variable, wrong dims or units, NaN/inf, non-monotonic time, albedo/emissivity
-    attributes out of range.
+    for runs too large to hold in memory.
+
+    Raises :class:`FluxFileError` naming the problem: unreadable file, missing variable, wrong dims or
+    units, NaN/inf, negative irradiance, non-monotonic time, albedo/emissivity attributes out of range.
     """
     ds = _open(path, "flux", load=load)
-    _check_time(ds, path)
-    for name in ("solar_incident", "ir_incident"):
-        _check_var(ds, path, name, ("time", "facet"), FLUX_UNITS)
-        if any(np.any(v < 0) for v in _blocks(ds[name])):
-            raise FluxFileError(f"{path}: negative irradiance in solar_incident or ir_incident")
+    groups = [("time", ("solar_incident", "ir_incident"))]
+    if "spinup_solar_incident" in ds or "spinup_ir_incident" in ds:
+        groups.append(("spinup_time", ("spinup_solar_incident", "spinup_ir_incident")))
+    for time_name, names in groups:
+        _check_time(ds, path, time_name)
+        for name in names:
+            _check_var(ds, path, name, (time_name, "facet"), FLUX_UNITS)
+            if any(np.any(v < 0) for v in _blocks(ds[name])):
+                raise FluxFileError(f"{path}: negative irradiance in {name}")
+    if len(groups) > 1 and ds["spinup_time"].values[-1] > ds["time"].values[0]:
+        raise FluxFileError(f"{path}: 'spinup_time' must end at or before the first 'time' "
+                            f"({ds['spinup_time'].values[-1]} > {ds['time'].values[0]})")
     _check_attr_range(ds, path, "albedo", 0.0, 1.0)
     _check_attr_range(ds, path, "emissivity", 1e-6, 1.0)
     return ds

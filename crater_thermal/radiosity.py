@@ -76,7 +76,9 @@ def _as_sparse(F) -> sp.csr_matrix:
     return F
 
 
-def _per_facet(name: str, value, nf: int, lo: float, hi: float, hi_open: bool) -> np.ndarray:
+def check_per_facet(name: str, value, nf: int, lo: float, hi: float, hi_open: bool) -> np.ndarray:
+    """``value`` (a scalar or (nf,)) as an (nf,) float array within [lo, hi] (or [lo, hi) if ``hi_open``);
+    otherwise :class:`ConfigError` naming ``name``."""
     v = np.asarray(value, dtype=float)
     try:
         v = np.broadcast_to(v, (nf,)).copy()
@@ -109,7 +111,7 @@ class ScatteringSolver:
     def __init__(self, F, albedo=ALBEDO, method: str = "exact", n_bounces: int = DEFAULT_BOUNCES):
         self.F = _as_sparse(F)
         nf = self.F.shape[0]
-        self.albedo = _per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
+        self.albedo = check_per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
         if method not in SCATTERING_METHODS:
             raise ConfigError(f"scattering method = {method!r}; allowed: {', '.join(SCATTERING_METHODS)}")
         if isinstance(n_bounces, bool) or not isinstance(n_bounces, (int, np.integer)) or not 0 <= n_bounces <= 1000:
@@ -178,7 +180,7 @@ def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
     nf = F.shape[0]
     if T.shape[-1] != nf:
         raise ConfigError(f"temperature has shape {T.shape}; last axis must be {nf} facets")
-    eps = _per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
+    eps = check_per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
     u = eps * SIGMA * T**4
     flat = u.reshape(-1, nf)
     return np.asarray(F @ flat.T).T.reshape(T.shape)
@@ -201,8 +203,8 @@ def equilibrium_temperature(F, solar_incident: np.ndarray, albedo=ALBEDO, emissi
     """
     F = _as_sparse(F)
     nf = F.shape[0]
-    A = _per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
-    eps = _per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
+    A = check_per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
+    eps = check_per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
     if np.any(eps <= 0):
         raise ConfigError("emissivity = 0 is outside (0, 1] for a radiative equilibrium")
     Q = np.asarray(solar_incident, dtype=float)
@@ -303,71 +305,3 @@ def ingersoll_shadow_temperature(
         Ed = S * np.sin(elevation_rad) * (1 - f)
         sT4 = (1 - A) * f * Ed / (1 - A * f) * (A + eps / (1 - eps * f)) / eps
     return float((sT4 / SIGMA) ** 0.25)
-
-
-# --------------------------------------------------------------------- command-line driver
-
-
-def steady_file(
-    mesh_path,
-    output,
-    sun_elevation_deg: float,
-    sun_azimuth_deg: float = 180.0,
-    albedo: float = ALBEDO,
-    emissivity: float = EMISSIVITY,
-    solar_constant: float = SOLAR_CONSTANT,
-    point_sun: bool = False,
-    limb_darkening: str = "linear",
-    n_rings: int | None = None,
-    method: str = "exact",
-    n_bounces: int = DEFAULT_BOUNCES,
-    cache_dir=None,
-    overwrite: bool = False,
-):
-    """Load a mesh, solve the radiative equilibrium under a fixed Sun at 1 au, write it (``crater-thermal steady``).
-
-    All inputs are checked before any work (ConfigError / MeshError / OutputExistsError).
-
-    Returns
-    -------
-    (path, results) : the written path and the :func:`steady_state` dict.
-    """
-    from pathlib import Path
-
-    from crater_thermal import illumination, io
-    from crater_thermal.errors import OutputExistsError
-    from crater_thermal.geometry import load_mesh
-    from crater_thermal.raytrace import RayTracer
-    from crater_thermal.viewfactors import view_factor_matrix
-
-    sun = illumination.sun_direction_from_angles(sun_elevation_deg, sun_azimuth_deg)
-    _per_facet("albedo", albedo, 1, 0.0, 1.0, hi_open=True)
-    _per_facet("emissivity", emissivity, 1, 0.0, 1.0, hi_open=False)
-    if not emissivity > 0:
-        raise ConfigError(f"emissivity = {emissivity!r} is outside (0, 1]")
-    if not np.isfinite(solar_constant) or solar_constant < 0:
-        raise ConfigError(f"solar_constant = {solar_constant!r} W m-2 must be finite and >= 0")
-    if method not in SCATTERING_METHODS:
-        raise ConfigError(f"scattering method = {method!r}; allowed: {', '.join(SCATTERING_METHODS)}")
-    disk = None if point_sun else illumination.sun_disk(n_rings or illumination.DEFAULT_N_RINGS, limb_darkening)
-    out = Path(output)
-    if out.exists() and not overwrite:
-        raise OutputExistsError(f"output {out} exists; pass --overwrite to replace it")
-    mesh = load_mesh(mesh_path)
-    tracer = RayTracer(mesh)
-    F = view_factor_matrix(mesh, tracer, cache_dir=cache_dir)
-    res = steady_state(mesh, F, tracer, sun, AU, albedo, emissivity, solar_constant, disk, method, n_bounces)
-    attrs = {
-        "albedo": float(albedo),
-        "emissivity": float(emissivity),
-        "solar_constant": float(solar_constant),
-        "sun_elevation_deg": float(sun_elevation_deg),
-        "sun_azimuth_deg": float(sun_azimuth_deg),
-        "sun_distance_au": 1.0,
-        "sun_model": "point" if disk is None else f"disk, {disk.law} limb darkening, {disk.n_patches} patches",
-        "scattering": method if method == "exact" else f"{n_bounces} bounces",
-        "ir_reflection": 0,
-        "conduction": 0,
-    }
-    path = io.write_steady(out, mesh, res, attrs, overwrite=overwrite)
-    return path, res

@@ -7,8 +7,9 @@
 * ``out_dir/report.html``: self-contained (PNGs embedded as base64), readable offline;
 * ``out_dir/summary.json``: the keys documented in :data:`SUMMARY_KEYS` (units in the key names).
 
-Everything is first written to a temporary folder beside ``out_dir`` and then moved into place,
-``report.html`` last; an existing ``report.html`` is refused unless ``overwrite=True``.
+Each of the three is written through :func:`crater_thermal.io.atomic_output` and moved into place
+only when everything is done, ``report.html`` last; an existing report is refused unless
+``overwrite=True``. Without pyvista (the ``viz`` extra) the 3-D snapshots are skipped with a note.
 The analysis itself lives in :mod:`crater_thermal.analysis`.
 """
 
@@ -20,17 +21,17 @@ import html
 import json
 import math
 import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from crater_thermal import analysis as an
 from crater_thermal import instrument as ins
-from crater_thermal.errors import ConfigError, CraterThermalError, FluxFileError, OutputExistsError
+from crater_thermal import io as ctio
+from crater_thermal.errors import ConfigError, CraterThermalError, MissingExtraError
+from crater_thermal.progress import bar
 
 #: Figure files written to ``figures/`` (3-D snapshots are added when rendering works).
 FIGURES = {
@@ -106,42 +107,6 @@ SUMMARY_KEYS = {
 }
 
 PathOrDs = Union[str, os.PathLike, object]
-
-
-# ---------------------------------------------------------------------------------------- I/O
-
-
-def _open(path, kind: str):
-    from crater_thermal import io as ctio
-
-    return getattr(ctio, f"open_{kind}")(path)
-
-
-def _open_run(path):
-    """Open a run dataset through ``crater_thermal.io.open_run``."""
-    return _open(path, "run")
-
-
-def _open_replay(path):
-    """Open a replay dataset through ``crater_thermal.io.open_replay``."""
-    return _open(path, "replay")
-
-
-@contextlib.contextmanager
-def progress_bar(description: str, total: int, enabled: Optional[bool] = None) -> Iterator[Callable[[], None]]:
-    """Context yielding ``advance()``; a rich bar on stderr when enabled (default: stderr is a terminal)."""
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    if not enabled:
-        yield lambda: None
-        return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=Console(stderr=True), transient=True) as prog:
-        task = prog.add_task(description, total=total)
-        yield lambda: prog.advance(task)
 
 
 # ------------------------------------------------------------------------------------ summary
@@ -432,7 +397,7 @@ def _fig_density_grid(A, path):
         for (r, c), v in np.ndenumerate(grid):
             if np.isfinite(v):
                 a.text(c, r, f"{v:.2f}", ha="center", va="center", fontsize=7)
-    nom = an._parse_two_layer(A.nominal)
+    nom = an.parse_two_layer(A.nominal)
     if nom and nom[0] in tops and nom[1] in bottoms:
         r, c = list(tops).index(nom[0]), list(bottoms).index(nom[1])
         a.add_patch(Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, ec="k", lw=2.5))
@@ -596,19 +561,103 @@ def _fig_local_time(summary: dict, path):
     fig.savefig(path)
 
 
+# ------------------------------------------------------------------------- DEM sites: plan-view maps
+
+#: Figure of a DEM site (kind "dem"): maps in the DEM's own projected coordinates.
+SITE_FIGURES = {
+    "site_maps.png": "Plan view in the DEM's projected coordinates (x, y [km]): per-facet night-time median nominal "
+                     "temperature, night-time median loose minus nominal, and the probability of detecting it at the "
+                     "reference dwell (best instrument); outer shadow-only terrain grey.",
+}
+
+
+def is_site(A) -> bool:
+    """True for a run on a DEM site (mesh kind "dem"): crater radii do not exist there."""
+    return A.meta.get("kind") == "dem"
+
+
+def _night_facet_median(values: np.ndarray, night) -> np.ndarray:
+    """(nf,) per-facet median over the night samples [same unit]; ``night`` (nt,) or (nt, nf) bool."""
+    mask = np.asarray(night, bool)
+    if mask.ndim == 1:
+        return np.median(values[mask], axis=0) if mask.any() else np.full(values.shape[1], np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # facets without a night sample: NaN
+            return np.nanmedian(np.where(mask, values, np.nan), axis=0)
+
+
+def site_plan_coordinates(run) -> Tuple[np.ndarray, str]:
+    """(nv, 2) vertex positions [km] in the DEM's projected CRS, and the CRS name (terrain does the projection)."""
+    from crater_thermal import terrain
+
+    meta = an.mesh_meta(run)
+    x, y = terrain.local_to_dem_xy(np.asarray(run["mesh_vertices"].values, float), meta)
+    return np.column_stack([np.asarray(x), np.asarray(y)]) / 1000.0, str(meta.get("crs_name", "DEM CRS"))
+
+
+def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: ins.Observation) -> None:
+    from matplotlib.tri import Triangulation
+
+    xy, crs_name = site_plan_coordinates(A.run)
+    f = np.asarray(A.run["mesh_faces"].values, int)
+    inner = np.asarray(A.run["inner"].values, bool) if "inner" in A.run else np.ones(len(f), bool)
+    tri = Triangulation(xy[:, 0], xy[:, 1], f)
+    T_night = _night_facet_median(A.T_nom, A.night)
+    panels = [(T_night, "night-time median T, nominal [K]", "inferno", None)]
+    if A.loose is not None:
+        dT = _night_facet_median(A.loose_dT, A.night) if A.loose_dT is not None else A.night_map[A.loose]
+        lim = float(np.nanmax(np.abs(dT[inner]))) if np.isfinite(dT[inner]).any() else 1.0
+        panels.append((dT, f"night-time median {A.loose} - nominal [K]", "RdBu_r", (-max(lim, 1e-3), max(lim, 1e-3))))
+        if instruments:
+            inst = instruments[0]
+            ok = np.isfinite(dT) & np.isfinite(T_night) & (T_night + np.nan_to_num(dT) > 0)
+            pd = np.full(len(f), np.nan)
+            for k in np.flatnonzero(ok & inner):
+                pd[k] = float(np.ravel(ins.detection_probability(dT[k], T_night[k], np.array([REFERENCE_DWELL_S]),
+                                                                  inst, observation))[0])
+            panels.append((pd, f"P(detect) in {REFERENCE_DWELL_S:g} s, {inst.name}", "viridis", (0.0, 1.0)))
+    n = len(panels)
+    fig, ax = _figure(1, n, (5.0 * n + 0.6, 4.9))
+    for k, (vals, label, cmap, clim) in enumerate(panels):
+        a = ax[0, k]
+        v = np.array(vals, float)
+        v[~inner] = np.nan
+        if not inner.all():  # outer shadow-only terrain, light grey
+            from matplotlib.colors import ListedColormap
+
+            a.tripcolor(tri, facecolors=np.zeros(len(f)), cmap=ListedColormap(["#d9d9d9"]))
+        tri_in = Triangulation(xy[:, 0], xy[:, 1], f[inner])
+        lo, hi = clim if clim else (float(np.nanmin(v)), float(np.nanmax(v)))
+        pc = a.tripcolor(tri_in, facecolors=np.nan_to_num(v[inner], nan=lo), cmap=cmap, vmin=lo,
+                         vmax=max(hi, lo + 1e-3))
+        fig.colorbar(pc, ax=a, shrink=0.8, label=label)
+        a.set_aspect("equal")
+        a.set_xlabel("x [km]")
+        a.set_ylabel("y [km]")
+        a.set_title(label.split(" [")[0], fontsize=9)
+    fig.suptitle(f"{A.meta.get('dem_source', 'DEM')} ({crs_name}), centre {A.lat:g} deg, "
+                 f"{float(A.run.attrs.get('lon_deg', np.nan)):g} deg", fontsize=10)
+    fig.savefig(path)
+
+
 def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
     from crater_thermal import viz
 
     i = int(np.argmax(np.asarray(A.run["sun_direction"].values)[:, 2]))
+    vx = viz.site_exaggeration(A.run)
     viz.snapshot(A.run, A.T_nom[i], i, "Surface temperature [K]", f"Nominal {A.nominal}",
-                 fig_dir / "map3d_temperature.png", cmap="inferno")
+                 fig_dir / "map3d_temperature.png", cmap="inferno", exaggeration=vx)
     out = ["map3d_temperature.png"]
     if A.loose is not None:
         m = A.night_map[A.loose]
         lim = float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else 1.0
         j = int(np.flatnonzero(A.night)[0]) if A.night.any() else i
         viz.snapshot(A.run, m, j, "night median dT [K]", f"Night-time median {A.loose} - nominal",
-                     fig_dir / "map3d_night_dT.png", cmap="RdBu_r", clim=(-max(lim, 1e-3), max(lim, 1e-3)))
+                     fig_dir / "map3d_night_dT.png", cmap="RdBu_r", clim=(-max(lim, 1e-3), max(lim, 1e-3)),
+                     exaggeration=vx)
         out.append("map3d_night_dT.png")
     return out
 
@@ -731,30 +780,16 @@ def _as_list(x) -> list:
     return list(x) if isinstance(x, (list, tuple)) else [x]
 
 
+#: What a report writes into its folder (anything else there is left alone).
+_MEMBERS = ("report.html", "summary.json", "figures")
+
+
 def _refuse_existing(out_dir: Path, overwrite: bool) -> None:
-    if overwrite:
-        return
-    for name in ("report.html", "summary.json", "figures"):
-        if (out_dir / name).exists():
-            raise OutputExistsError(f"{out_dir / name} exists; use --overwrite to replace it")
-
-
-def _install(tmp: Path, out_dir: Path) -> None:
-    """Move the finished report from ``tmp`` into ``out_dir``; report.html last."""
-    if not out_dir.exists():
-        os.replace(tmp, out_dir)
-        return
-    old_fig = out_dir / "figures"
-    trash = None
-    if old_fig.exists():
-        trash = Path(tempfile.mkdtemp(prefix=".old-figures-", dir=out_dir))
-        os.replace(old_fig, trash / "figures")
-    os.replace(tmp / "figures", old_fig)
-    os.replace(tmp / "summary.json", out_dir / "summary.json")
-    os.replace(tmp / "report.html", out_dir / "report.html")
-    shutil.rmtree(tmp, ignore_errors=True)
-    if trash is not None:
-        shutil.rmtree(trash, ignore_errors=True)
+    """Refuse an existing report (any of :data:`_MEMBERS`) unless ``overwrite``, before any work."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"report folder {out_dir} is a file; give a folder name")
+    for name in _MEMBERS:
+        ctio.check_output(out_dir / name, overwrite, folder=name == "figures")
 
 
 def sweep_pairs(folder) -> Tuple[List[Path], List[Path]]:
@@ -821,8 +856,8 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
     opened = []
     try:
-        runs = [_track(_open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
-        reps = [_track(_open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
+        runs = [_track(ctio.open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
+        reps = [_track(ctio.open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
         return _make_report(runs, reps, out_dir, overwrite, progress, instruments, threshold_K,
                             observation, snapshots)
     finally:
@@ -838,26 +873,30 @@ def _track(ds, opened: list):
 def _make_report(runs, reps, out_dir: Path, overwrite, progress, instruments, threshold_K, observation,
                  snapshots) -> Path:
     for run, rep in zip(runs, reps):
-        an.check_run(run, an._RUN_VARS + ("solar_incident", "ir_incident"))
+        an.check_run(run, an.RUN_VARIABLES + ("solar_incident", "ir_incident"))
         an.check_pair(run, rep)
     n_profiles = sum(len(an.profile_labels(p)) - 1 for p in reps)
     n_steps = n_profiles + len(FIGURES) + 1
-    with progress_bar("report: profiles, figures", n_steps, progress) as advance:
+    with bar("report: profiles, figures", progress) as report:
+        done = [0]
+
+        def advance() -> None:
+            done[0] += 1
+            if report is not None:
+                report(done[0], n_steps)
+
         all_A = [_Analysis(r, p, threshold_K, advance) for r, p in zip(runs, reps)]
         return _write_report(all_A, out_dir, overwrite, advance, instruments, observation, snapshots)
 
 
 def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observation, snapshots) -> Path:
+    """Write figures/, summary.json and report.html, each through io.atomic_output (report.html last)."""
     A = all_A[0]
-
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-tmp-", dir=out_dir.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; the report folder is an ordinary folder
-    try:
-        fig_dir = tmp / "figures"
-        fig_dir.mkdir()
+    with contextlib.ExitStack() as stack:
+        # installed in the reverse order of entering: figures/, then summary.json, then report.html
+        html_tmp = stack.enter_context(ctio.atomic_output(out_dir / "report.html", overwrite))
+        json_tmp = stack.enter_context(ctio.atomic_output(out_dir / "summary.json", overwrite))
+        fig_dir = stack.enter_context(ctio.atomic_output(out_dir / "figures", overwrite, folder=True))
         jobs = [
             ("fig7_4_incident_flux.png", lambda p: _fig_fluxes(A, p)),
             ("fig7_5_temperature.png", lambda p: _fig_temperature(A, p)),
@@ -883,6 +922,9 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         if snapshots:
             try:
                 figures += _snapshots(A, fig_dir)
+            except MissingExtraError as exc:
+                note = f"3-D snapshots skipped: {exc}"
+                print(f"note: {note}", file=sys.stderr)
             except CraterThermalError:
                 raise
             except Exception as exc:  # rendering depends on OpenGL; the report must not
@@ -892,11 +934,6 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         advance()
         summary["figures"] = figures
         summary["snapshot_note"] = note
-        (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-        (tmp / "report.html").write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS}), encoding="utf-8")
-        _refuse_existing(out_dir, overwrite)  # in case one appeared meanwhile
-        _install(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        json_tmp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        html_tmp.write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS}), encoding="utf-8")
     return out_dir / "report.html"

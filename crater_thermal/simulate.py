@@ -21,8 +21,8 @@ Start of the recorded period
 
 from __future__ import annotations
 
+import contextlib
 import os
-import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,65 +61,13 @@ def chunk_bytes(case) -> float:
 # ----------------------------------------------------------------------------- progress
 
 
-def progress_enabled(flag: bool | None = None) -> bool:
-    """Progress bars on a terminal, quiet in CI or when piped (``flag`` overrides)."""
-    if flag is not None:
-        return flag
-    if os.environ.get("CI") or os.environ.get("CRATER_THERMAL_QUIET"):
-        return False
-    return sys.stderr.isatty()
-
-
-@contextmanager
-def progress_bar(description: str, total: float, enabled: bool | None = None):
-    """A rich progress bar (with ETA) yielding ``update(advance, info)``; a no-op when disabled."""
-    with _bar(description, enabled) as report:
-        if report is None:
-            yield lambda advance=1, info="": None
-            return
-        done = [0]
-
-        def update(advance=1, info=""):
-            done[0] += advance
-            report(done[0], total)
-
-        yield update
-
-
-@contextmanager
-def _bar(description: str, enabled: bool | None = None):
-    """A rich bar on stderr (done/total, elapsed, time left) yielding ``report(done, total)``, or None."""
-    if not progress_enabled(enabled):
-        yield None
-        return
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("eta"), TimeRemainingColumn(), console=Console(stderr=True), transient=False) as prog:
-        task = prog.add_task(description, total=None)
-
-        def report(done, total):
-            prog.update(task, completed=done, total=max(total, done))
-
-        yield report
-
-
 def _stage(progress, description: str):
-    """Context yielding one stage's progress callback ``report(done, total)`` (work units), or None.
+    """Context yielding the stage's ``(done, total)`` callback from a reporter, or None without one.
 
-    ``progress`` is a reporter (a callable: description -> context manager yielding that callback), or
-    True / False / None for the built-in bar (None: on a terminal only, never in CI)."""
-    if callable(progress):
-        return progress(description)
-    return _bar(description, progress)
+    ``progress`` is a reporter (``crater_thermal.progress``): ``progress(description)`` is a context
+    manager yielding a ``ProgressCallback``. None (or False) means no progress reporting.
+    """
+    return progress(description) if progress else contextlib.nullcontext(None)
 
 
 # ----------------------------------------------------------------------------- coupled stepping
@@ -209,8 +157,9 @@ def seconds_since(times: np.ndarray, t0: np.datetime64) -> np.ndarray:
 
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
-                  fixed_spinup: bool = False, chunk_columns: int = 50_000, progress: bool | None = None,
-                  tol_K: float = 0.01, chunk_mb: float = DEFAULT_CHUNK_MB, write: Callable | None = None):
+                  fixed_spinup: bool = False, chunk_columns: int = 50_000,
+                  progress: Callable[[int, int], None] | None = None, tol_K: float = 0.01,
+                  chunk_mb: float = DEFAULT_CHUNK_MB, write: Callable | None = None):
     """Replay saved fluxes against several density profiles (no coupling: the IR is the saved one).
 
     Columns (profile x facet) are solved in batches of at most ``chunk_columns``; each batch reads the
@@ -229,6 +178,8 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
         spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
     write : ``write(profiles_slice, times_slice, facets_slice, T)`` receives float32 surface
         temperatures [K] of shape (profiles, times, facets); None: return them all.
+    progress : optional ``progress(done, total)`` callback, in column-batch time steps (the total
+        assumes about 5 periodic windows per batch and grows if more are needed).
 
     Returns
     -------
@@ -266,78 +217,78 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     spin_windows = 1 if fixed else 5  # ETA: a periodic start usually takes about 4-6 windows
     work = n_batches * ((spin_windows * (len(t_spin) - 1) if (has_spin or not fixed) else 0) + nt - 1)
     done = [0]
-    with _stage(progress, f"replay ({n_prof} profiles x {nf} facets)") as report:
-        for f0 in range(0, nf, n_fb):
-            f1 = min(nf, f0 + n_fb)
-            nfb = f1 - f0
-            ncols_max = nfb * min(per_chunk, n_prof)
-            # per sample: two float64 flux reads + absorbed (3 x 8 B per facet), float32 T per column
-            rows = max(2, int(chunk_mb * 2**20 // (24 * nfb + 8 * ncols_max)))
-            cache: dict = {}
+    report = progress or None
+    for f0 in range(0, nf, n_fb):
+        f1 = min(nf, f0 + n_fb)
+        nfb = f1 - f0
+        ncols_max = nfb * min(per_chunk, n_prof)
+        # per sample: two float64 flux reads + absorbed (3 x 8 B per facet), float32 T per column
+        rows = max(2, int(chunk_mb * 2**20 // (24 * nfb + 8 * ncols_max)))
+        cache: dict = {}
 
-            def absorbed(which, k0, k1, f0=f0, f1=f1, rows=rows, cache=cache):
-                """Absorbed flux [W m-2] of samples k0..k1-1 of the spin-up or record window, this batch's facets."""
-                n_all = len(t_spin) if which == "spin" else nt
-                if n_all <= rows:  # the whole window fits the budget: read it once
-                    if which not in cache:
-                        sol, ir = names[which]
-                        cache[which] = ((1 - albedo) * flux_ds[sol][:, f0:f1].values
-                                        + eps * flux_ds[ir][:, f0:f1].values)
-                    return cache[which][k0:k1]
-                sol, ir = names[which]
-                return ((1 - albedo) * flux_ds[sol][k0:k1, f0:f1].values
-                        + eps * flux_ds[ir][k0:k1, f0:f1].values)
+        def absorbed(which, k0, k1, f0=f0, f1=f1, rows=rows, cache=cache):
+            """Absorbed flux [W m-2] of samples k0..k1-1 of the spin-up or record window, this batch's facets."""
+            n_all = len(t_spin) if which == "spin" else nt
+            if n_all <= rows:  # the whole window fits the budget: read it once
+                if which not in cache:
+                    sol, ir = names[which]
+                    cache[which] = ((1 - albedo) * flux_ds[sol][:, f0:f1].values
+                                    + eps * flux_ds[ir][:, f0:f1].values)
+                return cache[which][k0:k1]
+            sol, ir = names[which]
+            return ((1 - albedo) * flux_ds[sol][k0:k1, f0:f1].values
+                    + eps * flux_ds[ir][k0:k1, f0:f1].values)
 
-            spin_which = "spin" if has_spin else "rec"
+        spin_which = "spin" if has_spin else "rec"
 
-            def window(solver, which, t, record_into=None, rows=rows, absorbed=absorbed):
-                """Run the columns through a window block by block (rows overlap by one sample)."""
-                n = len(t)
-                for a in range(0, n - 1, rows - 1):
-                    b = min(n, a + rows)
-                    T = solver.run_series(t[a:b], absorbed(which, a, b), record=record_into is not None)
-                    if record_into is not None:
-                        record_into(a, T)
-                    done[0] += b - 1 - a
-                    if report is not None:
-                        report(done[0], max(work, done[0]))
+        def window(solver, which, t, record_into=None, rows=rows, absorbed=absorbed):
+            """Run the columns through a window block by block (rows overlap by one sample)."""
+            n = len(t)
+            for a in range(0, n - 1, rows - 1):
+                b = min(n, a + rows)
+                T = solver.run_series(t[a:b], absorbed(which, a, b), record=record_into is not None)
+                if record_into is not None:
+                    record_into(a, T)
+                done[0] += b - 1 - a
+                if report is not None:
+                    report(done[0], max(work, done[0]))
 
-            for p0 in range(0, n_prof, per_chunk):
-                chunk = list(profiles[p0:p0 + per_chunk])
-                cols = [p for p in chunk for _ in range(nfb)]
-                solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
-                n_sp = len(t_spin)
-                eq = None
-                if initial_temperature is None:
-                    eq = sum(solver.equilibrium_surface(absorbed(spin_which, a, min(n_sp, a + rows)))
-                             * (min(n_sp, a + rows) - a) for a in range(0, n_sp, rows)) / n_sp
-                # (nt, nfb) forcing serves every profile: column j of the solver uses forcing column j % nfb
-                if fixed:
-                    if initial_temperature is not None:
-                        solver.set_uniform(float(initial_temperature))
-                    else:
-                        solver.set_equilibrium(surface_K=eq)
-                    if has_spin:
-                        window(solver, "spin", t_spin)
+        for p0 in range(0, n_prof, per_chunk):
+            chunk = list(profiles[p0:p0 + per_chunk])
+            cols = [p for p in chunk for _ in range(nfb)]
+            solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
+            n_sp = len(t_spin)
+            eq = None
+            if initial_temperature is None:
+                eq = sum(solver.equilibrium_surface(absorbed(spin_which, a, min(n_sp, a + rows)))
+                         * (min(n_sp, a + rows) - a) for a in range(0, n_sp, rows)) / n_sp
+            # (nt, nfb) forcing serves every profile: column j of the solver uses forcing column j % nfb
+            if fixed:
+                if initial_temperature is not None:
+                    solver.set_uniform(float(initial_temperature))
                 else:
                     solver.set_equilibrium(surface_K=eq)
+                if has_spin:
+                    window(solver, "spin", t_spin)
+            else:
+                solver.set_equilibrium(surface_K=eq)
 
-                    def period_map(x, solver=solver, window=window, spin_which=spin_which):
-                        solver.set_state(x)
-                        window(solver, spin_which, t_spin)
-                        return solver.state()
+                def period_map(x, solver=solver, window=window, spin_which=spin_which):
+                    solver.set_state(x)
+                    window(solver, spin_which, t_spin)
+                    return solver.state()
 
-                    pinfo = thermal.periodic_state(solver, period_map, tol_K=tol_K)
-                    info["periodic_iterations"].append(int(pinfo["iterations"]))
-                    info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
+                pinfo = thermal.periodic_state(solver, period_map, tol_K=tol_K)
+                info["periodic_iterations"].append(int(pinfo["iterations"]))
+                info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
 
-                def record_into(a, T, p0=p0, nch=len(chunk), f0=f0, f1=f1):
-                    T = np.asarray(T, np.float32).reshape(len(T), nch, f1 - f0).transpose(1, 0, 2)
-                    lo = 0 if a == 0 else 1  # blocks overlap by one sample
-                    write(slice(p0, p0 + nch), slice(a + lo, a + len(T[0])), slice(f0, f1), T[:, lo:])
+            def record_into(a, T, p0=p0, nch=len(chunk), f0=f0, f1=f1):
+                T = np.asarray(T, np.float32).reshape(len(T), nch, f1 - f0).transpose(1, 0, 2)
+                lo = 0 if a == 0 else 1  # blocks overlap by one sample
+                write(slice(p0, p0 + nch), slice(a + lo, a + len(T[0])), slice(f0, f1), T[:, lo:])
 
-                window(solver, "rec", t_rec, record_into)
-                del solver
+            window(solver, "rec", t_rec, record_into)
+            del solver
     return out, info
 
 
@@ -380,7 +331,8 @@ def case_mesh(case):
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 
-def _checkpoint_path(out_path) -> str:
+def checkpoint_path(out_path) -> str:
+    """The checkpoint file of a run writing ``out_path``: ``OUT.checkpoint.npz`` beside it."""
     return str(out_path) + ".checkpoint.npz"
 
 
@@ -411,7 +363,9 @@ def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_
     """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
 
     The fluxes are read and the temperatures written block by block (memory about ``chunk_mb`` [MB]
-    plus the solver's columns, whatever the run's length and size)."""
+    plus the solver's columns, whatever the run's length and size).
+    ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
+    """
     from crater_thermal import io
 
     io.check_output(output, overwrite)  # fail before any work
@@ -424,9 +378,11 @@ def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_
     shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
     variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
     with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=TIME_CHUNK) as stream:
-        _, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
-                                fixed_spinup=fixed_spinup, progress=progress, chunk_mb=chunk_mb,
-                                write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T))
+        with _stage(progress, f"replay ({len(profiles)} profiles x {shape[2]} facets)") as report:
+            _, info = replay_fluxes(ds, profiles, property_set=property_set,
+                                    initial_temperature=initial_temperature, fixed_spinup=fixed_spinup,
+                                    progress=report, chunk_mb=chunk_mb,
+                                    write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T))
         stream.set_attrs({"replay_start": info["start"],
                           "periodic_iterations": info["periodic_iterations"] or None,
                           "periodic_residual_K": info["periodic_residual_K"] or None,
@@ -494,8 +450,9 @@ def case_geometry(case, timer: Timer, progress=None):
     with timer("viewfactors"):
         F = None
         if getattr(case.crater, "kind", "crater") != "flat":
-            F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
-                                               progress=progress_enabled(progress))
+            with _stage(progress, f"view factors ({mesh.n_facets} facets)") as report:
+                F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
+                                                   progress=report)
             if F.nnz == 0:
                 F = None
     return mesh, tracer, F
@@ -521,31 +478,73 @@ def case_sun(case, timer: Timer):
     return spin_times, times, sun_dirs, sun_dist
 
 
-class Sunlight:
-    """Direct and scattered sunlight of a case for any range of samples (the scattering solver is
-    factorised once)."""
+def _horizon_cache_dir() -> str:
+    """Folder for cached horizon maps (next to the view factors)."""
+    return os.path.join(os.path.dirname(_view_factor_cache_dir()), "horizons")
 
-    def __init__(self, case, mesh, tracer, F):
+
+class Sunlight:
+    """Direct and scattered sunlight of a case for any range of samples, with the case's ``[sun]``
+    settings (``method`` "rays" or "horizon"): what is per mesh (the horizon map, the scattering
+    solver's factorisation) is made once, at construction; each call computes a block of samples.
+
+    The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct"
+    and "radiosity". ``progress``: optional reporter (:mod:`crater_thermal.progress`).
+    """
+
+    def __init__(self, case, mesh, tracer, F, timer: Timer | None = None, progress=None):
         from crater_thermal import illumination, radiosity
 
+        timer = timer or Timer()
+        sun = case.sun
         self.case, self.mesh, self.tracer = case, mesh, tracer
-        self.disk = None if case.sun.point_sun else illumination.sun_disk(
-            **({"n_rings": case.sun.n_rings} if getattr(case.sun, "n_rings", None) else {}),
-            law=case.sun.limb_darkening)
+        self.method = getattr(sun, "method", "rays")
+        self.hmap = self.disk = None
+        if self.method == "horizon":
+            from crater_thermal import horizons
+
+            with timer("horizons"), _stage(progress, f"horizon map ({mesh.n_facets} facets)") as report:
+                self.hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
+                                                 or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
+                                                 progress=report)
+        elif not sun.point_sun:
+            self.disk = illumination.sun_disk(
+                **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
         self.scat = None if F is None else radiosity.ScatteringSolver(
             F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces)
 
     def __call__(self, sun_dirs, sun_dist_m, timer: Timer, progress=None):
-        """``(direct, solar)`` (n, nf) [W m-2] for Sun directions (n, 3) and distances (n,) [m]."""
-        from crater_thermal import illumination
+        """``(direct, solar)`` (n, nf) [W m-2] for Sun directions (n, 3) and distances (n,) [m].
 
+        ``progress``: optional ``(done, total)`` callback of the ray-traced disk (method "rays")."""
+        sun = self.case.sun
         with timer("direct"):
-            direct = illumination.direct_irradiance(self.mesh, self.tracer, sun_dirs, sun_dist_m,
-                                                    solar_constant=self.case.sun.solar_constant_W_m2,
-                                                    disk=self.disk, progress=progress_enabled(progress))
+            if self.method == "horizon":
+                from crater_thermal import horizons
+
+                direct = horizons.direct_irradiance_horizon(self.mesh, self.hmap, sun_dirs, sun_dist_m,
+                                                            solar_constant=sun.solar_constant_W_m2,
+                                                            law=None if sun.point_sun else sun.limb_darkening)
+            else:
+                from crater_thermal import illumination
+
+                direct = illumination.direct_irradiance(self.mesh, self.tracer, sun_dirs, sun_dist_m,
+                                                        solar_constant=sun.solar_constant_W_m2, disk=self.disk,
+                                                        progress=progress)
         with timer("radiosity"):
             solar = direct if self.scat is None else self.scat.solar_incident(direct)
         return direct, solar
+
+
+def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
+    """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings, all samples at once (see
+    :class:`Sunlight`; a run computes it block by block)."""
+    from types import SimpleNamespace
+
+    case = SimpleNamespace(sun=sun, surface=None, scattering=None)
+    timer = timer or Timer()
+    with _stage(progress, "direct sunlight") as report:
+        return Sunlight(case, mesh, tracer, None, timer, progress)(sun_dirs, sun_dist, timer, report)[0]
 
 
 def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
@@ -553,7 +552,8 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     in memory (a run streams them instead: :func:`run_case`)."""
     mesh, tracer, F = case_geometry(case, timer, progress)
     spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
-    direct, solar = Sunlight(case, mesh, tracer, F)(sun_dirs, sun_dist, timer, progress)
+    with _stage(progress, "direct sunlight") as report:
+        direct, solar = Sunlight(case, mesh, tracer, F, timer, progress)(sun_dirs, sun_dist, timer, report)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
 
 
@@ -606,7 +606,7 @@ def run_window(stepper: CoupledStepper, times_s: np.ndarray, solar_rows: Callabl
     return ir
 
 
-def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
+def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None,
              timer: Timer | None = None):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
 
@@ -617,13 +617,16 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     The solver state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and
     when the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the
     same numbers as an uninterrupted run. Returns the output path.
+
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view factors,
+    horizon map, sunlight, spin-up windows, recorded period, writing); None (or False) for none.
     """
     from pathlib import Path
 
     from crater_thermal import io, thermal
 
     out_path = Path(out_path)
-    ckpt_path = Path(_checkpoint_path(out_path))
+    ckpt_path = Path(checkpoint_path(out_path))
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():
@@ -653,7 +656,7 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     fc = Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, store=store)
     n_all = len(sun_dirs)
     if not store.marked("sunlight"):
-        sunlight = Sunlight(case, mesh, tracer, F)
+        sunlight = Sunlight(case, mesh, tracer, F, timer, progress)
         with _stage(progress, f"sunlight ({nf} facets)") as report:
             for k0 in range(0, n_all, block):
                 k1 = min(n_all, k0 + block)

@@ -610,20 +610,20 @@ class ColumnSolver:
 
         return periodic_state(self, period_map, tol_K=tol_K, max_iter=max_iter)
 
-    # -- linearisation (for periodic_state) ---------------------------------------------------
-    def _step_gain(self, lam):
+    # -- linearisation (public: periodic_state uses it) ---------------------------------------------------
+    def step_gain(self, lam):
         """Amplification factor of one sub-step for a linear mode with lam = lambda dt."""
         if self.scheme == "euler":
             return 1.0 / (1.0 + lam)
         g1 = (1.0 - 0.5 * _k.TRB_GAMMA * lam) / (1.0 + 0.5 * _k.TRB_GAMMA * lam)
         return (_k.TRB_W1 * g1 - _k.TRB_W0) / (1.0 + _k.TRB_BETA * lam)
 
-    def _linear_modes(self, Tmean, h, dt, cols):
+    def linear_modes(self, Tmean, h, dt, cols):
         """Eigen-decomposition of the linearised one-step operator for columns ``cols``.
 
         Returns (sqrt_c (n, nz), Q (n, nz, nz), lam (n, nz)) with
         (L + H) v = lam Cd v, Cd = m c(Tmean)/dt; one sub-step multiplies mode j by
-        ``_step_gain(lam_j)``.
+        ``step_gain(lam_j)``.
         """
         T = Tmean[cols]
         n, nz = T.shape
@@ -713,8 +713,8 @@ def periodic_state(solver: ColumnSolver, period_map: Callable, tol_K: float = 0.
             with threadpool_limits(1, user_api="blas"):
                 for c0 in range(0, solver.ncol, chunk):
                     cols = np.arange(c0, min(solver.ncol, c0 + chunk))
-                    sc, Q, lam = solver._linear_modes(Tm, h[cols], dt[cols], cols)
-                    g = solver._step_gain(lam) ** nst[cols, None]
+                    sc, Q, lam = solver.linear_modes(Tm, h[cols], dt[cols], cols)
+                    g = solver.step_gain(lam) ** nst[cols, None]
                     w = np.einsum("nij,ni->nj", Q, sc * r[cols])
                     w /= np.maximum(1.0 - g, 1e-8)
                     dx[cols] = np.einsum("nij,nj->ni", Q, w) / sc

@@ -6,21 +6,24 @@ Sun, and the date in the title. It opens an interactive window when a display ex
 it renders off-screen (``pyvista.OFF_SCREEN``; on headless machines VTK can use Mesa EGL with
 ``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow``).
 
-Animations: GIF frames are written with Pillow (pyvista's ``open_gif`` needs imageio, which is
-not a dependency); MP4 uses pyvista's ``open_movie`` and needs ``imageio[ffmpeg]``, else a
-:class:`~crater_thermal.errors.ConfigError` says so.
+Animations: GIF frames are written with Pillow; MP4 uses pyvista's ``open_movie`` through
+imageio-ffmpeg (a wheel that carries its own ffmpeg binary; part of the ``viz`` extra). Without
+pyvista (or imageio-ffmpeg for MP4) a one-line :class:`~crater_thermal.errors.MissingExtraError`
+names the extra to install. Every file goes through :func:`crater_thermal.io.atomic_output`.
 """
 
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
-from typing import Callable, Optional, Sequence, Tuple, Union
+from typing import Optional, Tuple
 
 import numpy as np
 
-from crater_thermal.errors import ConfigError, OutputExistsError
+from crater_thermal import analysis as an
+from crater_thermal import io as ctio
+from crater_thermal.errors import ConfigError
+from crater_thermal.extras import missing_extra
 
 #: Variables :func:`show` can colour by: name -> (label, unit).
 VARIABLES = {
@@ -36,27 +39,58 @@ def _has_display() -> bool:
 
 
 def _pyvista():
-    """Import pyvista; render off-screen when there is no display."""
+    """Import pyvista (the ``viz`` extra); render off-screen when there is no display."""
     if not _has_display():
         # headless: let VTK go straight to EGL instead of warning about a missing X server
         # (override with VTK_DEFAULT_OPENGL_WINDOW, e.g. vtkOSOpenGLRenderWindow for OSMesa builds)
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     try:
         import pyvista as pv
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ConfigError(f"3-D views need pyvista (pip install 'crater_thermal[viz]'): {exc}") from None
+    except ImportError:
+        raise missing_extra("pyvista", "viz", "3-D views") from None
     if not _has_display():
         pv.OFF_SCREEN = True
     return pv
 
 
-def polydata(ds):
-    """pyvista PolyData of the run's mesh (``mesh_vertices`` [m], ``mesh_faces``)."""
+def polydata(ds, exaggeration: float = 1.0):
+    """pyvista PolyData of the run's mesh (``mesh_vertices`` [m], ``mesh_faces``), heights times
+    ``exaggeration`` (vertical exaggeration about the site frame's z = 0)."""
     pv = _pyvista()
-    v = np.asarray(ds["mesh_vertices"].values, dtype=float)
+    v = np.array(ds["mesh_vertices"].values, dtype=float)
+    v[:, 2] *= float(exaggeration)
     f = np.asarray(ds["mesh_faces"].values, dtype=np.int64)
     cells = np.hstack([np.full((len(f), 1), 3, dtype=np.int64), f]).ravel()
     return pv.PolyData(v, cells)
+
+
+def site_exaggeration(ds) -> float:
+    """A vertical exaggeration that makes a site's relief readable: 1 for craters and steep terrain; for a
+    DEM site, enough to make the relief ~15 % of the horizontal extent, at most 10 (rounded)."""
+    import json
+
+    try:
+        kind = json.loads(ds.attrs.get("mesh_meta", "{}")).get("kind")
+    except ValueError:
+        kind = None
+    if kind != "dem":
+        return 1.0
+    v = np.asarray(ds["mesh_vertices"].values, dtype=float)
+    extent = float(max(np.ptp(v[:, 0]), np.ptp(v[:, 1])))
+    relief = float(np.ptp(v[:, 2]))
+    if relief <= 0.0:
+        return 1.0
+    return float(np.clip(round(0.15 * extent / relief), 1.0, 10.0))
+
+
+def _check_exaggeration(exaggeration) -> float:
+    try:
+        x = float(exaggeration)
+    except (TypeError, ValueError):
+        raise ConfigError(f"exaggeration={exaggeration!r} must be a number") from None
+    if not (np.isfinite(x) and 0.0 < x <= 100.0):
+        raise ConfigError(f"exaggeration={exaggeration!r} out of range (0, 100]")
+    return x
 
 
 def time_label(t) -> str:
@@ -98,8 +132,6 @@ def field(run, var: str = "surface_temperature", replay=None, profile: Optional[
             raise ConfigError("profile given without a replay dataset (--replay REPLAY.nc)")
         if var != "surface_temperature":
             raise ConfigError(f"var={var!r} with a profile: only surface_temperature differences are shown")
-        from crater_thermal import analysis as an
-
         an.check_pair(run, replay)
         labels = an.profile_labels(replay)
         if profile not in labels:
@@ -120,30 +152,41 @@ class _Scene:
     """A plotter holding the crater, a Sun arrow and a title; frames update values in place."""
 
     def __init__(self, run, scalar_title: str, cmap: str, clim: Tuple[float, float],
-                 window_size: Tuple[int, int] = (1024, 768), off_screen: bool = True):
+                 window_size: Tuple[int, int] = (1024, 768), off_screen: bool = True, exaggeration: float = 1.0):
         pv = _pyvista()
         self.pv = pv
-        self.mesh = polydata(run)
+        self.exaggeration = _check_exaggeration(exaggeration)
+        self.mesh = polydata(run, self.exaggeration)
         self.mesh.cell_data["values"] = np.zeros(self.mesh.n_cells)
+        # outer shadow-only terrain of a DEM site (facets not analysed) is drawn grey
+        self.outer = ~np.asarray(run["inner"].values).astype(bool) if "inner" in run else None
         self.p = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
         self.p.set_background("white")
-        self.p.add_mesh(self.mesh, scalars="values", cmap=cmap, clim=clim, show_edges=False,
+        self.p.add_mesh(self.mesh, scalars="values", cmap=cmap, clim=clim, show_edges=False, nan_color="lightgrey",
                         scalar_bar_args=dict(title=scalar_title, color="black", vertical=True,
                                              position_x=0.85, position_y=0.15, height=0.7, width=0.06))
         b = np.asarray(self.mesh.bounds, float)
+        if self.outer is not None and self.outer.any() and not self.outer.all():
+            # frame the analysed region, not the (much wider) outer ring
+            pts = np.asarray(self.mesh.points)[np.asarray(run["mesh_faces"].values)[~self.outer].ravel()]
+            b = np.ravel(np.column_stack([pts.min(axis=0), pts.max(axis=0)]))
         self.extent = float(max(b[1] - b[0], b[3] - b[2]))
         self.top = float(b[5])
         self.times = np.asarray(run["time"].values)
-        from crater_thermal.analysis import _has
-
-        self.sun = np.asarray(run["sun_direction"].values, float) if _has(run, "sun_direction") else None
+        self.sun = np.asarray(run["sun_direction"].values, float) if an.has_variable(run, "sun_direction") else None
         # look from the equator side, so the pole-side (Sun-facing) inner wall is in view
         lat = float(run.attrs.get("lat_deg", -90.0))
         self.p.view_vector((0.35, 1.0 if lat <= 0 else -1.0, 1.1), viewup=(0.0, 0.0, 1.0))
+        self.p.reset_camera(bounds=list(b))
         self.p.camera.zoom(1.25)
 
     def update(self, values, i: int, title: str):
-        self.mesh.cell_data["values"] = np.asarray(values, float)
+        values = np.array(values, float)
+        if self.outer is not None and self.outer.any():
+            values[self.outer] = np.nan
+        self.mesh.cell_data["values"] = values
+        if self.exaggeration != 1.0:
+            title = f"{title}  (vertical x{self.exaggeration:g})"
         if self.sun is not None:
             s = self.sun[i]
             above = s[2] >= 0
@@ -163,56 +206,31 @@ class _Scene:
         self.p.close()
 
 
-def _atomic_target(path: Path, overwrite: bool) -> Path:
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise OutputExistsError(f"{path} exists; pass overwrite=True / --overwrite to replace it")
-    if not path.parent.exists():
-        raise ConfigError(f"output folder {path.parent} does not exist")
-    return path
-
-
-def _ordinary_mode(path) -> None:
-    """mkstemp makes 0600 files; give outputs the usual umask-based mode."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
-
-
-def _save_png(img: np.ndarray, path: Path) -> None:
-    from PIL import Image
-
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        Image.fromarray(img).save(tmp, format="PNG")
-        _ordinary_mode(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def snapshot(run, values, time_index: int, scalar_title: str, title: str, path, cmap: str = "inferno",
-             clim: Optional[Tuple[float, float]] = None, window_size: Tuple[int, int] = (900, 700)) -> Path:
+             clim: Optional[Tuple[float, float]] = None, window_size: Tuple[int, int] = (900, 700),
+             exaggeration: float = 1.0, overwrite: bool = False) -> Path:
     """Render one off-screen view of per-facet ``values`` (nf,) and write it to ``path`` (PNG).
 
-    Used by the report. Returns the path.
+    Used by the report. ``exaggeration``: vertical exaggeration of the heights. The PNG is written
+    through :func:`crater_thermal.io.atomic_output`; an existing ``path`` is refused unless
+    ``overwrite``. Returns the path.
     """
     values = np.asarray(values, float)
     if clim is None:
         finite = values[np.isfinite(values)]
         lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
         clim = (lo, hi if hi > lo else lo + 1.0)
-    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True)
+    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True, exaggeration=exaggeration)
     try:
         scene.update(values, time_index, title)
         img = scene.image()
     finally:
         scene.close()
-    path = Path(path)
-    _save_png(img, path)
-    return path
+    from PIL import Image
+
+    with ctio.atomic_output(path, overwrite) as tmp:
+        Image.fromarray(img).save(tmp, format="PNG")
+    return Path(path)
 
 
 def _frame_indices(nt: int, max_frames: int) -> np.ndarray:
@@ -224,7 +242,7 @@ def _frame_indices(nt: int, max_frames: int) -> np.ndarray:
 def show(run_path, time: Optional[str] = None, var: str = "surface_temperature", profile: Optional[str] = None,
          replay=None, screenshot=None, animate=None, overwrite: bool = False,
          window_size: Tuple[int, int] = (1024, 768), max_frames: int = 120, fps: float = 10.0,
-         progress: Optional[bool] = None) -> dict:
+         progress: Optional[bool] = None, exaggeration: float = 1.0) -> dict:
     """Show the crater coloured by a variable, or write a screenshot / animation.
 
     Parameters
@@ -242,7 +260,7 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
     screenshot : path, optional
         Write a PNG (off-screen).
     animate : path, optional
-        Write an animation over time: ``.gif`` (Pillow) or ``.mp4`` (needs imageio[ffmpeg]).
+        Write an animation over time: ``.gif`` (Pillow) or ``.mp4`` (imageio-ffmpeg, ``viz`` extra).
     overwrite : bool
         Replace existing outputs.
     window_size : (int, int) [px]
@@ -252,38 +270,37 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
         Animation frame rate.
     progress : bool, optional
         Progress bar for animations; default: only on a terminal.
+    exaggeration : float
+        Vertical exaggeration of the heights, (0, 100] (e.g. 3 for a DEM site's gentle relief).
 
     Returns
     -------
     dict with ``time`` (ISO of the shown sample), ``screenshot``, ``animation`` (paths or None), ``n_frames``.
     """
-    from crater_thermal.report import _open_replay, _open_run
-
     opened = []
     try:
         if isinstance(run_path, (str, os.PathLike)):
-            run_path = _open_run(run_path)
+            run_path = ctio.open_run(run_path)
             opened.append(run_path)
         if isinstance(replay, (str, os.PathLike)):
-            replay = _open_replay(replay)
+            replay = ctio.open_replay(replay)
             opened.append(replay)
         return _show(run_path, time, var, profile, replay, screenshot, animate, overwrite, window_size,
-                     max_frames, fps, progress)
+                     max_frames, fps, progress, exaggeration)
     finally:
         for ds in opened:
             ds.close()
 
 
 def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_size, max_frames, fps,
-          progress) -> dict:
+          progress, exaggeration=1.0) -> dict:
+    exaggeration = _check_exaggeration(exaggeration)
     vals, scalar_title, cmap = field(run, var, rep, profile)
     times = np.asarray(run["time"].values)
-    from crater_thermal.analysis import _has
-
-    sun = np.asarray(run["sun_direction"].values) if _has(run, "sun_direction") else None
+    sun = np.asarray(run["sun_direction"].values) if an.has_variable(run, "sun_direction") else None
     i = select_time(times, time, sun)
-    shot = _atomic_target(Path(screenshot), overwrite) if screenshot else None
-    anim = _atomic_target(Path(animate), overwrite) if animate else None
+    shot = ctio.check_output(screenshot, overwrite) if screenshot else None
+    anim = ctio.check_output(animate, overwrite) if animate else None
     if anim is not None and anim.suffix.lower() not in (".gif", ".mp4"):
         raise ConfigError(f"animate={anim} must end in .gif or .mp4")
     if shot is None and anim is None and not _has_display():
@@ -306,57 +323,52 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
         # one time: colour range of that time (more contrast than the whole run's)
         v = vals[i]
         c = (float(v.min()), float(max(v.max(), v.min() + 1e-3))) if profile is None else clim
-        snapshot(run, v, i, scalar_title, title, shot, cmap=cmap, clim=c, window_size=window_size)
+        snapshot(run, v, i, scalar_title, title, shot, cmap=cmap, clim=c, window_size=window_size,
+                 exaggeration=exaggeration, overwrite=overwrite)
         out["screenshot"] = str(shot)
     if anim is not None:
-        out["n_frames"] = _animate(run, vals, scalar_title, title, cmap, clim, anim, window_size,
-                                   _frame_indices(len(times), max_frames), fps, progress)
+        out["n_frames"] = _animate(run, vals, scalar_title, title, cmap, clim, anim, overwrite, window_size,
+                                   _frame_indices(len(times), max_frames), fps, progress, exaggeration)
         out["animation"] = str(anim)
     if shot is None and anim is None:  # pragma: no cover - needs a display
-        scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=False)
+        scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=False, exaggeration=exaggeration)
         scene.update(vals[i], i, title)
         scene.p.show()
     return out
 
 
-def _animate(run, vals, scalar_title, title, cmap, clim, path: Path, window_size, frames, fps, progress) -> int:
-    from crater_thermal.report import progress_bar
+def _animate(run, vals, scalar_title, title, cmap, clim, path: Path, overwrite: bool, window_size, frames, fps,
+             progress, exaggeration: float = 1.0) -> int:
+    from crater_thermal.progress import bar
 
-    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True)
-    suffix = path.suffix.lower()
-    fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        images = []
-        movie = False
-        if suffix == ".mp4":
-            try:
-                scene.p.open_movie(tmp, framerate=fps)
-                movie = True
-            except Exception as exc:  # pyvista raises ImportError/ModuleNotFoundError without imageio
-                raise ConfigError(f"animate={path}: MP4 needs imageio[ffmpeg] ({exc.__class__.__name__}); "
-                                  "use a .gif") from None
-        with progress_bar("frames", len(frames), progress) as advance:
-            for i in frames:
-                scene.update(vals[i], int(i), title)
-                if movie:
-                    scene.p.write_frame()
-                else:
-                    from PIL import Image
-
-                    images.append(Image.fromarray(scene.image()).convert("P", palette=Image.ADAPTIVE))
-                advance()
-        if not movie:
-            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
-                           duration=int(round(1000 / fps)), loop=0)
-        scene.close()
-        _ordinary_mode(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with ctio.atomic_output(path, overwrite) as tmp, bar("frames", progress) as report:
+        scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True, exaggeration=exaggeration)
         try:
-            scene.close()
-        except Exception:  # already closed
-            pass
+            _write_frames(scene, vals, title, tmp, frames, fps, report)
+        finally:
+            scene.close()  # also closes the MP4 writer, before the file is renamed into place
     return len(frames)
+
+
+def _write_frames(scene, vals, title, tmp: Path, frames, fps, report) -> None:
+    """Render ``frames`` into ``tmp``: an MP4 through imageio-ffmpeg, else a GIF through Pillow."""
+    from PIL import Image
+
+    movie = tmp.suffix.lower() == ".mp4"
+    if movie:
+        try:
+            scene.p.open_movie(str(tmp), framerate=fps)
+        except (ImportError, ValueError, RuntimeError):  # imageio or its ffmpeg plugin missing
+            raise missing_extra("imageio-ffmpeg", "viz", "MP4 animations") from None
+    images = []
+    for n, i in enumerate(frames, 1):
+        scene.update(vals[i], int(i), title)
+        if movie:
+            scene.p.write_frame()
+        else:
+            images.append(Image.fromarray(scene.image()).convert("P", palette=Image.ADAPTIVE))
+        if report is not None:
+            report(n, len(frames))
+    if not movie:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                       duration=int(round(1000 / fps)), loop=0)

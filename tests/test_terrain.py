@@ -5,12 +5,14 @@ test_terrain_site.py (they run the simulator).
 """
 
 import math
+import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
 import rasterio
 
-from crater_thermal import cli, ephemeris, geometry, io, terrain
+from crater_thermal import cli, config, ephemeris, geometry, io, terrain
 from crater_thermal.constants import MOON_RADIUS
 from crater_thermal.errors import ConfigError, DEMError
 
@@ -232,3 +234,37 @@ def test_height_kind_override_and_errors(tmp_path):
         terrain.site_mesh(dem, LAT, LON, 2.0, 200.0, height_kind="nope")
     with pytest.raises(DEMError, match="does not exist"):
         terrain.open_dem(tmp_path / "missing.tif")
+
+
+SITE_CASES = sorted((Path(__file__).resolve().parents[1] / "cases" / "sites").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", SITE_CASES, ids=lambda p: p.name)
+def test_site_cases_name_their_dem_and_load_with_it(tmp_path, path):
+    text = path.read_text()
+    dem_name = tomllib.loads(text)["crater"]["dem"]
+    if not (path.parent / dem_name).exists():  # not downloaded: a one-line error naming the key and file
+        with pytest.raises(ConfigError, match=f"crater.dem.*{dem_name}"):
+            config.load_case(path)
+    (tmp_path / dem_name).write_bytes(b"stand-in")  # the loader checks existence; the mesher reads it
+    case = config.loads_case(text, base_dir=tmp_path, name=path.stem)
+    assert case.crater.kind == "dem" and case.crater.dem == (tmp_path / dem_name).resolve()
+    est = terrain.estimate_site(case.crater.radius_km, case.crater.resolution_m, case.crater.outer_radius_km,
+                                case.crater.outer_resolution_m)
+    assert est["n_facets"] < 30_000  # the README's "fits 2 cores" sizes
+
+
+def test_dem_case_keys_are_validated(tmp_path):
+    (tmp_path / "d.tif").write_bytes(b"x")
+    base = ('[crater]\nkind = "dem"\ndem = "d.tif"\nradius_km = 3.0\n{extra}[location]\nlat_deg = -85.0\n'
+            '[period]\nstart = "2019-01-01"\nend = "2019-02-01"\n')
+    ok = config.loads_case(base.format(extra=""), base_dir=tmp_path)
+    assert ok.crater.height_kind == "auto" and ok.crater.max_facets == terrain.MAX_FACETS
+    for extra, needle in (('center_lat_deg = -80.0\n', "differs from location.lat_deg"),
+                          ("resolution_m = -5.0\n", "resolution_m"),
+                          ('height_kind = "feet"\n', "height_kind"),
+                          ("outer_resolution_m = 500.0\n", "needs crater.outer_radius_km"),
+                          ("outer_radius_km = 2.0\n", "must exceed"),
+                          ("diameter_km = 2.0\n", "diameter_km")):
+        with pytest.raises(ConfigError, match=needle):
+            config.loads_case(base.format(extra=extra), base_dir=tmp_path)
