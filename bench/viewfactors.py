@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from crater_thermal import viewfactors as vf
-from crater_thermal.kernels import viewfactors as vf_kernels
 from crater_thermal.geometry import crater_mesh
+from crater_thermal.kernels import viewfactors as vf_kernels
 from crater_thermal.raytrace import RayTracer
 
 

@@ -479,7 +479,8 @@ def representative_facets(run, regions) -> Dict[str, int]:
     if idx.size == 0:
         idx = np.arange(len(r))
     out["floor"] = int(idx[np.argmin(r[idx])])
-    solar_name = "solar_incident" if has_variable(run, "solar_incident") else ("solar_direct" if has_variable(run, "solar_direct") else None)
+    solar_name = ("solar_incident" if has_variable(run, "solar_incident")
+                  else "solar_direct" if has_variable(run, "solar_direct") else None)
     mean_solar = (np.asarray(run[solar_name].values, float).mean(axis=0) if solar_name
                   else np.zeros(len(r)))
     for cand in ("upper_wall_poleward", "upper_wall_equatorward", "rim_poleward"):

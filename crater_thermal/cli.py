@@ -60,7 +60,8 @@ def mesh_crater(
     diameter_km: float = typer.Option(10.0, "--diameter-km", help="Rim diameter [km], (0, 15]."),
     facets: int = typer.Option(502, "--facets", help="Exact number of facets (thesis: 502)."),
     surround_km: float = typer.Option(0.0, "--surround-km", help="Flat plain ring beyond the rim flank [km]."),
-    wall: str = typer.Option("thesis", "--wall", help="Wall circle: 'thesis' (centre on axis) or 'tangent' (tangent to floor)."),
+    wall: str = typer.Option("thesis", "--wall",
+                             help="Wall circle: 'thesis' (centre on axis) or 'tangent' (tangent to floor)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply, .obj, .stl)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
 ) -> None:
@@ -175,12 +176,14 @@ def dem_synth(
 def steady(
     mesh: Path = typer.Argument(..., help="Mesh file (.ply, .obj, .stl) in the crater frame [m]."),
     sun_elevation_deg: float = typer.Option(..., "--sun-elevation-deg", help="Sun elevation [deg], [-90, 90]."),
-    sun_azimuth_deg: float = typer.Option(180.0, "--sun-azimuth-deg", help="Sun azimuth [deg] from north, clockwise (east)."),
+    sun_azimuth_deg: float = typer.Option(180.0, "--sun-azimuth-deg",
+                                          help="Sun azimuth [deg] from north, clockwise (east)."),
     albedo: float = typer.Option(0.12, "--albedo", help="Albedo, [0, 1)."),
     emissivity: float = typer.Option(0.98, "--emissivity", help="Infrared emissivity, (0, 1]."),
     solar_constant: float = typer.Option(1361.0, "--solar-constant", help="Solar irradiance at 1 au [W m-2]."),
     point_sun: bool = typer.Option(False, "--point-sun", help="Point Sun instead of the limb-darkened disk."),
-    limb_darkening: str = typer.Option("linear", "--limb-darkening", help="uniform | linear | quadratic | neckel_labs."),
+    limb_darkening: str = typer.Option("linear", "--limb-darkening",
+                                       help="uniform | linear | quadratic | neckel_labs."),
     n_rings: int = typer.Option(4, "--sun-rings", help="Rings of the sampled solar disk (1 + 3n(n-1) patches)."),
     scattering: str = typer.Option("exact", "--scattering", help="exact | bounces."),
     n_bounces: int = typer.Option(3, "--bounces", help="Reflections kept with --scattering bounces."),
@@ -224,11 +227,19 @@ def run(
 @app.command()
 def replay(
     flux: Path = typer.Argument(..., help="Run or flux dataset (netCDF) with solar_incident and ir_incident."),
-    profile: List[str] = typer.Option([], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
-    density_grid: Optional[str] = typer.Option(None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
-    initial_temperature: Optional[float] = typer.Option(None, "--initial-temperature", help="Uniform start [K], then the saved spin-up window once (thesis procedure), instead of the periodic steady state."),
-    fixed_spinup: bool = typer.Option(False, "--fixed-spinup", help="Equilibrium-estimate start, then the saved spin-up window once (as a run with spinup = 'fixed')."),
-    property_set: Optional[str] = typer.Option(None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
+    profile: List[str] = typer.Option(
+        [], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
+    density_grid: Optional[str] = typer.Option(
+        None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
+    initial_temperature: Optional[float] = typer.Option(
+        None, "--initial-temperature",
+        help="Uniform start [K], then the saved spin-up window once (thesis procedure), instead of the periodic "
+             "steady state."),
+    fixed_spinup: bool = typer.Option(
+        False, "--fixed-spinup",
+        help="Equilibrium-estimate start, then the saved spin-up window once (as a run with spinup = 'fixed')."),
+    property_set: Optional[str] = typer.Option(
+        None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
     allow_inverted: bool = typer.Option(False, "--allow-inverted", help="Allow top density > bottom density."),
     output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),

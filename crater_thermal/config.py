@@ -291,6 +291,11 @@ SCHEMA: Tuple[Key, ...] = (
     K("scattering", "method", "choice", "exact", "radiosity solve, or a fixed number of bounces (thesis: 3)",
       choices=choices.SCATTERING_METHODS),
     K("scattering", "n_bounces", "int", 3, 'bounces for `"bounces"`', lo=1, hi=100),
+    # [radiation]
+    K("radiation", "view_factors", "choice", "auto", "exact sparse view-factor matrix, hierarchically compressed "
+      "operator, or by facet count (auto: compressed from 10,000 facets on)", choices=choices.VIEW_FACTOR_METHODS),
+    K("radiation", "tolerance", "float", 1e-3, "compressed operator: relative Frobenius error allowed per far "
+      "block (products come out ~50x more accurate)", lo=1e-8, hi=0.1),
     # [replay]
     K("replay", "profiles", "profiles", (), "profiles replayed on the saved nominal fluxes",
       allowed_doc="labels as for `nominal_profile`"),
@@ -326,6 +331,7 @@ SECTIONS: Tuple[SectionSpec, ...] = (
     SectionSpec("surface"),
     SectionSpec("sun"),
     SectionSpec("scattering"),
+    SectionSpec("radiation"),
     SectionSpec("replay"),
     SectionSpec("output"),
 )
@@ -460,6 +466,11 @@ class Scattering:
     """Scattered sunlight: exact radiosity or ``n_bounces`` bounces."""
 
 
+@_section("radiation")
+class Radiation:
+    """View factors of the radiation exchange: exact sparse matrix or compressed operator."""
+
+
 @_section("replay")
 class Replay:
     """Profiles replayed on the saved nominal fluxes (labels) and an optional density grid."""
@@ -477,7 +488,7 @@ class Case:
     Attributes
     ----------
     name : str
-    crater, location, period, steps, surface, sun, scattering, replay, output : sections
+    crater, location, period, steps, surface, sun, scattering, radiation, replay, output : sections
     toml_text : str  the case file's original text (stored in outputs)
     path : Path or None  the case file (None for text)
     description : str
@@ -491,6 +502,7 @@ class Case:
     surface: Surface = Surface()
     sun: Sun = Sun()
     scattering: Scattering = Scattering()
+    radiation: Radiation = Radiation()
     replay: Replay = Replay()
     output: Output = Output()
     toml_text: str = ""

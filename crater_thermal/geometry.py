@@ -744,7 +744,8 @@ def _validate(vertices: np.ndarray, faces: np.ndarray, source: str) -> None:
     rep = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     bad = rep | (area <= tol)
     if bad.any():
-        raise MeshError(f"{source}: {int(bad.sum())} degenerate face(s) (zero area or repeated vertex), first is face {int(np.argmax(bad))}")
+        raise MeshError(f"{source}: {int(bad.sum())} degenerate face(s) (zero area or repeated vertex), "
+                        f"first is face {int(np.argmax(bad))}")
     # duplicate faces (same vertex set)
     key = np.sort(faces, axis=1)
     uniq = np.unique(key, axis=0)
@@ -758,7 +759,8 @@ def _validate(vertices: np.ndarray, faces: np.ndarray, source: str) -> None:
     ecode = e[:, 0].astype(np.int64) * (len(vertices) + 1) + e[:, 1]
     u, cnt = np.unique(ecode, return_counts=True)
     if (cnt > 1).any():
-        raise MeshError(f"{source}: inconsistent face winding (normals): {int((cnt > 1).sum())} directed edge(s) are shared by two faces with the same orientation")
+        raise MeshError(f"{source}: inconsistent face winding (normals): {int((cnt > 1).sum())} directed edge(s) "
+                        "are shared by two faces with the same orientation")
 
 
 def _read_meta_comment(path: Path) -> dict:

@@ -38,7 +38,8 @@ independent, standard deviations in K):
    average with dwell. Default 0.94 K: the thesis (7.2/7.3, refs [16, 112]) quotes it as the standard
    deviation of rock-free lunar regolith temperatures; by the thesis's context ref. [16] is Bandfield et
    al. 2011 (JGR 116, E00H02), Diviner night-time temperatures of the regolith fines between 60 N and
-   60 S (scenes of roughly 70-120 K, footprints of ~250 m); the paper itself was not read here. At 40-80 K inside polar craters it has not been measured; what
+   60 S (scenes of roughly 70-120 K, footprints of ~250 m); the paper itself was not read here. At 40-80 K
+   inside polar craters it has not been measured; what
    sets temperatures there (scattered and re-emitted light, geothermal flux) differs from the
    equatorial night, so take it as uncertain by a factor of about 2 either way (the report shows the
    answer at 0.5x and 2x).

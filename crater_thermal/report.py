@@ -35,20 +35,28 @@ from crater_thermal.progress import bar
 
 #: Figure files written to ``figures/`` (3-D snapshots are added when rendering works).
 FIGURES = {
-    "fig7_4_incident_flux.png": "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. 7.4).",
-    "fig7_5_temperature.png": "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5).",
+    "fig7_4_incident_flux.png": (
+        "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. "
+        "7.4)."),
+    "fig7_5_temperature.png": (
+        "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5)."),
     "fig7_6_loose_minus_nominal.png": "Loose minus nominal surface temperature over the run, night shaded (Fig. 7.6).",
-    "fig7_7a_density_grid.png": "Night-time median difference to nominal on the floor over the density grid, top x bottom density; nominal outlined (Fig. 7.7a).",
-    "fig7_7b_regions.png": "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b).",
+    "fig7_7a_density_grid.png": (
+        "Night-time median difference to nominal on the floor over the density grid, top x bottom density; "
+        "nominal outlined (Fig. 7.7a)."),
+    "fig7_7b_regions.png": (
+        "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b)."),
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
-    "fig7_9_quartiles.png": "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9).",
+    "fig7_9_quartiles.png": (
+        "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9)."),
     "detectability.png": "Probability of detecting loose vs nominal (night medians) against dwell time, per "
                          "instrument and region, at the stated false-alarm rate (instrument.py).",
     "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), "
                                 "at the reference dwell.",
 }
 SNAPSHOTS = {
-    "map3d_temperature.png": "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction.",
+    "map3d_temperature.png": (
+        "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction."),
     "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
 }
 
@@ -64,25 +72,34 @@ SUMMARY_KEYS = {
     "n_times": "int: number of time samples.",
     "n_facets": "int: number of mesh facets.",
     "night_fraction": "float [-]: fraction of samples with the Sun's centre below the horizon at the crater centre.",
-    "regions": "list[str]: region labels (analysis.REGIONS); *_poleward = on the pole side of the axis, facing the equator.",
+    "regions": (
+        "list[str]: region labels (analysis.REGIONS); *_poleward = on the pole side of the axis, facing the "
+        "equator."),
     "region_facet_count": "{region: int}: facets per region.",
     "profiles": "list[str]: replayed profile labels.",
     "nominal_profile": "str: the nominal profile label (differences are profile minus this).",
     "loose_profile": "str|null: the loose profile label (800/1100 if replayed).",
     "rock_profile": "str|null: the rock profile label, if replayed.",
     "threshold_K": "float [K]: |dT| threshold for the *_frac_abs_dT_above_threshold statistics.",
-    "night_median_dT_K": "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region facets.",
+    "night_median_dT_K": (
+        "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region "
+        "facets."),
     "night_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, night.",
     "night_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, night.",
     "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (Sun above the horizon).",
     "day_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, day.",
     "day_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, day.",
-    "night_frac_abs_dT_above_threshold": "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K.",
+    "night_frac_abs_dT_above_threshold": (
+        "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K."),
     "night_median_T_nominal_K": "{region: float|null} [K]: night-time median nominal surface temperature.",
     "max_abs_night_median_dT_K": "{profile: float} [K]: largest per-facet |night-time median difference|.",
-    "density_grid_floor_night_median_dT_K": "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night medians (Fig. 7.7a).",
-    "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
-    "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
+    "density_grid_floor_night_median_dT_K": (
+        "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night "
+        "medians (Fig. 7.7a)."),
+    "latitude_night_median_dT_K": (
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude."),
+    "latitude_day_median_dT_K": (
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude."),
     "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each "
                                   "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
     "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: "
@@ -331,7 +348,8 @@ def _fig_fluxes(A, path):
         i = A.facets[key]
         a = ax[k, 0]
         _shade_night(a, A.days, A.night)
-        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange", label="solar incident (direct + scattered)")
+        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange",
+               label="solar incident (direct + scattered)")
         a.plot(A.days, A.run["ir_incident"].values[:, i], color="tab:red", label="IR emitted by the crater, incident")
         a.set_ylabel("flux [W m-2]")
         a.set_title(_facet_title(A, key), fontsize=10)
@@ -430,7 +448,8 @@ def _fig_regions(all_A, path):
     _region_ticks(a, an.REGIONS)
     a.set_ylabel("night-time median loose - nominal [K]")
     a.legend(fontsize=8)
-    a.set_title("By crater region (error bars: quartiles); poleward = pole side of the axis, faces the equator", fontsize=10)
+    a.set_title("By crater region (error bars: quartiles); poleward = pole side of the axis, faces the equator",
+                fontsize=10)
     fig.savefig(path)
 
 

@@ -85,7 +85,7 @@ class CoupledStepper:
     Parameters
     ----------
     solver : thermal.ColumnSolver with one column per facet.
-    F : (nf, nf) sparse view-factor matrix, or None for no exchange (flat ground).
+    F : vfoperator.ViewFactorOperator (or a sparse (nf, nf) matrix), or None for no exchange (flat ground).
     albedo, emissivity : [-]
     """
 
@@ -98,7 +98,9 @@ class CoupledStepper:
         """IR irradiance [W m-2] on every facet from the others' emission."""
         if self.F is None:
             return np.zeros_like(T_surface)
-        return np.asarray(self.F @ emitted(T_surface, self.emissivity))
+        ir = np.asarray(self.F @ emitted(T_surface, self.emissivity)).reshape(np.shape(T_surface))
+        # a compressed operator may leave round-off of either sign (~tolerance) where nothing is seen
+        return np.maximum(ir, 0.0)
 
     def absorbed(self, solar: np.ndarray, ir: np.ndarray) -> np.ndarray:
         return (1.0 - self.albedo) * solar + self.emissivity * ir
@@ -408,7 +410,7 @@ class Forcing:
     """
 
     mesh: object
-    F: object  # sparse (nf, nf) or None
+    F: object  # vfoperator.ViewFactorOperator or None (no exchange)
     spin_times: np.ndarray  # (ns,) datetime64[ns]; empty when there is no spin-up window
     times: np.ndarray  # (nt,) datetime64[ns], the recorded period
     sun_dirs: np.ndarray  # (ns + nt - 1, 3) over spin-up + record (shared sample once)
@@ -439,10 +441,19 @@ class Forcing:
             return self.store.read(name, k0, k1)
         return getattr(self, name)[k0:k1]
 
+def view_factor_settings(case) -> tuple[str, float]:
+    """(method, tolerance) of a case's view factors: ``[radiation] view_factors`` and ``tolerance``."""
+    from crater_thermal import vfoperator
+
+    rad = getattr(case, "radiation", None)
+    method = str(getattr(rad, "view_factors", "auto") or "auto")
+    tol = getattr(rad, "tolerance", None)
+    return method, float(vfoperator.DEFAULT_TOLERANCE if tol is None else tol)
+
 
 def case_geometry(case, timer: Timer, progress=None):
-    """Mesh, ray tracer and view-factor matrix (None for flat ground or no visible pairs)."""
-    from crater_thermal import raytrace, viewfactors
+    """Mesh, ray tracer and radiation operator (None for flat ground or no visible pairs)."""
+    from crater_thermal import raytrace, vfoperator
 
     with timer("geometry"):
         mesh = case_mesh(case)
@@ -450,10 +461,12 @@ def case_geometry(case, timer: Timer, progress=None):
     with timer("viewfactors"):
         F = None
         if getattr(case.crater, "kind", "crater") != "flat":
-            with _stage(progress, f"view factors ({mesh.n_facets} facets)") as report:
-                F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
-                                                   progress=report)
-            if F.nnz == 0:
+            method, tol = view_factor_settings(case)
+            kind = vfoperator.resolve_method(method, mesh.n_facets)
+            with _stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
+                F = vfoperator.view_factor_operator(mesh, tracer, method=kind, tolerance=tol,
+                                                    cache_dir=_view_factor_cache_dir(), progress=report)
+            if F.is_zero:
                 F = None
     return mesh, tracer, F
 

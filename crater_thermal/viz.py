@@ -193,7 +193,8 @@ class _Scene:
             start = np.array([0.0, 0.0, self.top + 0.05 * self.extent])
             arrow = self.pv.Arrow(start=start, direction=s, scale=0.35 * self.extent)
             self.p.add_mesh(arrow, color="gold" if above else "gray", name="sun", show_scalar_bar=False)
-            title = f"{title}\n{time_label(self.times[i])}   Sun elevation {np.degrees(np.arcsin(np.clip(s[2], -1, 1))):.2f} deg"
+            elev = np.degrees(np.arcsin(np.clip(s[2], -1, 1)))
+            title = f"{title}\n{time_label(self.times[i])}   Sun elevation {elev:.2f} deg"
         else:
             title = f"{title}\n{time_label(self.times[i])}"
         self.p.add_text(title, position="upper_left", font_size=11, color="black", name="title")

@@ -275,7 +275,8 @@ def test_load_rejects_missing_and_garbage(tmp_path):
 
 def _cli(*args):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "crater_thermal", *args], capture_output=True, text=True, env=env, cwd=REPO)
+    return subprocess.run([sys.executable, "-m", "crater_thermal", *args], capture_output=True, text=True, env=env,
+                          cwd=REPO)
 
 
 def test_cli_mesh_crater_and_bowl(tmp_path):

@@ -52,7 +52,7 @@ def test_failed_write_leaves_old_file(tmp_path):
     before = p.read_bytes()
     bad = _flux()
     bad.attrs["unserialisable"] = object()
-    with pytest.raises(Exception):
+    with pytest.raises(TypeError, match="unserialisable"):  # xarray refuses the attribute
         io.write_dataset_atomic(bad, p, overwrite=True)
     assert p.read_bytes() == before
 

@@ -162,7 +162,7 @@ def test_crater_floor_sees_crater_outside_the_rim_opening():
 def test_check_reciprocity_detects_asymmetry(crater502):
     m, F = crater502
     G = F.tolil(copy=True)
-    i, j = F[10].indices[0], 10
+    i = F[10].indices[0]
     G[10, i] = G[10, i] * 1.5
     assert check_reciprocity(G.tocsr(), m.areas) > 0.01
     with pytest.raises(MeshError):
