@@ -662,6 +662,33 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
     fig.savefig(path)
 
 
+def site_summary(A) -> Optional[dict]:
+    """The DEM site of a run (summary.json ``site``), or None for an idealized crater / mesh file."""
+    if not is_site(A):
+        return None
+    m = A.meta
+    inner = np.asarray(A.run["inner"].values, bool) if "inner" in A.run else np.ones(A.run.sizes["facet"], bool)
+    keys = ("dem_source", "crs_name", "center_lat_deg", "center_lon_deg", "reference_radius_m", "radius_km",
+            "resolution_m", "outer_radius_km", "outer_resolution_m", "height_kind", "dem_pixel_m")
+    out = {k: m.get(k) for k in keys}
+    out.update(n_inner=int(inner.sum()), n_outer=int((~inner).sum()))
+    return out
+
+
+def _html_site(site: dict) -> str:
+    """One paragraph describing a DEM site (replaces the crater-region explanation)."""
+    ring = (f"; outer ring to {site['outer_radius_km']:g} km at {site['outer_resolution_m']:.4g} m "
+            f"({site['n_outer']} facets: shadows and radiation only, not analysed)"
+            if site.get("outer_radius_km") else "")
+    return (f"<p><b>Site</b> from the DEM <code>{html.escape(str(site['dem_source']))}</code> "
+            f"({html.escape(str(site['crs_name']))}, {site['dem_pixel_m']:.3g} m pixels, values read as "
+            f"{html.escape(str(site['height_kind']))}): centre {site['center_lat_deg']:g} deg, "
+            f"{site['center_lon_deg']:g} deg; analysed disk of {site['radius_km']:g} km at "
+            f"{site['resolution_m']:.4g} m ({site['n_inner']} facets){ring}. Vertices are true 3-D positions in the "
+            "centre's east/north/up frame (curvature included). Regions are classes by illumination over the run, "
+            "by slope and by the direction the slope faces; the maps are in the DEM's projected coordinates.</p>")
+
+
 def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
     from crater_thermal import viz
 
