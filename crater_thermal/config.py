@@ -313,6 +313,9 @@ SCHEMA: Tuple[Key, ...] = (
       "spin-up)", lo=0, hi=10_000_000),
     K("output", "save_spinup_fluxes", "bool", True, "also store the spin-up window's fluxes, so that replays "
       "start exactly as the run did"),
+    K("output", "chunk_mb", "float", 256.0, "memory for the run's (time, facet) series: sunlight, temperatures "
+      "and IR are computed, kept and written in blocks of time samples that fit it, whatever the run's length "
+      "and size", unit="MB", lo=0.01, hi=1e6),
 )
 del K
 

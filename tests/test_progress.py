@@ -38,7 +38,8 @@ def test_replay_reports_profiles_done():
     calls = []
     simulate.replay_fluxes(ds, profiles, initial_temperature=100.0, chunk_columns=2,
                            progress=lambda done, total: calls.append((done, total)))
-    assert calls == [(1, 3), (2, 3), (3, 3)]  # one profile per chunk of 2 columns (2 facets)
+    # one profile per chunk of 2 columns (2 facets); progress in time steps of the chunks: 3 x 5 steps
+    assert calls == [(5, 15), (10, 15), (15, 15)]
 
 
 def test_only_the_progress_module_imports_rich():

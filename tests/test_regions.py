@@ -272,22 +272,28 @@ save_spinup_fluxes = true
 """
 
 
-def test_hayne2017_run_saves_absorbed_sunlight_and_replay_reproduces_it(tmp_path):
+def test_hayne2017_run_is_refused_until_the_streamed_run_stores_absorbed_sunlight(tmp_path):
+    """The streamed run (SegmentStore) does not store absorbed sunlight yet: a clear one-line error, no output."""
     from crater_thermal import config
+    from crater_thermal.errors import ConfigError as CE
 
     path = tmp_path / "hayne.toml"
     path.write_text(HAYNE_CASE)
     case = config.load_case(path)
-    run = io.open_run(simulate.run_case(case, tmp_path / "run.nc", progress=False))
-    assert run.attrs["albedo_model"] == "hayne2017" and float(run.attrs["albedo"]) == 0.12
-    absorbed, incident, direct = (run[k].values for k in ("solar_absorbed", "solar_incident", "solar_direct"))
-    # A(i) >= A0: never more absorbed than with the constant albedo; strictly less where directly lit
-    assert np.all(absorbed <= 0.88 * incident + 1e-9)
-    lit = direct > 1.0
-    assert lit.any() and np.all(absorbed[lit] < 0.88 * incident[lit])
-    simulate.replay_file(tmp_path / "run.nc", ["1300/1800"], initial_temperature=100.0, fixed_spinup=True,
-                         output=tmp_path / "replay.nc", progress=False)
-    rep = io.open_replay(tmp_path / "replay.nc")
-    # the replay drives the columns with the saved absorbed sunlight: it reproduces the run (1e-3 K: the
-    # replay stores float32 temperatures, ~1e-5 K at 100-300 K, plus solver round-off)
-    assert np.max(np.abs(rep["surface_temperature"].values[0] - run["surface_temperature"].values)) < 1e-3
+    assert case.surface.albedo_model == "hayne2017"
+    with pytest.raises(CE, match="albedo_model"):
+        simulate.run_case(case, tmp_path / "run.nc", progress=False)
+    assert not (tmp_path / "run.nc").exists()
+
+
+def test_replay_uses_saved_absorbed_sunlight():
+    """A flux file with solar_absorbed is driven by it, not by (1 - albedo) solar_incident."""
+    import xarray as xr
+
+    t = np.array(["2019-01-01T00", "2019-01-01T04"], "datetime64[ns]")
+    inc = np.full((2, 1), 100.0)
+    ds = xr.Dataset({"solar_incident": (("time", "facet"), inc, {"units": "W m-2"}),
+                     "solar_absorbed": (("time", "facet"), inc * 0.5, {"units": "W m-2"})},
+                    coords={"time": t}, attrs={"albedo": 0.12})
+    assert np.allclose(simulate.absorbed_solar_of(ds), 50.0)
+    assert np.allclose(simulate.absorbed_solar_of(ds.drop_vars("solar_absorbed")), 88.0)
