@@ -325,7 +325,7 @@ def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer:
     from crater_thermal import illumination
 
     timer = timer or Timer()
-    method = getattr(sun, "method", "rays")
+    method = getattr(sun, "method", "horizon")
     if method == "horizon":
         from crater_thermal import horizons
 
