@@ -4,12 +4,13 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test install thesis bench clean
+.PHONY: run test lint install thesis bench clean
 
-$(STAMP): pyproject.toml
+# constraints.txt pins the versions the benchmarks were measured with (numba/numpy set the speed figures).
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[viz,distributed,test]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[viz,distributed,test]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -21,7 +22,12 @@ run: $(STAMP)
 	$(VENV)/bin/crater-thermal report results/default/run.nc results/default/replay.nc -o results/default/report --overwrite
 	@echo "open results/default/report/report.html"
 
-test: $(STAMP)
+# Lint (ruff, config in pyproject.toml) and the import contracts (layering, [tool.importlinter]).
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports
+
+test: lint
 	$(PY) -m pytest -q tests
 
 thesis: $(STAMP)

@@ -28,6 +28,7 @@ import numpy as np
 
 from crater_thermal import viewfactors as vf
 from crater_thermal.geometry import crater_mesh
+from crater_thermal.kernels import viewfactors as vf_kernels
 from crater_thermal.raytrace import RayTracer
 
 
@@ -59,8 +60,8 @@ def main(argv=None) -> dict:
     C = np.ascontiguousarray(mesh.centroids - tracer.centre)
     P = np.ascontiguousarray(tracer.origins - tracer.centre)
     V = np.ascontiguousarray(mesh.vertices - tracer.centre)
-    bary = vf._subtriangle_barycentrics(vf.NEAR_SUBDIVISIONS)
-    chunks = vf._row_chunks(nf, vf.CHUNK_PAIRS)
+    bary = vf.subtriangle_barycentrics(vf.NEAR_SUBDIVISIONS)
+    chunks = vf.row_chunks(nf, vf.CHUNK_PAIRS)
 
     def prepare(rows):
         i0, i1 = rows
@@ -71,8 +72,8 @@ def main(argv=None) -> dict:
         pj_ = np.empty(cap, np.int32)
         kk = np.empty(cap)
         need = np.empty(cap, np.bool_)
-        n = vf._candidate_pairs(i0, i1, C, mesh.normals, mesh.facet_size, mesh.areas, P, V, mesh.faces, bary,
-                                vf.NEAR_DISTANCE_FACTOR, vf.COS_CUTOFF, o, d, pi_, pj_, kk, need)
+        n = vf_kernels.candidate_pairs(i0, i1, C, mesh.normals, mesh.facet_size, mesh.areas, P, V, mesh.faces,
+                                       bary, vf.NEAR_DISTANCE_FACTOR, vf.COS_CUTOFF, o, d, pi_, pj_, kk, need)
         return o[:n].copy(), d[:n].copy(), np.ones(n, np.float32)
 
     rays = [prepare(c) for c in chunks]
@@ -83,7 +84,7 @@ def main(argv=None) -> dict:
         """Seconds for Embree alone on all rays: one chunk per task, nt threads, like the real run."""
         with ThreadPoolExecutor(nt) as ex:
             t1 = time.perf_counter()
-            list(ex.map(lambda x: tracer._scene.run(x[0], x[1], dists=x[2], query="OCCLUDED"), rays))
+            list(ex.map(lambda x: tracer.run_raw(x[0], x[1], x[2], parallel=False), rays))
             return time.perf_counter() - t1
 
     # alternate raw and full runs and keep the best of each: the machine is shared, so load from

@@ -53,8 +53,10 @@ REGIONS: Tuple[str, ...] = (
 #: Default |dT| threshold [K] for the "fraction of time above" statistic: the 0.94 K natural scatter.
 NATURAL_SCATTER_K = 0.94
 
-_RUN_VARS = ("time", "surface_temperature", "sun_direction", "centroid", "mesh_faces", "mesh_vertices")
-_REPLAY_VARS = ("time", "surface_temperature", "profile")
+#: Variables every analysed run dataset needs.
+RUN_VARIABLES = ("time", "surface_temperature", "sun_direction", "centroid", "mesh_faces", "mesh_vertices")
+#: Variables every analysed replay dataset needs.
+REPLAY_VARIABLES = ("time", "surface_temperature", "profile")
 
 
 def profile_label(top_bottom: Sequence[float]) -> str:
@@ -65,7 +67,8 @@ def profile_label(top_bottom: Sequence[float]) -> str:
 # ------------------------------------------------------------------------------------ validation
 
 
-def _has(ds, name: str) -> bool:
+def has_variable(ds, name: str) -> bool:
+    """Whether ``ds[name]`` exists (a variable or coordinate of a dataset, a key of a mapping)."""
     try:
         ds[name]
         return True
@@ -73,9 +76,9 @@ def _has(ds, name: str) -> bool:
         return False
 
 
-def check_run(ds, required: Iterable[str] = _RUN_VARS) -> None:
+def check_run(ds, required: Iterable[str] = RUN_VARIABLES) -> None:
     """Raise :class:`FluxFileError` if the run dataset lacks a required variable."""
-    missing = [v for v in required if not _has(ds, v)]
+    missing = [v for v in required if not has_variable(ds, v)]
     if missing:
         raise FluxFileError(f"run dataset is missing variable(s) {', '.join(missing)}; "
                             f"required: {', '.join(required)}")
@@ -90,10 +93,10 @@ def check_pair(run, replay) -> None:
         One line naming what does not match.
     """
     check_run(run)
-    missing = [v for v in _REPLAY_VARS if not _has(replay, v)]
+    missing = [v for v in REPLAY_VARIABLES if not has_variable(replay, v)]
     if missing:
         raise FluxFileError(f"replay dataset is missing variable(s) {', '.join(missing)}; "
-                            f"required: {', '.join(_REPLAY_VARS)}")
+                            f"required: {', '.join(REPLAY_VARIABLES)}")
     h_run, h_rep = run.attrs.get("mesh_hash"), replay.attrs.get("mesh_hash")
     if h_run is None or h_rep is None:
         raise FluxFileError("mesh_hash attribute missing from run or replay dataset; cannot check they match")
@@ -255,7 +258,7 @@ def profile_labels(replay) -> List[str]:
 def find_profile(replay, top: float, bottom: float) -> Optional[str]:
     """Label of the replayed profile with these densities [kg m-3] (by rho_top/rho_bottom or label)."""
     labels = profile_labels(replay)
-    if _has(replay, "rho_top") and _has(replay, "rho_bottom"):
+    if has_variable(replay, "rho_top") and has_variable(replay, "rho_bottom"):
         rt, rb = np.asarray(replay["rho_top"].values, float), np.asarray(replay["rho_bottom"].values, float)
         for lab, a, b in zip(labels, rt, rb):
             if "rock" not in lab.lower() and abs(a - top) < 0.5 and abs(b - bottom) < 0.5:
@@ -279,14 +282,15 @@ def nominal_temperature(run, replay=None) -> np.ndarray:
         lab = nominal_label(run, replay)
         labels = profile_labels(replay)
         if lab not in labels:
-            top_bottom = _parse_two_layer(lab)
+            top_bottom = parse_two_layer(lab)
             lab = find_profile(replay, *top_bottom) if top_bottom else None
         if lab is not None:
             return np.asarray(replay["surface_temperature"][labels.index(lab)].values, dtype=float)
     return np.asarray(run["surface_temperature"].values, dtype=float)
 
 
-def _parse_two_layer(label: str) -> Optional[Tuple[float, float]]:
+def parse_two_layer(label: str) -> Optional[Tuple[float, float]]:
+    """``(top, bottom)`` densities [kg m-3] of a two-layer label such as ``"1300/1800"``; None otherwise."""
     try:
         a, b = str(label).split("/")
         return float(a), float(b)
@@ -413,11 +417,11 @@ def density_grid(replay, values: Mapping[str, float], nominal: Optional[str] = N
     grid : (ntop, nbottom) float, NaN where no value (e.g. top > bottom, not replayed)
     """
     labels = profile_labels(replay)
-    if _has(replay, "rho_top") and _has(replay, "rho_bottom"):
+    if has_variable(replay, "rho_top") and has_variable(replay, "rho_bottom"):
         rt = np.asarray(replay["rho_top"].values, float)
         rb = np.asarray(replay["rho_bottom"].values, float)
     else:
-        pairs = [_parse_two_layer(lab) or (np.nan, np.nan) for lab in labels]
+        pairs = [parse_two_layer(lab) or (np.nan, np.nan) for lab in labels]
         rt, rb = np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
     keep = [i for i, lab in enumerate(labels) if not is_rock(lab) and np.isfinite(rt[i]) and np.isfinite(rb[i])]
     tops = np.unique(rt[keep])
@@ -475,7 +479,8 @@ def representative_facets(run, regions) -> Dict[str, int]:
     if idx.size == 0:
         idx = np.arange(len(r))
     out["floor"] = int(idx[np.argmin(r[idx])])
-    solar_name = "solar_incident" if _has(run, "solar_incident") else ("solar_direct" if _has(run, "solar_direct") else None)
+    solar_name = ("solar_incident" if has_variable(run, "solar_incident")
+                  else "solar_direct" if has_variable(run, "solar_direct") else None)
     mean_solar = (np.asarray(run[solar_name].values, float).mean(axis=0) if solar_name
                   else np.zeros(len(r)))
     for cand in ("upper_wall_poleward", "upper_wall_equatorward", "rim_poleward"):

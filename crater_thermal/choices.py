@@ -21,6 +21,7 @@ __all__ = [
     "PROPERTY_SETS",
     "LIMB_DARKENING_LAWS",
     "SCATTERING_METHODS",
+    "VIEW_FACTOR_METHODS",
     "MOON_FRAMES",
     "SUN_CORRECTIONS",
     "SUN_METHODS",
@@ -44,6 +45,8 @@ PROPERTY_SETS = ("apollo", "hayne2017")
 LIMB_DARKENING_LAWS = ("linear", "quadratic", "neckel_labs", "uniform")
 #: Methods for the scattered sunlight (radiosity).
 SCATTERING_METHODS = ("exact", "bounces")
+#: View-factor operators (vfoperator): by facet count, exact sparse matrix, compressed.
+VIEW_FACTOR_METHODS = ("auto", "exact", "compressed")
 #: Moon orientation models (ephemeris.moon_rotation).
 MOON_FRAMES = ("iau2009", "de421")
 #: Sun-direction corrections (ephemeris.sun_position_moon_fixed).

@@ -1,18 +1,26 @@
 """Command-line interface (typer). ``crater-thermal --help`` lists the commands.
 
-Any :class:`~crater_thermal.errors.CraterThermalError` becomes a one-line
-``error: ...`` on stderr and exit code 2, never a traceback.
+Exit codes, never a traceback:
+
+* 2 (``error: ...``, one line): a problem with the input, any
+  :class:`~crater_thermal.errors.CraterThermalError` (bad value, mesh, flux file, existing output,
+  missing optional extra), a usage error, or an operating-system refusal (permission, disk full);
+* 3 (``internal error: ...``, one line asking for a bug report): an
+  :class:`~crater_thermal.errors.InternalError` (including a failed solver) or any other unexpected
+  exception; ``CRATER_THERMAL_TRACEBACK=1`` shows the traceback instead;
+* 130: interrupted.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import List, Optional
 
 import typer
 
-from crater_thermal.errors import CraterThermalError
+from crater_thermal.errors import CraterThermalError, InternalError
 
 app = typer.Typer(
     add_completion=False,
@@ -52,7 +60,8 @@ def mesh_crater(
     diameter_km: float = typer.Option(10.0, "--diameter-km", help="Rim diameter [km], (0, 15]."),
     facets: int = typer.Option(502, "--facets", help="Exact number of facets (thesis: 502)."),
     surround_km: float = typer.Option(0.0, "--surround-km", help="Flat plain ring beyond the rim flank [km]."),
-    wall: str = typer.Option("thesis", "--wall", help="Wall circle: 'thesis' (centre on axis) or 'tangent' (tangent to floor)."),
+    wall: str = typer.Option("thesis", "--wall",
+                             help="Wall circle: 'thesis' (centre on axis) or 'tangent' (tangent to floor)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply, .obj, .stl)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
 ) -> None:
@@ -167,12 +176,14 @@ def dem_synth(
 def steady(
     mesh: Path = typer.Argument(..., help="Mesh file (.ply, .obj, .stl) in the crater frame [m]."),
     sun_elevation_deg: float = typer.Option(..., "--sun-elevation-deg", help="Sun elevation [deg], [-90, 90]."),
-    sun_azimuth_deg: float = typer.Option(180.0, "--sun-azimuth-deg", help="Sun azimuth [deg] from north, clockwise (east)."),
+    sun_azimuth_deg: float = typer.Option(180.0, "--sun-azimuth-deg",
+                                          help="Sun azimuth [deg] from north, clockwise (east)."),
     albedo: float = typer.Option(0.12, "--albedo", help="Albedo, [0, 1)."),
     emissivity: float = typer.Option(0.98, "--emissivity", help="Infrared emissivity, (0, 1]."),
     solar_constant: float = typer.Option(1361.0, "--solar-constant", help="Solar irradiance at 1 au [W m-2]."),
     point_sun: bool = typer.Option(False, "--point-sun", help="Point Sun instead of the limb-darkened disk."),
-    limb_darkening: str = typer.Option("linear", "--limb-darkening", help="uniform | linear | quadratic | neckel_labs."),
+    limb_darkening: str = typer.Option("linear", "--limb-darkening",
+                                       help="uniform | linear | quadratic | neckel_labs."),
     n_rings: int = typer.Option(4, "--sun-rings", help="Rings of the sampled solar disk (1 + 3n(n-1) patches)."),
     scattering: str = typer.Option("exact", "--scattering", help="exact | bounces."),
     n_bounces: int = typer.Option(3, "--bounces", help="Reflections kept with --scattering bounces."),
@@ -181,9 +192,9 @@ def steady(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
 ) -> None:
     """Radiative equilibrium (no conduction) of a mesh under a fixed Sun at 1 au."""
-    from crater_thermal import radiosity
+    from crater_thermal import steady as steady_mod
 
-    path, res = radiosity.steady_file(
+    path, res = steady_mod.steady_file(
         mesh, output, sun_elevation_deg, sun_azimuth_deg, albedo=albedo, emissivity=emissivity,
         solar_constant=solar_constant, point_sun=point_sun, limb_darkening=limb_darkening, n_rings=n_rings,
         method=scattering, n_bounces=n_bounces, cache_dir=cache_dir, overwrite=overwrite,
@@ -206,20 +217,29 @@ def run(
 ) -> None:
     """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""
     from crater_thermal import config, simulate
+    from crater_thermal.progress import reporter
 
     path = simulate.run_case(config.load_case(case), output, resume=resume, overwrite=overwrite,
-                             progress=progress)
+                             progress=reporter(progress))
     typer.echo(f"wrote {path}")
 
 
 @app.command()
 def replay(
     flux: Path = typer.Argument(..., help="Run or flux dataset (netCDF) with solar_incident and ir_incident."),
-    profile: List[str] = typer.Option([], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
-    density_grid: Optional[str] = typer.Option(None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
-    initial_temperature: Optional[float] = typer.Option(None, "--initial-temperature", help="Uniform start [K], then the saved spin-up window once (thesis procedure), instead of the periodic steady state."),
-    fixed_spinup: bool = typer.Option(False, "--fixed-spinup", help="Equilibrium-estimate start, then the saved spin-up window once (as a run with spinup = 'fixed')."),
-    property_set: Optional[str] = typer.Option(None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
+    profile: List[str] = typer.Option(
+        [], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
+    density_grid: Optional[str] = typer.Option(
+        None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
+    initial_temperature: Optional[float] = typer.Option(
+        None, "--initial-temperature",
+        help="Uniform start [K], then the saved spin-up window once (thesis procedure), instead of the periodic "
+             "steady state."),
+    fixed_spinup: bool = typer.Option(
+        False, "--fixed-spinup",
+        help="Equilibrium-estimate start, then the saved spin-up window once (as a run with spinup = 'fixed')."),
+    property_set: Optional[str] = typer.Option(
+        None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
     allow_inverted: bool = typer.Option(False, "--allow-inverted", help="Allow top density > bottom density."),
     output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
@@ -227,11 +247,12 @@ def replay(
 ) -> None:
     """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
     from crater_thermal import simulate
+    from crater_thermal.progress import reporter
 
     path = simulate.replay_file(flux, profile, density_grid=density_grid, initial_temperature=initial_temperature,
                                 fixed_spinup=fixed_spinup,
                                 property_set=property_set, allow_inverted=allow_inverted, output=output,
-                                overwrite=overwrite, progress=progress)
+                                overwrite=overwrite, progress=reporter(progress))
     typer.echo(f"wrote {path}")
 
 
@@ -311,7 +332,8 @@ def show(
     profile: Optional[str] = typer.Option(None, "--profile", help="Replayed profile label: show it minus nominal [K]."),
     replay: Optional[Path] = typer.Option(None, "--replay", help="Replay dataset (with --profile)."),
     screenshot: Optional[Path] = typer.Option(None, "--screenshot", help="Write a PNG (off-screen)."),
-    animate: Optional[Path] = typer.Option(None, "--animate", help="Write an animation over time (.gif; .mp4 needs imageio[ffmpeg])."),
+    animate: Optional[Path] = typer.Option(None, "--animate",
+                                           help="Write an animation over time (.gif, or .mp4 with the viz extra)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
     max_frames: int = typer.Option(120, "--max-frames", help="Most frames in an animation."),
     exaggeration: float = typer.Option(1.0, "--exaggeration", help="Vertical exaggeration of the heights (0, 100]."),
@@ -338,16 +360,29 @@ def main(argv: Optional[List[str]] = None) -> None:
     try:
         app(args=argv, standalone_mode=False)
     except CraterThermalError as exc:
-        msg = " ".join(str(exc).split())
-        print(f"error: {msg}", file=sys.stderr)
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except (typer.Abort, KeyboardInterrupt):
         print("error: interrupted", file=sys.stderr)
         sys.exit(130)
-    except Exception as exc:  # usage errors from typer's bundled click
-        if hasattr(exc, "show") and hasattr(exc, "exit_code"):
+    except Exception as exc:
+        if hasattr(exc, "show") and hasattr(exc, "exit_code"):  # usage errors from typer's bundled click
             exc.show()
             sys.exit(2)
-        raise
+        if isinstance(exc, OSError) and not isinstance(exc, InternalError):  # permission, disk full, ...
+            where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
+            print(f"error: {exc.strerror or _one_line(exc)}{where}", file=sys.stderr)
+            sys.exit(2)
+        if os.environ.get("CRATER_THERMAL_TRACEBACK"):
+            raise
+        kind = "" if isinstance(exc, InternalError) else f"{type(exc).__name__}: "
+        print(f"internal error: {kind}{_one_line(exc)} (a bug in crater_thermal, not in your input: please "
+              "report it with the command line and its input files; CRATER_THERMAL_TRACEBACK=1 shows the "
+              "traceback)", file=sys.stderr)
+        sys.exit(3)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__

@@ -291,6 +291,11 @@ SCHEMA: Tuple[Key, ...] = (
     K("scattering", "method", "choice", "exact", "radiosity solve, or a fixed number of bounces (thesis: 3)",
       choices=choices.SCATTERING_METHODS),
     K("scattering", "n_bounces", "int", 3, 'bounces for `"bounces"`', lo=1, hi=100),
+    # [radiation]
+    K("radiation", "view_factors", "choice", "auto", "exact sparse view-factor matrix, hierarchically compressed "
+      "operator, or by facet count (auto: compressed from 10,000 facets on)", choices=choices.VIEW_FACTOR_METHODS),
+    K("radiation", "tolerance", "float", 1e-3, "compressed operator: relative Frobenius error allowed per far "
+      "block (products come out ~50x more accurate)", lo=1e-8, hi=0.1),
     # [replay]
     K("replay", "profiles", "profiles", (), "profiles replayed on the saved nominal fluxes",
       allowed_doc="labels as for `nominal_profile`"),
@@ -302,6 +307,9 @@ SCHEMA: Tuple[Key, ...] = (
       "spin-up)", lo=0, hi=10_000_000),
     K("output", "save_spinup_fluxes", "bool", True, "also store the spin-up window's fluxes, so that replays "
       "start exactly as the run did"),
+    K("output", "chunk_mb", "float", 256.0, "memory for the run's (time, facet) series: sunlight, temperatures "
+      "and IR are computed, kept and written in blocks of time samples that fit it, whatever the run's length "
+      "and size", unit="MB", lo=0.01, hi=1e6),
 )
 del K
 
@@ -323,6 +331,7 @@ SECTIONS: Tuple[SectionSpec, ...] = (
     SectionSpec("surface"),
     SectionSpec("sun"),
     SectionSpec("scattering"),
+    SectionSpec("radiation"),
     SectionSpec("replay"),
     SectionSpec("output"),
 )
@@ -457,6 +466,11 @@ class Scattering:
     """Scattered sunlight: exact radiosity or ``n_bounces`` bounces."""
 
 
+@_section("radiation")
+class Radiation:
+    """View factors of the radiation exchange: exact sparse matrix or compressed operator."""
+
+
 @_section("replay")
 class Replay:
     """Profiles replayed on the saved nominal fluxes (labels) and an optional density grid."""
@@ -474,7 +488,7 @@ class Case:
     Attributes
     ----------
     name : str
-    crater, location, period, steps, surface, sun, scattering, replay, output : sections
+    crater, location, period, steps, surface, sun, scattering, radiation, replay, output : sections
     toml_text : str  the case file's original text (stored in outputs)
     path : Path or None  the case file (None for text)
     description : str
@@ -488,6 +502,7 @@ class Case:
     surface: Surface = Surface()
     sun: Sun = Sun()
     scattering: Scattering = Scattering()
+    radiation: Radiation = Radiation()
     replay: Replay = Replay()
     output: Output = Output()
     toml_text: str = ""

@@ -1,11 +1,28 @@
-"""Exceptions. All subclass :class:`CraterThermalError` (a ``ValueError``).
+"""Exceptions: what went wrong, and whose move it is.
 
-The command line turns any of them into a one-line message and exit code 2.
+Two families, told apart by the command line:
+
+Problems with the input (:class:`CraterThermalError`, a ``ValueError``; exit code 2)
+    A case file, command-line value, mesh, flux file, density profile, date, output path or
+    installation the user can fix. The message is one line naming the parameter, the value and
+    what is allowed: :class:`ConfigError`, :class:`ProfileError`, :class:`MeshError`,
+    :class:`EphemerisRangeError`, :class:`FluxFileError`, :class:`OutputExistsError`,
+    :class:`MissingExtraError`. Inputs are checked at the edge, before any ray is traced, so
+    these come early.
+Failures inside crater_thermal (:class:`InternalError`, a ``RuntimeError``; exit code 3)
+    A consistency check or a numerical method failed on input that passed the checks: a bug (or
+    a limit of a method) to report, not the user's fault. :class:`SolverError` (the conduction
+    solver produced NaN/inf, its Newton iteration did not converge, or it was called
+    inconsistently) belongs here: bad user input is refused before it reaches the solver, so
+    it must never surface as a SolverError.
+
+The command line prints ``error: ...`` (one line) for the first family and ``internal error:
+...`` (one line, asking for a bug report) for the second, never a traceback.
 """
 
 
 class CraterThermalError(ValueError):
-    """Base class: a problem with the user's input or with a computation's result."""
+    """Base class of the problems with the user's input (exit code 2)."""
 
 
 class ConfigError(CraterThermalError):
@@ -17,7 +34,7 @@ class ProfileError(CraterThermalError):
 
 
 class MeshError(CraterThermalError):
-    """A mesh is degenerate, inconsistent, or cannot be read."""
+    """A mesh is degenerate, inconsistent, faces downward, or cannot be read."""
 
 
 class DEMError(CraterThermalError):
@@ -36,8 +53,8 @@ class OutputExistsError(CraterThermalError):
     """An output exists and ``--overwrite`` was not given."""
 
 
-class SolverError(CraterThermalError):
-    """The conduction solver produced NaN/inf or its Newton iteration failed."""
+class MissingExtraError(CraterThermalError):
+    """An optional dependency (a package extra such as ``viz`` or ``distributed``) is not installed."""
 
 
 class InternalError(RuntimeError):
@@ -45,4 +62,11 @@ class InternalError(RuntimeError):
 
     Deliberately not a :class:`CraterThermalError`: the command line reports it as an internal error
     (exit code 3) and asks for a bug report, instead of blaming the user's input.
+    """
+
+
+class SolverError(InternalError):
+    """The conduction solver produced NaN/inf, its Newton iteration failed, or it was called inconsistently.
+
+    An internal failure (exit code 3): user input is validated before it reaches the solver.
     """

@@ -60,7 +60,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -68,7 +67,8 @@ from typing import Any
 
 import numpy as np
 
-from crater_thermal.errors import ConfigError, MeshError, OutputExistsError
+from crater_thermal import io
+from crater_thermal.errors import ConfigError, MeshError
 
 __all__ = [
     "Mesh",
@@ -81,6 +81,7 @@ __all__ = [
     "flat_mesh",
     "sphere_mesh",
     "load_mesh",
+    "check_upward",
     "save_mesh",
 ]
 
@@ -98,6 +99,12 @@ MAX_SIMPLE_CRATER_DIAMETER_KM = 15.0
 
 #: Relative area below which a facet counts as degenerate (area < this * mean facet area).
 DEGENERATE_AREA_FRACTION = 1e-10
+
+#: A loaded mesh whose area-weighted mean normal has a vertical component below ``-DOWNWARD_LIMIT``
+#: faces downward (reversed winding) and is refused (:func:`check_upward`). Terrain facing up has
+#: about +0.9 (the cosine of its mean slope), the same terrain reversed about -0.9; a closed surface
+#: has 0 (the normals of a closed surface sum to zero), so closed meshes always pass.
+DOWNWARD_LIMIT = 0.1
 
 _META_TAG = "crater_thermal_meta"
 
@@ -204,6 +211,17 @@ class Mesh:
     def extent(self) -> float:
         """Largest bounding-box side [m]."""
         return float(np.ptp(self.vertices, axis=0).max())
+
+    @cached_property
+    def mean_normal(self) -> np.ndarray:
+        """(3,) float64 [-]: area-weighted mean of the facet normals, ``sum(A n) / sum(A)``.
+
+        Its length is 1 for a plane and 0 for a closed surface; its z component is the ratio of the
+        surface's horizontal projection (up minus down) to its area.
+        """
+        m = (self.areas[:, None] * self.normals).sum(axis=0) / max(self.total_area, np.finfo(float).tiny)
+        m.setflags(write=False)
+        return m
 
     @property
     def total_area(self) -> float:
@@ -726,7 +744,8 @@ def _validate(vertices: np.ndarray, faces: np.ndarray, source: str) -> None:
     rep = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     bad = rep | (area <= tol)
     if bad.any():
-        raise MeshError(f"{source}: {int(bad.sum())} degenerate face(s) (zero area or repeated vertex), first is face {int(np.argmax(bad))}")
+        raise MeshError(f"{source}: {int(bad.sum())} degenerate face(s) (zero area or repeated vertex), "
+                        f"first is face {int(np.argmax(bad))}")
     # duplicate faces (same vertex set)
     key = np.sort(faces, axis=1)
     uniq = np.unique(key, axis=0)
@@ -740,7 +759,8 @@ def _validate(vertices: np.ndarray, faces: np.ndarray, source: str) -> None:
     ecode = e[:, 0].astype(np.int64) * (len(vertices) + 1) + e[:, 1]
     u, cnt = np.unique(ecode, return_counts=True)
     if (cnt > 1).any():
-        raise MeshError(f"{source}: inconsistent face winding (normals): {int((cnt > 1).sum())} directed edge(s) are shared by two faces with the same orientation")
+        raise MeshError(f"{source}: inconsistent face winding (normals): {int((cnt > 1).sum())} directed edge(s) "
+                        "are shared by two faces with the same orientation")
 
 
 def _read_meta_comment(path: Path) -> dict:
@@ -764,13 +784,35 @@ def _read_meta_comment(path: Path) -> dict:
     return {}
 
 
-def load_mesh(path: str | os.PathLike) -> Mesh:
+def check_upward(mesh: Mesh, source: str = "mesh") -> Mesh:
+    """Refuse a mesh whose surface faces downward (a reversed winding: no sunlight would ever reach it).
+
+    The test is the z component of :attr:`Mesh.mean_normal` against the local up (+z in the crater
+    frame): below ``-DOWNWARD_LIMIT`` the mesh faces down. Closed meshes (mean normal 0) and
+    vertical ones pass: they have no up or down side to check.
+
+    Raises
+    ------
+    MeshError
+        One line naming the mean normal and suggesting ``--flip``.
+    """
+    nz = float(mesh.mean_normal[2])
+    if nz < -DOWNWARD_LIMIT:
+        raise MeshError(f"{source}: the surface faces downward (area-weighted mean normal z = {nz:.2f}; "
+                        "up is +z): its winding is reversed; load it with --flip (flip=True)")
+    return mesh
+
+
+def load_mesh(path: str | os.PathLike, flip: bool = False) -> Mesh:
     """Read a triangle mesh (any format trimesh reads: PLY, OBJ, STL, ...) and check it.
 
     Parameters
     ----------
     path : path-like
         File in metres, in the crater frame.
+    flip : bool
+        Reverse every facet's winding (for files whose normals point down); ``meta["flipped"]``
+        records it.
 
     Returns
     -------
@@ -781,8 +823,8 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     Raises
     ------
     MeshError
-        Unreadable file, non-finite vertices, degenerate or duplicate faces, inconsistent winding.
-        (Closed / watertight meshes are not required.)
+        Unreadable file, non-finite vertices, degenerate or duplicate faces, inconsistent winding, a
+        surface facing downward (:func:`check_upward`). (Closed / watertight meshes are not required.)
     """
     import trimesh
 
@@ -804,7 +846,10 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     _validate(V, F, str(p))
     meta = _read_meta_comment(p) or {"kind": "file"}
     meta["source"] = p.name
-    return Mesh(V, F, meta)
+    if flip:
+        F = F[:, [0, 2, 1]]
+        meta["flipped"] = True
+    return check_upward(Mesh(V, F, meta), str(p))
 
 
 def _ply_bytes(mesh: Mesh) -> bytes:
@@ -851,8 +896,7 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike, overwrite: bool = False) -> P
     suffix = p.suffix.lower()
     if suffix not in (".ply", ".obj", ".stl"):
         raise MeshError(f"mesh file suffix {p.suffix!r} not supported: use .ply, .obj or .stl")
-    if p.exists() and not overwrite:
-        raise OutputExistsError(f"output {str(p)!r} exists; pass overwrite=True (--overwrite) to replace it")
+    io.check_output(p, overwrite)
     if suffix == ".ply":
         data = _ply_bytes(mesh)
     elif suffix == ".obj":
@@ -861,20 +905,6 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike, overwrite: bool = False) -> P
         import trimesh
 
         data = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(file_type="stl")
-    parent = p.parent if str(p.parent) else Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with io.atomic_output(p, overwrite) as tmp:
+        tmp.write_bytes(data)
     return p

@@ -46,14 +46,14 @@ occluded.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence, Union
+from typing import Callable, Sequence, Union
 
-import numba
 import numpy as np
 
 from crater_thermal.choices import LIMB_DARKENING_LAWS
 from crater_thermal.constants import AU, SOLAR_CONSTANT, SUN_RADIUS
 from crater_thermal.errors import ConfigError
+from crater_thermal.kernels import illumination as _kern
 
 # --------------------------------------------------------------------- limb darkening
 
@@ -377,59 +377,6 @@ def _check_inputs(sun_dirs, sun_distance_m, solar_constant):
         raise ConfigError(f"solar_constant = {solar_constant!r} W m-2 must be finite and >= 0")
     return s / norms[:, None], r
 
-@numba.njit(cache=True)
-def _candidates(dirs, normals, weights, origins32, above_all, block):
-    """Rays worth tracing in one batch of time steps.
-
-    For every (patch direction ``k = step * m + j``, facet ``f``) with ``n_f . d_k > 0``
-    the contribution ``w_j cos i`` goes to the flat cell ``step * nf + f`` of
-    ``block`` directly when the ray is known to escape (origin above the whole
-    mesh, pointing up); otherwise the ray is returned for tracing: its cell,
-    weight, float32 origin and direction.
-    """
-    nk = dirs.shape[0]
-    nf = normals.shape[0]
-    m = weights.shape[0]
-    count = 0
-    for k in range(nk):
-        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
-        for f in range(nf):
-            if normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz > 0.0:
-                if not (above_all[f] and dz > 0.0):
-                    count += 1
-    cell = np.empty(count, np.int64)
-    wcos = np.empty(count, np.float64)
-    ray_org = np.empty((count, 3), np.float32)
-    ray_dir = np.empty((count, 3), np.float32)
-    i = 0
-    for k in range(nk):
-        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
-        step = k // m
-        w = weights[k - step * m]
-        for f in range(nf):
-            c = normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz
-            if c > 0.0:
-                if above_all[f] and dz > 0.0:
-                    block[step * nf + f] += w * c
-                    continue
-                cell[i] = step * nf + f
-                wcos[i] = w * c
-                ray_org[i, 0] = origins32[f, 0]
-                ray_org[i, 1] = origins32[f, 1]
-                ray_org[i, 2] = origins32[f, 2]
-                ray_dir[i, 0] = dx
-                ray_dir[i, 1] = dy
-                ray_dir[i, 2] = dz
-                i += 1
-    return cell, wcos, ray_org, ray_dir
-
-
-@numba.njit(cache=True)
-def _accumulate(block, cell, wcos, visible):
-    for i in range(cell.shape[0]):
-        if visible[i]:
-            block[cell[i]] += wcos[i]
-
 
 def direct_irradiance(
     mesh,
@@ -438,7 +385,7 @@ def direct_irradiance(
     sun_distance_m: np.ndarray,
     solar_constant: float = SOLAR_CONSTANT,
     disk: SunDisk | None = None,
-    progress: bool = False,
+    progress: Callable[[int, int], None] | None = None,
     chunk_rays: int = 2_000_000,
 ) -> np.ndarray:
     """Direct solar irradiance on every facet at every time.
@@ -465,8 +412,8 @@ def direct_irradiance(
         Solar irradiance at 1 au.
     disk : SunDisk or None
         Sampled disk (:func:`sun_disk`); ``None`` for a point Sun.
-    progress : bool
-        Show a progress bar (rich) over the batches.
+    progress : callable, optional
+        ``progress(done, total)``, called with the batches of time steps finished so far.
     chunk_rays : int
         Upper bound on the candidate rays prepared per batch (memory control).
 
@@ -502,23 +449,19 @@ def direct_irradiance(
     nb = max(1, int(chunk_rays // max(1, m * nf)))
     batches = [active[i : i + nb] for i in range(0, active.size, nb)]
 
-    iterator = batches
-    if progress:
-        from rich.progress import track
-
-        iterator = track(batches, description="direct sunlight")
-
-    for tsel in iterator:
+    for n_done, tsel in enumerate(batches, 1):
         dirs = patch_directions(s[tsel], r[tsel], disk).reshape(-1, 3)  # (nb*m, 3)
         block = np.zeros(tsel.size * nf)
-        cell, wcos, ray_org, ray_dir = _candidates(dirs, normals, weights, origins32, above_all, block)
+        cell, wcos, ray_org, ray_dir = _kern.ray_candidates(dirs, normals, weights, origins32, above_all, block)
         if cell.size:
             if use_raw:
                 visible = tracer.run_raw(ray_org, ray_dir) == -1
             else:
                 visible = ~np.asarray(tracer.occluded(ray_org.astype(float), ray_dir.astype(float)), dtype=bool)
-            _accumulate(block, cell, wcos, visible)
+            _kern.accumulate_visible(block, cell, wcos, visible)
         out[tsel] += block.reshape(tsel.size, nf)
+        if progress is not None:
+            progress(n_done, len(batches))
     out *= flux[:, None]
     return out
 

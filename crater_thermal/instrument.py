@@ -36,9 +36,10 @@ independent, standard deviations in K):
 4. **Natural scatter** of regolith temperatures between footprints, ``natural_scatter_K`` per
    footprint, in the candidate and in each reference: variance ``s^2 (1 + 1/m)``. It does not
    average with dwell. Default 0.94 K: the thesis (7.2/7.3, refs [16, 112]) quotes it as the standard
-   deviation of rock-free lunar regolith temperatures; it comes from Diviner night-time data of the
-   regolith fines between 60 N and 60 S (Bandfield et al. 2011, JGR 116, E00H02: scenes at roughly
-   80-120 K, footprints of ~250 m). At 40-80 K inside polar craters it has not been measured; what
+   deviation of rock-free lunar regolith temperatures; by the thesis's context ref. [16] is Bandfield et
+   al. 2011 (JGR 116, E00H02), Diviner night-time temperatures of the regolith fines between 60 N and
+   60 S (scenes of roughly 70-120 K, footprints of ~250 m); the paper itself was not read here. At 40-80 K
+   inside polar craters it has not been measured; what
    sets temperatures there (scattered and re-emitted light, geothermal flux) differs from the
    equatorial night, so take it as uncertain by a factor of about 2 either way (the report shows the
    answer at 0.5x and 2x).
@@ -357,8 +358,9 @@ class Instrument:
 #: telescope design and the same 21-element thermopile arrays, detector-noise limited: the noise-equivalent
 #: radiance is taken equal for the three channels, anchored on channel 9's NETD of about 2 K at a 50 K
 #: scene (thesis 7.3, citing Paige et al. 2010). Integration 0.128 s (Paige et al. 2010). Absolute
-#: accuracy 0.5-1% of a 300 K scene (Paige, UCLA ESS 265 lecture 2010): gain error 1%. 1/f knee: an
-#: assumption (no published figure found): 60 s, about the spacing of Diviner's space/blackbody views.
+#: accuracy 0.5-1% of a 300 K scene (Paige, UCLA ESS 265 lecture 2010): gain error 1%. 1/f knee 60 s: an
+#: assumption (no published figure found). The per-channel NETDs of Paige et al. 2010 could not be read in
+#: this work; the equal-radiance-noise assumption should be replaced by them.
 _DIVINER_NEDL_SOURCE = ("Paige et al. 2010 (Space Sci. Rev. 150:125) passbands and 0.128 s integration; NETD from "
                         "the thesis's 2 K at 50 K for channel 9, same noise-equivalent radiance assumed for "
                         "channels 7-8 (same thermopile arrays); gain error 1% (0.5-1% accuracy at 300 K); "

@@ -1,6 +1,8 @@
-"""Datasets on disk: the flux / run / replay / steady schemas, validation, atomic writes, checkpoints.
+"""Datasets on disk: the flux / run / replay / steady schemas, validation, checkpoints, and the one
+atomic writer (:func:`atomic_output`) that every output of crater_thermal goes through.
 
-This is the only module that imports xarray. Files are netCDF4 with CF-style ``units``
+This is the only module that imports xarray (inside the functions that need it, so that the writer
+and the checks cost no xarray import). Files are netCDF4 with CF-style ``units``
 attributes. The schemas are contracts (see ``ARCHITECTURE.md``):
 
 Flux dataset (the minimum ``replay`` accepts)
@@ -19,17 +21,22 @@ Replay dataset
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import secrets
+import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Iterator, Mapping
 
 import numpy as np
-import xarray as xr
 
 from crater_thermal import __version__
-from crater_thermal.errors import FluxFileError, OutputExistsError
+from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
+
+if TYPE_CHECKING:
+    import xarray as xr
 
 #: Accepted spellings of the irradiance unit.
 FLUX_UNITS = ("W m-2", "W m**-2", "W m^-2", "W/m2", "W/m^2", "W m-2 ")
@@ -42,81 +49,323 @@ _ENCODING = {"zlib": True, "complevel": 1}
 # ----------------------------------------------------------------------------- writing
 
 
-def check_output(path: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Refuse an existing output unless ``overwrite``; create the parent folder.
+def check_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False) -> Path:
+    """Check an output path before any work (nothing is created): refuse it if it exists (unless
+    ``overwrite``) or has the wrong kind.
 
-    Returns the output path. Raises :class:`OutputExistsError`.
+    Parameters
+    ----------
+    path : path-like
+        The file (or, with ``folder``, the folder) to write.
+    overwrite : bool
+        Allow replacing an existing output.
+    folder : bool
+        The output is a folder (a file output must not be a folder, and the reverse).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    OutputExistsError
+        ``path`` exists and ``overwrite`` is False.
+    ConfigError
+        ``path`` is a folder where a file is written (or the reverse), or its parent is a file.
     """
     path = Path(path)
+    if path.is_dir() and not folder:
+        raise ConfigError(f"output {path} is a folder; give a file name (e.g. {path / 'out.nc'})")
+    if path.exists() and folder and not path.is_dir():
+        raise ConfigError(f"output {path} is a file; give a folder name")
     if path.exists() and not overwrite:
         raise OutputExistsError(f"output {path} exists; pass --overwrite to replace it")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.parent.exists() and not path.parent.is_dir():
+        raise ConfigError(f"output {path}: {path.parent} is a file, not a folder")
     return path
+
+
+def _temporary_sibling(path: Path, folder: bool) -> Path:
+    """Create an empty file (or folder) beside ``path`` with a fresh hidden name and return it.
+
+    Created with mode 0o666 (0o777 for a folder) so that the process umask alone sets the
+    permissions: one policy for every output.
+    """
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}"
+        try:
+            if folder:
+                os.mkdir(tmp, 0o777)
+            else:
+                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            return tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name beside {path}")  # pragma: no cover
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False) -> Iterator[Path]:
+    """Write an output atomically: the one writer every crater_thermal output goes through.
+
+    Yields a temporary path in the same folder as ``path`` (an empty file, or with ``folder`` an empty
+    folder; the name ends in ``path``'s suffix, so format-sniffing writers work). When the block ends
+    normally the temporary is renamed onto ``path`` (``os.replace``: readers never see a half-written
+    file, and an interrupted write never damages an earlier output); when it raises, the temporary is
+    removed and ``path`` is untouched. Permissions follow the umask (files 0o666, folders 0o777, minus
+    the umask).
+
+    Parameters
+    ----------
+    path : path-like
+        Final output path; its parent folders are created.
+    overwrite : bool
+        Replace an existing output (checked again at the rename, in case one appeared meanwhile).
+    folder : bool
+        The output is a folder; an existing one (with ``overwrite``) is replaced as a whole.
+
+    Raises
+    ------
+    OutputExistsError, ConfigError
+        As :func:`check_output`, before the block runs.
+
+    Examples
+    --------
+    >>> with atomic_output("run.nc", overwrite=True) as tmp:  # doctest: +SKIP
+    ...     ds.to_netcdf(tmp)
+    """
+    path = check_output(path, overwrite, folder)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the folder of output {path}: {exc.strerror or exc}") from None
+    tmp = _temporary_sibling(path, folder)
+    try:
+        yield tmp
+        check_output(path, overwrite, folder)
+        if folder and path.is_dir():
+            old = _temporary_sibling(path, folder=True)
+            os.replace(path, old)  # a folder cannot be renamed onto a non-empty one: swap
+            try:
+                os.replace(tmp, path)
+            except BaseException:
+                os.replace(old, path)
+                raise
+            _remove(old)
+        else:
+            _fsync(tmp)  # the data reach the disk before the name does
+            os.replace(tmp, path)
+    finally:
+        if os.path.lexists(tmp):
+            _remove(tmp)
 
 
 def write_dataset_atomic(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Write ``ds`` to netCDF4 at ``path`` atomically (temporary file in the same folder, then rename).
+    """Write ``ds`` to netCDF4 at ``path`` through :func:`atomic_output`.
 
     An interrupted write never leaves a half-written file at ``path`` nor damages an earlier one.
     """
-    path = check_output(path, overwrite)
-    encoding = {
-        name: dict(_ENCODING)
-        for name, var in ds.data_vars.items()
-        if var.dtype.kind == "f" and var.size > 1000
-    }
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=encoding)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are ordinary files
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    with atomic_output(path, overwrite) as tmp:
+        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=_encoding(ds))
+    return Path(path)
+
+
+def _encoding(ds: xr.Dataset) -> dict:
+    """Compression for the large float variables of ``ds``."""
+    return {name: dict(_ENCODING) for name, var in ds.data_vars.items() if var.dtype.kind == "f" and var.size > 1000}
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes, overwrite: bool = False) -> Path:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename; umask permissions).
+    """Write ``data`` to ``path`` through :func:`atomic_output`.
 
     Raises :class:`OutputExistsError` if ``path`` exists and ``overwrite`` is False.
     """
-    path = check_output(path, overwrite)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    with atomic_output(path, overwrite) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
 
 
 def save_npz_atomic(path: str | os.PathLike, **arrays: Any) -> Path:
-    """Save arrays to an ``.npz`` file atomically (used for checkpoints and caches)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
+    """Save arrays to an ``.npz`` file through :func:`atomic_output`, replacing any earlier one
+    (checkpoints and caches)."""
+    with atomic_output(path, overwrite=True) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return Path(path)
+
+
+# ----------------------------------------------------------------------------- streaming (bounded memory)
+
+
+def chunk_shape(shape: tuple, time_axis: int, time_rows: int, target_bytes: int = 1 << 20) -> tuple:
+    """HDF5 chunk shape for a large variable: ``time_rows`` along time, about ``target_bytes`` of float64
+    per chunk along the last (facet) axis, 1 along any leading axis (e.g. ``profile``)."""
+    out = [1] * len(shape)
+    out[time_axis] = max(1, min(int(time_rows), int(shape[time_axis])))
+    out[-1] = max(1, min(int(shape[-1]), target_bytes // (8 * out[time_axis])))
+    return tuple(out)
+
+
+class _StreamWriter:
+    """What :func:`stream_dataset` yields: ``writer(name, key, values)`` stores a block of a large
+    variable; ``writer.set_attrs(mapping)`` adds global attributes known only at the end."""
+
+    def __init__(self, nc, variables):
+        self._nc, self._vars = nc, variables
+
+    def __call__(self, name: str, key: tuple, values) -> None:
+        var = self._vars[name]
+        var[key] = np.asarray(values, dtype=var.dtype)
+
+    def set_attrs(self, attrs: Mapping[str, Any]) -> None:
+        for key, value in attrs.items():
+            if value is None:
+                continue
+            if isinstance(value, bool):
+                value = int(value)
+            elif isinstance(value, dict):
+                value = json.dumps(value, default=float)
+            self._nc.setncattr(key, value)
+
+
+@contextlib.contextmanager
+def stream_dataset(ds: xr.Dataset, path: str | os.PathLike, variables: Mapping[str, tuple], *,
+                   overwrite: bool = False, time_rows: int = 24) -> Iterator[_StreamWriter]:
+    """Write a dataset whose large variables arrive in pieces, never whole in memory; atomic.
+
+    ``ds`` holds everything small (coordinates, mesh, attributes) and is written first; each entry
+    ``name: (dims, shape, attrs[, dtype])`` of ``variables`` becomes a variable (float64 unless
+    ``dtype`` says otherwise) chunked along time (``time_rows`` samples) and facet (about 1 MB per
+    chunk), compressed like every large variable. Yields a :class:`_StreamWriter`:
+    ``write(name, key, values)`` stores ``values`` at ``var[key]`` (a tuple of slices). The file
+    appears at ``path`` only when the block exits without an exception.
+    """
+    import netCDF4
+
+    with atomic_output(path, overwrite) as tmp:
+        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=_encoding(ds))
+        nc = netCDF4.Dataset(tmp, "a")
+        try:
+            created = {}
+            for name, spec in variables.items():
+                dims, shape, attrs = spec[:3]
+                dtype = np.dtype(spec[3] if len(spec) > 3 else "f8")
+                for dim, size in zip(dims, shape):
+                    if dim not in nc.dimensions:
+                        nc.createDimension(dim, size)
+                    elif len(nc.dimensions[dim]) != size:
+                        raise ValueError(f"{name}: dimension {dim} has {len(nc.dimensions[dim])}, not {size}")
+                t_axis = list(dims).index("time") if "time" in dims else 0
+                var = nc.createVariable(name, dtype, dims, fill_value=dtype.type(np.nan),
+                                        chunksizes=chunk_shape(tuple(shape), t_axis, time_rows), **_ENCODING)
+                var.setncatts(dict(attrs))
+                created[name] = var
+            yield _StreamWriter(nc, created)
+        finally:
+            nc.close()
+
+
+class SegmentStore:
+    """Crash-safe scratch store for ``(rows, columns)`` series that grow block by block.
+
+    A folder of ``.npy`` files, one per (series, block of ``block`` rows), each written to a temporary
+    name and renamed: a process killed at any instant leaves every block whole or absent, never torn.
+    (An HDF5/netCDF4 file killed while being written can lose its metadata and with it every earlier
+    block, which is why an unfinished run keeps its results here and the netCDF file is written from
+    these blocks at the end.) Writing a block again replaces it; a block may hold fewer rows than
+    ``block`` (the last one, or a partial one saved at a checkpoint).
+    """
+
+    def __init__(self, folder: str | os.PathLike, block: int):
+        self.folder = Path(folder)
+        self.block = int(block)
+        if self.block < 1:
+            raise ValueError(f"block must be >= 1 row, got {block}")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._dir = str(self.folder)
+
+    def _file(self, name: str, b: int) -> str:
+        # plain strings: pathlib interns every path part, a dictionary that grows with the block count
+        return os.path.join(self._dir, f"{name}.{b:08d}.npy")
+
+    def write(self, name: str, k0: int, rows: np.ndarray) -> None:
+        """Store ``rows`` as rows ``k0 ..`` of series ``name`` (``k0`` a multiple of ``block``)."""
+        if k0 % self.block or len(rows) > self.block:
+            raise ValueError(f"{name}: rows {k0}..{k0 + len(rows)} do not fit block {self.block}")
+        target = self._file(name, k0 // self.block)
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=self._dir)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.save(fh, np.ascontiguousarray(rows))
+            os.replace(tmp, target)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+    def write_rows(self, name: str, k0: int, rows: np.ndarray) -> None:
+        """Store rows ``k0 .. k0 + len(rows) - 1`` of ``name``, split at block boundaries (any ``k0``;
+        a block only partly covered is read, merged and written back)."""
+        k, end = int(k0), int(k0) + len(rows)
+        while k < end:
+            b0 = k // self.block * self.block
+            b1 = min(end, b0 + self.block)
+            part = rows[k - k0:b1 - k0]
+            if k > b0:
+                head = self.read(name, b0, k)
+                part = np.concatenate([head, part])
+            self.write(name, b0, part)
+            k = b1
+
+    def read(self, name: str, k0: int, k1: int) -> np.ndarray:
+        """Rows ``k0 .. k1 - 1`` of series ``name`` (FluxFileError if a block is missing or short)."""
+        parts = []
+        k = int(k0)
+        while k < k1:
+            b = k // self.block
+            f = self._file(name, b)
+            try:
+                arr = np.load(f, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise FluxFileError(f"scratch store {self.folder}: block {os.path.basename(f)} unreadable "
+                                    f"({exc})") from None
+            lo, hi = k - b * self.block, min(k1 - b * self.block, self.block)
+            if arr.shape[0] < hi:
+                raise FluxFileError(f"scratch store {self.folder}: {os.path.basename(f)} has {arr.shape[0]} "
+                                    f"rows, need {hi}")
+            parts.append(arr[lo:hi])
+            k = b * self.block + hi
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def mark(self, name: str) -> None:
+        """Record that a stage finished (an empty marker file, written atomically)."""
+        (self.folder / f"{name}.done").touch()
+
+    def marked(self, name: str) -> bool:
+        return (self.folder / f"{name}.done").exists()
+
+    def remove(self) -> None:
+        """Delete the store and everything in it."""
+        import shutil
+
+        shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def mesh_variables(mesh) -> dict:
@@ -180,6 +429,8 @@ def write_steady(path, mesh, results: Mapping[str, np.ndarray], attrs: Mapping[s
         ``ir_incident`` [W m-2], each ``(n_facets,)``.
     attrs : global attributes (albedo, emissivity, sun elevation/azimuth, ...).
     """
+    import xarray as xr
+
     units = {"surface_temperature": "K"}
     data_vars = {
         name: (("facet",), np.asarray(value, float), {"units": units.get(name, "W m-2")})
@@ -190,22 +441,35 @@ def write_steady(path, mesh, results: Mapping[str, np.ndarray], attrs: Mapping[s
     return write_dataset_atomic(ds, path, overwrite)
 
 
-def run_dataset(mesh, times, *, solar_incident, ir_incident, solar_direct, surface_temperature,
+#: Attributes of the run dataset's (time, facet) variables (shared by the in-memory and streamed writers).
+RUN_SERIES_ATTRS = {
+    "solar_incident": {"units": "W m-2", "long_name": "direct + scattered shortwave irradiance"},
+    "ir_incident": {"units": "W m-2", "long_name": "longwave irradiance from the terrain"},
+    "solar_direct": {"units": "W m-2", "long_name": "direct solar irradiance"},
+    "surface_temperature": {"units": "K"},
+}
+
+
+def run_dataset(mesh, times, *, solar_incident=None, ir_incident=None, solar_direct=None, surface_temperature=None,
                 sun_direction, sun_distance_au, attrs: Mapping[str, Any], extra: Mapping | None = None
                 ) -> xr.Dataset:
     """Assemble the run dataset (contract schema). Arrays are ``(n_times, n_facets)`` unless noted.
 
-    ``extra`` adds variables as ``name: (dims, data, attrs)``.
+    ``extra`` adds variables as ``name: (dims, data, attrs)``. A (time, facet) variable given as None is
+    left out (a streamed run adds it block by block with :func:`stream_dataset`, attributes from
+    ``RUN_SERIES_ATTRS``).
     """
-    flux = {"units": "W m-2"}
-    data_vars = {
-        "solar_incident": (("time", "facet"), solar_incident, dict(flux, long_name="direct + scattered shortwave irradiance")),
-        "ir_incident": (("time", "facet"), ir_incident, dict(flux, long_name="longwave irradiance from the terrain")),
-        "solar_direct": (("time", "facet"), solar_direct, dict(flux, long_name="direct solar irradiance")),
-        "surface_temperature": (("time", "facet"), surface_temperature, {"units": "K"}),
-        "sun_direction": (("time", "xyz"), sun_direction, {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
+    import xarray as xr
+
+    series = {"solar_incident": solar_incident, "ir_incident": ir_incident, "solar_direct": solar_direct,
+              "surface_temperature": surface_temperature}
+    data_vars = {name: (("time", "facet"), value, dict(RUN_SERIES_ATTRS[name]))
+                 for name, value in series.items() if value is not None}
+    data_vars.update({
+        "sun_direction": (("time", "xyz"), sun_direction,
+                          {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
         "sun_distance": (("time",), sun_distance_au, {"units": "au"}),
-    }
+    })
     data_vars.update(mesh_variables(mesh))
     if extra:
         data_vars.update(extra)
@@ -217,12 +481,16 @@ def run_dataset(mesh, times, *, solar_incident, ir_incident, solar_direct, surfa
 
 def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_temperature,
                    attrs: Mapping[str, Any] | None = None) -> xr.Dataset:
-    """Assemble the replay dataset: ``surface_temperature(profile, time, facet)`` [K] plus the run's mesh."""
+    """Assemble the replay dataset: ``surface_temperature(profile, time, facet)`` [K] plus the run's mesh
+    (``surface_temperature=None`` leaves it out, for :func:`stream_dataset` to add block by block)."""
+    import xarray as xr
+
     data_vars = {
-        "surface_temperature": (("profile", "time", "facet"), surface_temperature, {"units": "K"}),
         "rho_top": (("profile",), np.asarray(rho_top, float), {"units": "kg m-3"}),
         "rho_bottom": (("profile",), np.asarray(rho_bottom, float), {"units": "kg m-3"}),
     }
+    if surface_temperature is not None:
+        data_vars["surface_temperature"] = (("profile", "time", "facet"), surface_temperature, {"units": "K"})
     for name in ("mesh_vertices", "mesh_faces", "area", "normal", "centroid", "inner", "sun_direction",
                  "sun_distance"):
         if name in run:
@@ -238,12 +506,15 @@ def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_tempera
 
 
 def _open(path, what: str, load: bool = True) -> xr.Dataset:
+    import xarray as xr
+
     path = Path(path)
     if not path.is_file():
         raise FluxFileError(f"{what} file {path} does not exist")
     try:
-        ds = xr.open_dataset(path, engine="netcdf4")
-        return ds.load() if load else ds
+        if not load:  # lazily, and without caching whole variables once touched
+            return xr.open_dataset(path, engine="netcdf4", cache=False)
+        return xr.open_dataset(path, engine="netcdf4").load()
     except Exception as exc:  # netCDF4/HDF5 raise many types for a corrupt file
         raise FluxFileError(f"cannot read {what} file {path}: {type(exc).__name__}: {exc}") from None
 
@@ -260,27 +531,37 @@ def _check_var(ds, path, name, dims, units) -> None:
             raise FluxFileError(f"{path}: variable '{name}' has units '{got}', expected '{units[0]}'")
     if var.dtype.kind not in "fc":
         return
-    # block by block along the first dimension, so a lazily opened multi-GB variable is never whole in memory
-    for i in range(var.shape[0]) if var.ndim == 3 else [slice(None)]:
-        values = np.asarray(var[i].values)
+    for values in _blocks(var):
         if not np.all(np.isfinite(values)):
             bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
             raise FluxFileError(f"{path}: variable '{name}' has {bad} NaN/inf values")
 
 
-def _check_time(ds, path) -> None:
-    if "time" not in ds.coords and "time" not in ds:
-        raise FluxFileError(f"{path}: missing coordinate 'time'")
-    t = np.asarray(ds["time"].values)
+def _blocks(var, max_bytes: int = 64 << 20):
+    """The values of a (lazily opened) variable, block by block along its first dimension, each block
+    at most about ``max_bytes``: a multi-GB variable is never whole in memory."""
+    if var.ndim == 0:
+        yield np.asarray(var.values)
+        return
+    row = max(1, int(np.prod(var.shape[1:])) * var.dtype.itemsize)
+    step = max(1, max_bytes // row)
+    for i in range(0, var.shape[0], step):
+        yield np.asarray(var[i:i + step].values)
+
+
+def _check_time(ds, path, name: str = "time") -> None:
+    if name not in ds.coords and name not in ds:
+        raise FluxFileError(f"{path}: missing coordinate '{name}'")
+    t = np.asarray(ds[name].values)
     if t.dtype.kind != "M":
-        raise FluxFileError(f"{path}: 'time' is not a datetime coordinate (dtype {t.dtype})")
+        raise FluxFileError(f"{path}: '{name}' is not a datetime coordinate (dtype {t.dtype})")
     if t.size < 2:
-        raise FluxFileError(f"{path}: 'time' needs at least 2 samples, has {t.size}")
+        raise FluxFileError(f"{path}: '{name}' needs at least 2 samples, has {t.size}")
     if np.any(np.isnat(t)):
-        raise FluxFileError(f"{path}: 'time' has missing values")
+        raise FluxFileError(f"{path}: '{name}' has missing values")
     if np.any(np.diff(t) <= np.timedelta64(0, "ns")):
         i = int(np.argmax(np.diff(t) <= np.timedelta64(0, "ns")))
-        raise FluxFileError(f"{path}: 'time' is not strictly increasing at index {i + 1} ({t[i + 1]})")
+        raise FluxFileError(f"{path}: '{name}' is not strictly increasing at index {i + 1} ({t[i + 1]})")
 
 
 def _check_attr_range(ds, path, name, lo, hi, default=None) -> None:
@@ -297,26 +578,40 @@ def _check_attr_range(ds, path, name, lo, hi, default=None) -> None:
         raise FluxFileError(f"{path}: attribute '{name}' = {value} outside [{lo}, {hi}]")
 
 
-def read_flux_dataset(path) -> xr.Dataset:
+def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
     """Open and validate a flux dataset (any file with ``time``, ``solar_incident``, ``ir_incident``).
 
+    The optional spin-up window (``spinup_solar_incident``, ``spinup_ir_incident`` on ``spinup_time``,
+    ending at the first ``time``) is checked the same way when present.
+
+    ``load=False`` keeps the variables on disk (read when used; validation reads them block by block),
+    for runs too large to hold in memory.
+
     Raises :class:`FluxFileError` naming the problem: unreadable file, missing variable, wrong dims or
-    units, NaN/inf, non-monotonic time, albedo/emissivity attributes out of range.
+    units, NaN/inf, negative irradiance, non-monotonic time, albedo/emissivity attributes out of range.
     """
-    ds = _open(path, "flux")
-    _check_time(ds, path)
-    for name in ("solar_incident", "ir_incident"):
-        _check_var(ds, path, name, ("time", "facet"), FLUX_UNITS)
-    if np.any(ds["solar_incident"].values < 0) or np.any(ds["ir_incident"].values < 0):
-        raise FluxFileError(f"{path}: negative irradiance in solar_incident or ir_incident")
+    ds = _open(path, "flux", load=load)
+    groups = [("time", ("solar_incident", "ir_incident"))]
+    if "spinup_solar_incident" in ds or "spinup_ir_incident" in ds:
+        groups.append(("spinup_time", ("spinup_solar_incident", "spinup_ir_incident")))
+    for time_name, names in groups:
+        _check_time(ds, path, time_name)
+        for name in names:
+            _check_var(ds, path, name, (time_name, "facet"), FLUX_UNITS)
+            if any(np.any(v < 0) for v in _blocks(ds[name])):
+                raise FluxFileError(f"{path}: negative irradiance in {name}")
+    if len(groups) > 1 and ds["spinup_time"].values[-1] > ds["time"].values[0]:
+        raise FluxFileError(f"{path}: 'spinup_time' must end at or before the first 'time' "
+                            f"({ds['spinup_time'].values[-1]} > {ds['time'].values[0]})")
     _check_attr_range(ds, path, "albedo", 0.0, 1.0)
     _check_attr_range(ds, path, "emissivity", 1e-6, 1.0)
     return ds
 
 
-def open_run(path) -> xr.Dataset:
-    """Open and validate a run dataset (flux schema + surface temperatures + mesh)."""
-    ds = read_flux_dataset(path)
+def open_run(path, load: bool = True) -> xr.Dataset:
+    """Open and validate a run dataset (flux schema + surface temperatures + mesh); ``load`` as in
+    :func:`read_flux_dataset`."""
+    ds = read_flux_dataset(path, load=load)
     _check_var(ds, path, "surface_temperature", ("time", "facet"), TEMPERATURE_UNITS)
     for name in ("mesh_vertices", "mesh_faces", "area"):
         if name not in ds:

@@ -27,13 +27,21 @@ import scipy.sparse.linalg as spla
 
 from crater_thermal.choices import SCATTERING_METHODS
 from crater_thermal.constants import ALBEDO, AU, EMISSIVITY, SIGMA, SOLAR_CONSTANT
-from crater_thermal.errors import ConfigError
+from crater_thermal.errors import ConfigError, SolverError
+from crater_thermal.vfoperator import SparseViewFactors, ViewFactorOperator, as_operator
 
 # SCATTERING_METHODS ("exact", "bounces"), the methods for the scattered sunlight, is declared in
 # crater_thermal.choices (the case schema's list) and re-exported here.
 #: Thesis default number of reflections for the "bounces" method.
 DEFAULT_BOUNCES = 3
 
+
+#: Relative change (max norm) at which the iterative scattering solve stops.
+ITERATIVE_RTOL = 1e-9
+#: Iteration cap of the iterative solves.
+ITERATIVE_MAX = 500
+#: Right-hand sides per block of the iterative scattering solve (memory: a few (nf, k) arrays).
+ITERATIVE_BLOCK = 64
 
 #: Above this fill fraction (and below DENSE_MAX_FACETS) linear systems are solved densely.
 DENSE_FILL = 0.1
@@ -63,7 +71,17 @@ class _Factorised:
         return self._lu.solve(np.ascontiguousarray(rhs))
 
 
+def _as_operator(F) -> ViewFactorOperator:
+    """A view-factor operator from an operator, a sparse matrix or a dense array."""
+    op = as_operator(F)
+    if op.shape[0] != op.shape[1]:  # pragma: no cover - as_operator checks sparse input already
+        raise ConfigError(f"view-factor matrix has shape {op.shape}; expected square (nf, nf)")
+    return op
+
+
 def _as_sparse(F) -> sp.csr_matrix:
+    if isinstance(F, SparseViewFactors):
+        return F.matrix
     if sp.issparse(F):
         F = sp.csr_matrix(F, dtype=float)
     else:
@@ -76,7 +94,9 @@ def _as_sparse(F) -> sp.csr_matrix:
     return F
 
 
-def _per_facet(name: str, value, nf: int, lo: float, hi: float, hi_open: bool) -> np.ndarray:
+def check_per_facet(name: str, value, nf: int, lo: float, hi: float, hi_open: bool) -> np.ndarray:
+    """``value`` (a scalar or (nf,)) as an (nf,) float array within [lo, hi] (or [lo, hi) if ``hi_open``);
+    otherwise :class:`ConfigError` naming ``name``."""
     v = np.asarray(value, dtype=float)
     try:
         v = np.broadcast_to(v, (nf,)).copy()
@@ -94,22 +114,25 @@ class ScatteringSolver:
 
     Parameters
     ----------
-    F : (nf, nf) sparse or dense float [-]
-        View-factor matrix.
+    F : (nf, nf) sparse or dense float [-], or a vfoperator.ViewFactorOperator
+        View factors.
     albedo : float or (nf,) float [-]
         Lambertian albedo, in [0, 1).
     method : {"exact", "bounces"}
-        ``"exact"`` solves ``(I - A F) B = A E`` (LU factorised once: dense LAPACK for
-        dense-ish F, SuperLU otherwise);
+        ``"exact"`` solves ``(I - A F) B = A E``: with an exact (sparse) matrix by LU, factorised once
+        (dense LAPACK for dense-ish F, SuperLU otherwise); with a compressed operator iteratively, by
+        the fixed point ``B <- A E + A F B`` (a contraction: ``A rowsum < 1``, the error shrinks by
+        ``max(A rowsum)`` ~ 0.1 per product) until the largest change is below
+        :data:`ITERATIVE_RTOL` of the largest exitance, many right-hand sides at once;
         ``"bounces"`` keeps ``n_bounces`` reflections (thesis: 3).
     n_bounces : int
         Number of reflections for ``"bounces"`` (>= 0; 0 = no scattering).
     """
 
     def __init__(self, F, albedo=ALBEDO, method: str = "exact", n_bounces: int = DEFAULT_BOUNCES):
-        self.F = _as_sparse(F)
+        self.F = _as_operator(F)
         nf = self.F.shape[0]
-        self.albedo = _per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
+        self.albedo = check_per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
         if method not in SCATTERING_METHODS:
             raise ConfigError(f"scattering method = {method!r}; allowed: {', '.join(SCATTERING_METHODS)}")
         if isinstance(n_bounces, bool) or not isinstance(n_bounces, (int, np.integer)) or not 0 <= n_bounces <= 1000:
@@ -117,23 +140,53 @@ class ScatteringSolver:
         self.method = method
         self.n_bounces = int(n_bounces)
         self._lu = None
-        if method == "exact" and nf:
-            self._lu = _Factorised(self.F, self.albedo)
+        #: iterations of the last iterative solve (0 for LU / bounces)
+        self.iterations = 0
+        if method == "exact" and nf and isinstance(self.F, SparseViewFactors):
+            self._lu = _Factorised(self.F.matrix, self.albedo)
 
     @property
     def n_facets(self) -> int:
         return self.F.shape[0]
 
-    def exitance(self, E_direct: np.ndarray) -> np.ndarray:
-        """Reflected shortwave exitance ``B`` [W m-2], same shape as ``E_direct`` ((nt, nf) or (nf,))."""
+    def _iterate(self, rhs: np.ndarray, B0: np.ndarray | None) -> np.ndarray:
+        """Fixed point ``B <- rhs + A F B`` for rhs (nf, k), from B0 (default: rhs, the first bounce)."""
+        a = self.albedo[:, None]
+        B = rhs.copy() if B0 is None else np.array(B0, dtype=float).reshape(rhs.shape)
+        scale = max(float(np.abs(rhs).max()), np.finfo(float).tiny)
+        for it in range(1, ITERATIVE_MAX + 1):
+            Bn = rhs + a * self.F.matvec(B)
+            change = float(np.abs(Bn - B).max())
+            B = Bn
+            if change <= ITERATIVE_RTOL * scale:
+                self.iterations = max(self.iterations, it)
+                return B
+        raise SolverError(f"scattered sunlight: the fixed-point solve did not converge in {ITERATIVE_MAX} "
+                          f"products (last change {change:.3g} W m-2)")
+
+    def exitance(self, E_direct: np.ndarray, B0: np.ndarray | None = None) -> np.ndarray:
+        """Reflected shortwave exitance ``B`` [W m-2], same shape as ``E_direct`` ((nt, nf) or (nf,)).
+
+        ``B0`` (same shape): starting guess of the iterative solve (compressed operator only), e.g. the
+        previous step's exitance; ignored by the LU and bounce methods.
+        """
         E = np.asarray(E_direct, dtype=float)
         if E.shape[-1] != self.n_facets or E.ndim not in (1, 2):
             raise ConfigError(f"E_direct has shape {E.shape}; expected ({self.n_facets},) or (nt, {self.n_facets})")
         rhs = (self.albedo * E).T  # (nf,) or (nf, nt)
         if self.n_facets == 0:
             return np.zeros_like(E)
-        if self.method == "exact":
+        if self.method == "exact" and self._lu is not None:
             B = self._lu.solve(rhs)
+        elif self.method == "exact":
+            self.iterations = 0
+            R = rhs.reshape(self.n_facets, -1)
+            G = None if B0 is None else np.asarray(B0, dtype=float).T.reshape(R.shape)
+            B = np.empty_like(R)
+            for c in range(0, R.shape[1], ITERATIVE_BLOCK):
+                sl = slice(c, c + ITERATIVE_BLOCK)
+                B[:, sl] = self._iterate(np.ascontiguousarray(R[:, sl]), None if G is None else G[:, sl])
+            B = B.reshape(rhs.shape)
         else:
             # B = sum_{k=0}^{n-1} (A F)^k A E   (n reflections in total)
             B = np.zeros_like(rhs)
@@ -141,7 +194,7 @@ class ScatteringSolver:
             for k in range(self.n_bounces):
                 B = B + term
                 if k + 1 < self.n_bounces:
-                    term = (self.F @ term) * (self.albedo if rhs.ndim == 1 else self.albedo[:, None])
+                    term = self.F.matvec(term) * (self.albedo if rhs.ndim == 1 else self.albedo[:, None])
         return np.asarray(B).T
 
     def solar_incident(self, E_direct: np.ndarray) -> np.ndarray:
@@ -157,7 +210,7 @@ class ScatteringSolver:
         """
         E = np.asarray(E_direct, dtype=float)
         B = self.exitance(E)
-        return E + np.asarray(self.F @ B.T).T
+        return E + np.asarray(self.F.matvec(np.ascontiguousarray(B.T))).T
 
 
 def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
@@ -165,7 +218,7 @@ def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
 
     Parameters
     ----------
-    F : (nf, nf) sparse or dense [-]
+    F : (nf, nf) sparse or dense [-], or a vfoperator.ViewFactorOperator
     T : (..., nf) float [K]
     emissivity : float or (nf,) float [-]
 
@@ -173,25 +226,26 @@ def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
     -------
     (..., nf) float [W m-2]
     """
-    F = _as_sparse(F)
+    F = _as_operator(F)
     T = np.asarray(T, dtype=float)
     nf = F.shape[0]
     if T.shape[-1] != nf:
         raise ConfigError(f"temperature has shape {T.shape}; last axis must be {nf} facets")
-    eps = _per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
+    eps = check_per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
     u = eps * SIGMA * T**4
     flat = u.reshape(-1, nf)
-    return np.asarray(F @ flat.T).T.reshape(T.shape)
+    return np.asarray(F.matvec(np.ascontiguousarray(flat.T))).T.reshape(T.shape)
 
 
 def equilibrium_temperature(F, solar_incident: np.ndarray, albedo=ALBEDO, emissivity=EMISSIVITY) -> np.ndarray:
     """Radiative-equilibrium surface temperature (no conduction) [K].
 
-    Solves ``(I - eps F) u = (1 - A) Q`` for ``u = eps sigma T^4`` directly (LU).
+    Solves ``(I - eps F) u = (1 - A) Q`` for ``u = eps sigma T^4``: directly (LU) with an exact matrix,
+    by GMRES (relative residual 1e-10) with a compressed operator.
 
     Parameters
     ----------
-    F : (nf, nf) view factors [-]
+    F : (nf, nf) view factors [-] (matrix or vfoperator.ViewFactorOperator)
     solar_incident : (nf,) float [W m-2]
     albedo, emissivity : float or (nf,) float [-]
 
@@ -199,14 +253,21 @@ def equilibrium_temperature(F, solar_incident: np.ndarray, albedo=ALBEDO, emissi
     -------
     T : (nf,) float [K]
     """
-    F = _as_sparse(F)
-    nf = F.shape[0]
-    A = _per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
-    eps = _per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
+    op = _as_operator(F)
+    nf = op.shape[0]
+    A = check_per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
+    eps = check_per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
     if np.any(eps <= 0):
         raise ConfigError("emissivity = 0 is outside (0, 1] for a radiative equilibrium")
     Q = np.asarray(solar_incident, dtype=float)
-    u = _Factorised(F, eps).solve((1.0 - A) * Q)
+    rhs = (1.0 - A) * Q
+    if isinstance(op, SparseViewFactors):
+        u = _Factorised(op.matrix, eps).solve(rhs)
+    else:
+        M = spla.LinearOperator((nf, nf), matvec=lambda x: x - eps * op.matvec(np.ravel(x)), dtype=float)
+        u, info = spla.gmres(M, rhs, x0=rhs, rtol=1e-10, atol=0.0, restart=50, maxiter=ITERATIVE_MAX)
+        if info != 0:
+            raise SolverError(f"radiative equilibrium: GMRES did not converge (info {info})")
     u = np.maximum(u, 0.0)  # round-off only: every term is non-negative
     return (u / (eps * SIGMA)) ** 0.25
 
@@ -303,71 +364,3 @@ def ingersoll_shadow_temperature(
         Ed = S * np.sin(elevation_rad) * (1 - f)
         sT4 = (1 - A) * f * Ed / (1 - A * f) * (A + eps / (1 - eps * f)) / eps
     return float((sT4 / SIGMA) ** 0.25)
-
-
-# --------------------------------------------------------------------- command-line driver
-
-
-def steady_file(
-    mesh_path,
-    output,
-    sun_elevation_deg: float,
-    sun_azimuth_deg: float = 180.0,
-    albedo: float = ALBEDO,
-    emissivity: float = EMISSIVITY,
-    solar_constant: float = SOLAR_CONSTANT,
-    point_sun: bool = False,
-    limb_darkening: str = "linear",
-    n_rings: int | None = None,
-    method: str = "exact",
-    n_bounces: int = DEFAULT_BOUNCES,
-    cache_dir=None,
-    overwrite: bool = False,
-):
-    """Load a mesh, solve the radiative equilibrium under a fixed Sun at 1 au, write it (``crater-thermal steady``).
-
-    All inputs are checked before any work (ConfigError / MeshError / OutputExistsError).
-
-    Returns
-    -------
-    (path, results) : the written path and the :func:`steady_state` dict.
-    """
-    from pathlib import Path
-
-    from crater_thermal import illumination, io
-    from crater_thermal.errors import OutputExistsError
-    from crater_thermal.geometry import load_mesh
-    from crater_thermal.raytrace import RayTracer
-    from crater_thermal.viewfactors import view_factor_matrix
-
-    sun = illumination.sun_direction_from_angles(sun_elevation_deg, sun_azimuth_deg)
-    _per_facet("albedo", albedo, 1, 0.0, 1.0, hi_open=True)
-    _per_facet("emissivity", emissivity, 1, 0.0, 1.0, hi_open=False)
-    if not emissivity > 0:
-        raise ConfigError(f"emissivity = {emissivity!r} is outside (0, 1]")
-    if not np.isfinite(solar_constant) or solar_constant < 0:
-        raise ConfigError(f"solar_constant = {solar_constant!r} W m-2 must be finite and >= 0")
-    if method not in SCATTERING_METHODS:
-        raise ConfigError(f"scattering method = {method!r}; allowed: {', '.join(SCATTERING_METHODS)}")
-    disk = None if point_sun else illumination.sun_disk(n_rings or illumination.DEFAULT_N_RINGS, limb_darkening)
-    out = Path(output)
-    if out.exists() and not overwrite:
-        raise OutputExistsError(f"output {out} exists; pass --overwrite to replace it")
-    mesh = load_mesh(mesh_path)
-    tracer = RayTracer(mesh)
-    F = view_factor_matrix(mesh, tracer, cache_dir=cache_dir)
-    res = steady_state(mesh, F, tracer, sun, AU, albedo, emissivity, solar_constant, disk, method, n_bounces)
-    attrs = {
-        "albedo": float(albedo),
-        "emissivity": float(emissivity),
-        "solar_constant": float(solar_constant),
-        "sun_elevation_deg": float(sun_elevation_deg),
-        "sun_azimuth_deg": float(sun_azimuth_deg),
-        "sun_distance_au": 1.0,
-        "sun_model": "point" if disk is None else f"disk, {disk.law} limb darkening, {disk.n_patches} patches",
-        "scattering": method if method == "exact" else f"{n_bounces} bounces",
-        "ir_reflection": 0,
-        "conduction": 0,
-    }
-    path = io.write_steady(out, mesh, res, attrs, overwrite=overwrite)
-    return path, res

@@ -134,11 +134,16 @@ class RayTracer:
                 list(ex.map(work, starts))
         return out
 
-    def run_raw(self, o32: np.ndarray, d32: np.ndarray, t32: np.ndarray | None = None, query: str = "OCCLUDED") -> np.ndarray:
+    def run_raw(self, o32: np.ndarray, d32: np.ndarray, t32: np.ndarray | None = None, query: str = "OCCLUDED",
+                parallel: bool = True) -> np.ndarray:
         """Low-level: trace C-contiguous float32 rays whose origins are already relative to ``self.centre``.
 
-        Returns embreex's int32 result (OCCLUDED: -1 = free, otherwise blocked; INTERSECT: primID or -1).
+        ``parallel=False`` traces in the calling thread with one call (for callers that already spread
+        their batches over threads). Returns embreex's int32 result (OCCLUDED: -1 = free, otherwise
+        blocked; INTERSECT: primID or -1).
         """
+        if not parallel:
+            return self._scene.run(o32, d32, dists=t32, query=query)
         return self._run(o32, d32, t32, query)
 
     # ------------------------------------------------------------------------------------ queries

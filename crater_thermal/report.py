@@ -7,8 +7,9 @@
 * ``out_dir/report.html``: self-contained (PNGs embedded as base64), readable offline;
 * ``out_dir/summary.json``: the keys documented in :data:`SUMMARY_KEYS` (units in the key names).
 
-Everything is first written to a temporary folder beside ``out_dir`` and then moved into place,
-``report.html`` last; an existing ``report.html`` is refused unless ``overwrite=True``.
+Each of the three is written through :func:`crater_thermal.io.atomic_output` and moved into place
+only when everything is done, ``report.html`` last; an existing report is refused unless
+``overwrite=True``. Without pyvista (the ``viz`` extra) the 3-D snapshots are skipped with a note.
 The analysis itself lives in :mod:`crater_thermal.analysis`.
 """
 
@@ -20,34 +21,42 @@ import html
 import json
 import math
 import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from crater_thermal import analysis as an
 from crater_thermal import instrument as ins
-from crater_thermal.errors import ConfigError, CraterThermalError, FluxFileError, OutputExistsError
+from crater_thermal import io as ctio
+from crater_thermal.errors import ConfigError, CraterThermalError, MissingExtraError
+from crater_thermal.progress import bar
 
 #: Figure files written to ``figures/`` (3-D snapshots are added when rendering works).
 FIGURES = {
-    "fig7_4_incident_flux.png": "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. 7.4).",
-    "fig7_5_temperature.png": "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5).",
+    "fig7_4_incident_flux.png": (
+        "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. "
+        "7.4)."),
+    "fig7_5_temperature.png": (
+        "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5)."),
     "fig7_6_loose_minus_nominal.png": "Loose minus nominal surface temperature over the run, night shaded (Fig. 7.6).",
-    "fig7_7a_density_grid.png": "Night-time median difference to nominal on the floor over the density grid, top x bottom density; nominal outlined (Fig. 7.7a).",
-    "fig7_7b_regions.png": "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b).",
+    "fig7_7a_density_grid.png": (
+        "Night-time median difference to nominal on the floor over the density grid, top x bottom density; "
+        "nominal outlined (Fig. 7.7a)."),
+    "fig7_7b_regions.png": (
+        "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b)."),
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
-    "fig7_9_quartiles.png": "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9).",
+    "fig7_9_quartiles.png": (
+        "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9)."),
     "detectability.png": "Probability of detecting loose vs nominal (night medians) against dwell time, per "
                          "instrument and region, at the stated false-alarm rate (instrument.py).",
     "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), "
                                 "at the reference dwell.",
 }
 SNAPSHOTS = {
-    "map3d_temperature.png": "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction.",
+    "map3d_temperature.png": (
+        "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction."),
     "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
 }
 
@@ -63,25 +72,34 @@ SUMMARY_KEYS = {
     "n_times": "int: number of time samples.",
     "n_facets": "int: number of mesh facets.",
     "night_fraction": "float [-]: fraction of samples with the Sun's centre below the horizon at the crater centre.",
-    "regions": "list[str]: region labels (analysis.REGIONS); *_poleward = on the pole side of the axis, facing the equator.",
+    "regions": (
+        "list[str]: region labels (analysis.REGIONS); *_poleward = on the pole side of the axis, facing the "
+        "equator."),
     "region_facet_count": "{region: int}: facets per region.",
     "profiles": "list[str]: replayed profile labels.",
     "nominal_profile": "str: the nominal profile label (differences are profile minus this).",
     "loose_profile": "str|null: the loose profile label (800/1100 if replayed).",
     "rock_profile": "str|null: the rock profile label, if replayed.",
     "threshold_K": "float [K]: |dT| threshold for the *_frac_abs_dT_above_threshold statistics.",
-    "night_median_dT_K": "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region facets.",
+    "night_median_dT_K": (
+        "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region "
+        "facets."),
     "night_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, night.",
     "night_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, night.",
     "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (Sun above the horizon).",
     "day_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, day.",
     "day_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, day.",
-    "night_frac_abs_dT_above_threshold": "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K.",
+    "night_frac_abs_dT_above_threshold": (
+        "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K."),
     "night_median_T_nominal_K": "{region: float|null} [K]: night-time median nominal surface temperature.",
     "max_abs_night_median_dT_K": "{profile: float} [K]: largest per-facet |night-time median difference|.",
-    "density_grid_floor_night_median_dT_K": "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night medians (Fig. 7.7a).",
-    "latitude_night_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude.",
-    "latitude_day_median_dT_K": "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude.",
+    "density_grid_floor_night_median_dT_K": (
+        "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night "
+        "medians (Fig. 7.7a)."),
+    "latitude_night_median_dT_K": (
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude."),
+    "latitude_day_median_dT_K": (
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude."),
     "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each "
                                   "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
     "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: "
@@ -106,42 +124,6 @@ SUMMARY_KEYS = {
 }
 
 PathOrDs = Union[str, os.PathLike, object]
-
-
-# ---------------------------------------------------------------------------------------- I/O
-
-
-def _open(path, kind: str):
-    from crater_thermal import io as ctio
-
-    return getattr(ctio, f"open_{kind}")(path)
-
-
-def _open_run(path):
-    """Open a run dataset through ``crater_thermal.io.open_run``."""
-    return _open(path, "run")
-
-
-def _open_replay(path):
-    """Open a replay dataset through ``crater_thermal.io.open_replay``."""
-    return _open(path, "replay")
-
-
-@contextlib.contextmanager
-def progress_bar(description: str, total: int, enabled: Optional[bool] = None) -> Iterator[Callable[[], None]]:
-    """Context yielding ``advance()``; a rich bar on stderr when enabled (default: stderr is a terminal)."""
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    if not enabled:
-        yield lambda: None
-        return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=Console(stderr=True), transient=True) as prog:
-        task = prog.add_task(description, total=total)
-        yield lambda: prog.advance(task)
 
 
 # ------------------------------------------------------------------------------------ summary
@@ -366,7 +348,8 @@ def _fig_fluxes(A, path):
         i = A.facets[key]
         a = ax[k, 0]
         _shade_night(a, A.days, A.night)
-        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange", label="solar incident (direct + scattered)")
+        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange",
+               label="solar incident (direct + scattered)")
         a.plot(A.days, A.run["ir_incident"].values[:, i], color="tab:red", label="IR emitted by the crater, incident")
         a.set_ylabel("flux [W m-2]")
         a.set_title(_facet_title(A, key), fontsize=10)
@@ -432,7 +415,7 @@ def _fig_density_grid(A, path):
         for (r, c), v in np.ndenumerate(grid):
             if np.isfinite(v):
                 a.text(c, r, f"{v:.2f}", ha="center", va="center", fontsize=7)
-    nom = an._parse_two_layer(A.nominal)
+    nom = an.parse_two_layer(A.nominal)
     if nom and nom[0] in tops and nom[1] in bottoms:
         r, c = list(tops).index(nom[0]), list(bottoms).index(nom[1])
         a.add_patch(Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, ec="k", lw=2.5))
@@ -465,7 +448,8 @@ def _fig_regions(all_A, path):
     _region_ticks(a, an.REGIONS)
     a.set_ylabel("night-time median loose - nominal [K]")
     a.legend(fontsize=8)
-    a.set_title("By crater region (error bars: quartiles); poleward = pole side of the axis, faces the equator", fontsize=10)
+    a.set_title("By crater region (error bars: quartiles); poleward = pole side of the axis, faces the equator",
+                fontsize=10)
     fig.savefig(path)
 
 
@@ -678,6 +662,33 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
     fig.savefig(path)
 
 
+def site_summary(A) -> Optional[dict]:
+    """The DEM site of a run (summary.json ``site``), or None for an idealized crater / mesh file."""
+    if not is_site(A):
+        return None
+    m = A.meta
+    inner = np.asarray(A.run["inner"].values, bool) if "inner" in A.run else np.ones(A.run.sizes["facet"], bool)
+    keys = ("dem_source", "crs_name", "center_lat_deg", "center_lon_deg", "reference_radius_m", "radius_km",
+            "resolution_m", "outer_radius_km", "outer_resolution_m", "height_kind", "dem_pixel_m")
+    out = {k: m.get(k) for k in keys}
+    out.update(n_inner=int(inner.sum()), n_outer=int((~inner).sum()))
+    return out
+
+
+def _html_site(site: dict) -> str:
+    """One paragraph describing a DEM site (replaces the crater-region explanation)."""
+    ring = (f"; outer ring to {site['outer_radius_km']:g} km at {site['outer_resolution_m']:.4g} m "
+            f"({site['n_outer']} facets: shadows and radiation only, not analysed)"
+            if site.get("outer_radius_km") else "")
+    return (f"<p><b>Site</b> from the DEM <code>{html.escape(str(site['dem_source']))}</code> "
+            f"({html.escape(str(site['crs_name']))}, {site['dem_pixel_m']:.3g} m pixels, values read as "
+            f"{html.escape(str(site['height_kind']))}): centre {site['center_lat_deg']:g} deg, "
+            f"{site['center_lon_deg']:g} deg; analysed disk of {site['radius_km']:g} km at "
+            f"{site['resolution_m']:.4g} m ({site['n_inner']} facets){ring}. Vertices are true 3-D positions in the "
+            "centre's east/north/up frame (curvature included). Regions are classes by illumination over the run, "
+            "by slope and by the direction the slope faces; the maps are in the DEM's projected coordinates.</p>")
+
+
 def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
     from crater_thermal import viz
 
@@ -815,30 +826,16 @@ def _as_list(x) -> list:
     return list(x) if isinstance(x, (list, tuple)) else [x]
 
 
+#: What a report writes into its folder (anything else there is left alone).
+_MEMBERS = ("report.html", "summary.json", "figures")
+
+
 def _refuse_existing(out_dir: Path, overwrite: bool) -> None:
-    if overwrite:
-        return
-    for name in ("report.html", "summary.json", "figures"):
-        if (out_dir / name).exists():
-            raise OutputExistsError(f"{out_dir / name} exists; use --overwrite to replace it")
-
-
-def _install(tmp: Path, out_dir: Path) -> None:
-    """Move the finished report from ``tmp`` into ``out_dir``; report.html last."""
-    if not out_dir.exists():
-        os.replace(tmp, out_dir)
-        return
-    old_fig = out_dir / "figures"
-    trash = None
-    if old_fig.exists():
-        trash = Path(tempfile.mkdtemp(prefix=".old-figures-", dir=out_dir))
-        os.replace(old_fig, trash / "figures")
-    os.replace(tmp / "figures", old_fig)
-    os.replace(tmp / "summary.json", out_dir / "summary.json")
-    os.replace(tmp / "report.html", out_dir / "report.html")
-    shutil.rmtree(tmp, ignore_errors=True)
-    if trash is not None:
-        shutil.rmtree(trash, ignore_errors=True)
+    """Refuse an existing report (any of :data:`_MEMBERS`) unless ``overwrite``, before any work."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"report folder {out_dir} is a file; give a folder name")
+    for name in _MEMBERS:
+        ctio.check_output(out_dir / name, overwrite, folder=name == "figures")
 
 
 def sweep_pairs(folder) -> Tuple[List[Path], List[Path]]:
@@ -905,8 +902,8 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
     opened = []
     try:
-        runs = [_track(_open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
-        reps = [_track(_open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
+        runs = [_track(ctio.open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
+        reps = [_track(ctio.open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
         return _make_report(runs, reps, out_dir, overwrite, progress, instruments, threshold_K,
                             observation, snapshots)
     finally:
@@ -922,26 +919,30 @@ def _track(ds, opened: list):
 def _make_report(runs, reps, out_dir: Path, overwrite, progress, instruments, threshold_K, observation,
                  snapshots) -> Path:
     for run, rep in zip(runs, reps):
-        an.check_run(run, an._RUN_VARS + ("solar_incident", "ir_incident"))
+        an.check_run(run, an.RUN_VARIABLES + ("solar_incident", "ir_incident"))
         an.check_pair(run, rep)
     n_profiles = sum(len(an.profile_labels(p)) - 1 for p in reps)
     n_steps = n_profiles + len(FIGURES) + 1
-    with progress_bar("report: profiles, figures", n_steps, progress) as advance:
+    with bar("report: profiles, figures", progress) as report:
+        done = [0]
+
+        def advance() -> None:
+            done[0] += 1
+            if report is not None:
+                report(done[0], n_steps)
+
         all_A = [_Analysis(r, p, threshold_K, advance) for r, p in zip(runs, reps)]
         return _write_report(all_A, out_dir, overwrite, advance, instruments, observation, snapshots)
 
 
 def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observation, snapshots) -> Path:
+    """Write figures/, summary.json and report.html, each through io.atomic_output (report.html last)."""
     A = all_A[0]
-
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-tmp-", dir=out_dir.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; the report folder is an ordinary folder
-    try:
-        fig_dir = tmp / "figures"
-        fig_dir.mkdir()
+    with contextlib.ExitStack() as stack:
+        # installed in the reverse order of entering: figures/, then summary.json, then report.html
+        html_tmp = stack.enter_context(ctio.atomic_output(out_dir / "report.html", overwrite))
+        json_tmp = stack.enter_context(ctio.atomic_output(out_dir / "summary.json", overwrite))
+        fig_dir = stack.enter_context(ctio.atomic_output(out_dir / "figures", overwrite, folder=True))
         jobs = [
             ("fig7_4_incident_flux.png", lambda p: _fig_fluxes(A, p)),
             ("fig7_5_temperature.png", lambda p: _fig_temperature(A, p)),
@@ -967,6 +968,9 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         if snapshots:
             try:
                 figures += _snapshots(A, fig_dir)
+            except MissingExtraError as exc:
+                note = f"3-D snapshots skipped: {exc}"
+                print(f"note: {note}", file=sys.stderr)
             except CraterThermalError:
                 raise
             except Exception as exc:  # rendering depends on OpenGL; the report must not
@@ -976,11 +980,6 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         advance()
         summary["figures"] = figures
         summary["snapshot_note"] = note
-        (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-        (tmp / "report.html").write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS}), encoding="utf-8")
-        _refuse_existing(out_dir, overwrite)  # in case one appeared meanwhile
-        _install(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        json_tmp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        html_tmp.write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS}), encoding="utf-8")
     return out_dir / "report.html"

@@ -21,10 +21,11 @@ Start of the recorded period
 
 from __future__ import annotations
 
+import contextlib
 import os
-import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -32,37 +33,41 @@ import numpy as np
 from crater_thermal.constants import SIGMA
 from crater_thermal.errors import ConfigError, FluxFileError
 
+# ----------------------------------------------------------------------------- memory budget
+
+
+#: Memory for (time, facet) blocks [MB] when a case does not set ``[output] chunk_mb``.
+DEFAULT_CHUNK_MB = 256.0
+#: Float64 (block, n_facets) arrays alive at once in the worst stage of a run (sunlight: direct,
+#: scattered and the solver's work arrays; record: sunlight, T, IR and a block being merged).
+_RUN_BUFFERS = 6
+#: Time samples per HDF5 chunk of a written run (4 days at 4 h), and the block alignment.
+TIME_CHUNK = 24
+
+
+def block_rows(n_cols: int, budget_bytes: float, n_buffers: int = _RUN_BUFFERS, align: int = TIME_CHUNK) -> int:
+    """Time samples per block so that ``n_buffers`` float64 (block, n_cols) arrays fit ``budget_bytes``
+    (at least 1; a multiple of ``align`` when it is larger than that)."""
+    rows = max(1, int(budget_bytes // (8.0 * n_buffers * max(1, n_cols))))
+    return rows // align * align if rows >= align else rows
+
+
+def chunk_bytes(case) -> float:
+    """The case's memory budget for (time, facet) blocks [bytes] (``[output] chunk_mb``)."""
+    mb = getattr(case.output, "chunk_mb", None)
+    return float(DEFAULT_CHUNK_MB if mb is None else mb) * 2**20
+
 
 # ----------------------------------------------------------------------------- progress
 
 
-def progress_enabled(flag: bool | None = None) -> bool:
-    """Progress bars on a terminal, quiet in CI or when piped (``flag`` overrides)."""
-    if flag is not None:
-        return flag
-    if os.environ.get("CI") or os.environ.get("CRATER_THERMAL_QUIET"):
-        return False
-    return sys.stderr.isatty()
+def _stage(progress, description: str):
+    """Context yielding the stage's ``(done, total)`` callback from a reporter, or None without one.
 
-
-@contextmanager
-def progress_bar(description: str, total: float, enabled: bool | None = None):
-    """A rich progress bar (with ETA) yielding ``update(advance, info)``; a no-op when disabled."""
-    if not progress_enabled(enabled):
-        yield lambda advance=1, info="": None
-        return
-    from rich.progress import (BarColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                  TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
-                  TextColumn("{task.fields[info]}"), transient=False) as prog:
-        task = prog.add_task(description, total=total, info="")
-
-        def update(advance=1, info=""):
-            prog.update(task, advance=advance, info=info)
-
-        yield update
+    ``progress`` is a reporter (``crater_thermal.progress``): ``progress(description)`` is a context
+    manager yielding a ``ProgressCallback``. None (or False) means no progress reporting.
+    """
+    return progress(description) if progress else contextlib.nullcontext(None)
 
 
 # ----------------------------------------------------------------------------- coupled stepping
@@ -80,7 +85,7 @@ class CoupledStepper:
     Parameters
     ----------
     solver : thermal.ColumnSolver with one column per facet.
-    F : (nf, nf) sparse view-factor matrix, or None for no exchange (flat ground).
+    F : vfoperator.ViewFactorOperator (or a sparse (nf, nf) matrix), or None for no exchange (flat ground).
     albedo, emissivity : [-]
     """
 
@@ -93,7 +98,9 @@ class CoupledStepper:
         """IR irradiance [W m-2] on every facet from the others' emission."""
         if self.F is None:
             return np.zeros_like(T_surface)
-        return np.asarray(self.F @ emitted(T_surface, self.emissivity))
+        ir = np.asarray(self.F @ emitted(T_surface, self.emissivity)).reshape(np.shape(T_surface))
+        # a compressed operator may leave round-off of either sign (~tolerance) where nothing is seen
+        return np.maximum(ir, 0.0)
 
     def absorbed(self, solar: np.ndarray, ir: np.ndarray) -> np.ndarray:
         return (1.0 - self.albedo) * solar + self.emissivity * ir
@@ -152,23 +159,33 @@ def seconds_since(times: np.ndarray, t0: np.datetime64) -> np.ndarray:
 
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
-                  fixed_spinup: bool = False, chunk_columns: int = 50_000, progress: bool | None = None,
-                  tol_K: float = 0.01):
+                  fixed_spinup: bool = False, chunk_columns: int = 50_000,
+                  progress: Callable[[int, int], None] | None = None, tol_K: float = 0.01,
+                  chunk_mb: float = DEFAULT_CHUNK_MB, write: Callable | None = None):
     """Replay saved fluxes against several density profiles (no coupling: the IR is the saved one).
+
+    Columns (profile x facet) are solved in batches of at most ``chunk_columns``; each batch reads the
+    fluxes in blocks of time samples sized so that the forcing and temperature blocks stay within
+    ``chunk_mb`` [MB] (the whole series is read once and kept when it fits). With ``write`` the
+    temperatures are handed over block by block and never held whole.
 
     Parameters
     ----------
-    flux_ds : validated flux / run dataset (``io.read_flux_dataset``).
+    flux_ds : validated flux / run dataset (``io.read_flux_dataset``; may be opened lazily).
     profiles : list of ``thermal.Profile``.
     initial_temperature : [K] uniform start, then the spin-up window's fluxes if the file has them
         (the thesis procedure). None (default): periodic steady state over the spin-up window (or over
         the record itself when the file has no spin-up fluxes).
     fixed_spinup : with no ``initial_temperature``: start from the equilibrium estimate and run the
         spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
+    write : ``write(profiles_slice, times_slice, facets_slice, T)`` receives float32 surface
+        temperatures [K] of shape (profiles, times, facets); None: return them all.
+    progress : optional ``progress(done, total)`` callback, in column-batch time steps (the total
+        assumes about 5 periodic windows per batch and grows if more are needed).
 
     Returns
     -------
-    T : (n_profiles, n_times, n_facets) float32 surface temperatures [K]; info : dict
+    T : (n_profiles, n_times, n_facets) float32 surface temperatures [K] (None with ``write``); info : dict
     """
     from crater_thermal import thermal
 
@@ -179,43 +196,101 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     times = flux_ds["time"].values
     t0 = times[0]
     t_rec = seconds_since(times, t0)
-    abs_rec = (1 - albedo) * flux_ds["solar_incident"].values + eps * flux_ds["ir_incident"].values
     has_spin = "spinup_solar_incident" in flux_ds
-    if has_spin:
-        t_spin = seconds_since(flux_ds["spinup_time"].values, t0)
-        abs_spin = ((1 - albedo) * flux_ds["spinup_solar_incident"].values
-                    + eps * flux_ds["spinup_ir_incident"].values)
-    nt, nf = abs_rec.shape
+    t_spin = seconds_since(flux_ds["spinup_time"].values, t0) if has_spin else t_rec
+    nt, nf = flux_ds.sizes["time"], flux_ds.sizes["facet"]
     n_prof = len(profiles)
-    out = np.empty((n_prof, nt, nf), np.float32)
-    per_chunk = max(1, chunk_columns // nf)
+    out = None
+    if write is None:
+        out = np.empty((n_prof, nt, nf), np.float32)
+
+        def write(ps, ts, fs, T):
+            out[ps, ts, fs] = T
+
+    n_fb = max(1, min(nf, int(chunk_columns)))  # facets per batch
+    per_chunk = max(1, int(chunk_columns) // n_fb)  # profiles per batch
     fixed = initial_temperature is not None or fixed_spinup
     start = ("uniform" if initial_temperature is not None else "equilibrium") + " + fixed spin-up" if fixed \
         else "periodic"
-    info = {"start": start,
-            "periodic_iterations": [], "periodic_residual_K": []}
-    with progress_bar("replay", n_prof, progress) as update:
+    info = {"start": start, "periodic_iterations": [], "periodic_residual_K": []}
+    names = {"spin": ("spinup_solar_incident", "spinup_ir_incident") if has_spin else None,
+             "rec": ("solar_incident", "ir_incident")}
+    n_batches = -(-nf // n_fb) * -(-n_prof // per_chunk)
+    spin_windows = 1 if fixed else 5  # ETA: a periodic start usually takes about 4-6 windows
+    work = n_batches * ((spin_windows * (len(t_spin) - 1) if (has_spin or not fixed) else 0) + nt - 1)
+    done = [0]
+    report = progress or None
+    for f0 in range(0, nf, n_fb):
+        f1 = min(nf, f0 + n_fb)
+        nfb = f1 - f0
+        ncols_max = nfb * min(per_chunk, n_prof)
+        # per sample: two float64 flux reads + absorbed (3 x 8 B per facet), float32 T per column
+        rows = max(2, int(chunk_mb * 2**20 // (24 * nfb + 8 * ncols_max)))
+        cache: dict = {}
+
+        def absorbed(which, k0, k1, f0=f0, f1=f1, rows=rows, cache=cache):
+            """Absorbed flux [W m-2] of samples k0..k1-1 of the spin-up or record window, this batch's facets."""
+            n_all = len(t_spin) if which == "spin" else nt
+            if n_all <= rows:  # the whole window fits the budget: read it once
+                if which not in cache:
+                    sol, ir = names[which]
+                    cache[which] = ((1 - albedo) * flux_ds[sol][:, f0:f1].values
+                                    + eps * flux_ds[ir][:, f0:f1].values)
+                return cache[which][k0:k1]
+            sol, ir = names[which]
+            return ((1 - albedo) * flux_ds[sol][k0:k1, f0:f1].values
+                    + eps * flux_ds[ir][k0:k1, f0:f1].values)
+
+        spin_which = "spin" if has_spin else "rec"
+
+        def window(solver, which, t, record_into=None, rows=rows, absorbed=absorbed):
+            """Run the columns through a window block by block (rows overlap by one sample)."""
+            n = len(t)
+            for a in range(0, n - 1, rows - 1):
+                b = min(n, a + rows)
+                T = solver.run_series(t[a:b], absorbed(which, a, b), record=record_into is not None)
+                if record_into is not None:
+                    record_into(a, T)
+                done[0] += b - 1 - a
+                if report is not None:
+                    report(done[0], max(work, done[0]))
+
         for p0 in range(0, n_prof, per_chunk):
             chunk = list(profiles[p0:p0 + per_chunk])
-            cols = [p for p in chunk for _ in range(nf)]
+            cols = [p for p in chunk for _ in range(nfb)]
             solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
-            spin_t, spin_a = (t_spin, abs_spin) if has_spin else (t_rec, abs_rec)
-            # (nt, nf) forcing serves every profile: column j of the solver uses forcing column j % nf
+            n_sp = len(t_spin)
+            eq = None
+            if initial_temperature is None:
+                eq = sum(solver.equilibrium_surface(absorbed(spin_which, a, min(n_sp, a + rows)))
+                         * (min(n_sp, a + rows) - a) for a in range(0, n_sp, rows)) / n_sp
+            # (nt, nfb) forcing serves every profile: column j of the solver uses forcing column j % nfb
             if fixed:
                 if initial_temperature is not None:
                     solver.set_uniform(float(initial_temperature))
                 else:
-                    solver.set_equilibrium(spin_a)
+                    solver.set_equilibrium(surface_K=eq)
                 if has_spin:
-                    solver.run_series(spin_t, spin_a, record=False)
+                    window(solver, "spin", t_spin)
             else:
-                solver.set_equilibrium(spin_a)
-                pinfo = solver.periodic_start(spin_t, spin_a, tol_K=tol_K)
+                solver.set_equilibrium(surface_K=eq)
+
+                def period_map(x, solver=solver, window=window, spin_which=spin_which):
+                    solver.set_state(x)
+                    window(solver, spin_which, t_spin)
+                    return solver.state()
+
+                pinfo = thermal.periodic_state(solver, period_map, tol_K=tol_K)
                 info["periodic_iterations"].append(int(pinfo["iterations"]))
                 info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
-            T = solver.run_series(t_rec, abs_rec)
-            out[p0:p0 + len(chunk)] = T.reshape(nt, len(chunk), nf).transpose(1, 0, 2)
-            update(len(chunk), info=f"{p0 + len(chunk)}/{n_prof} profiles")
+
+            def record_into(a, T, p0=p0, nch=len(chunk), f0=f0, f1=f1):
+                T = np.asarray(T, np.float32).reshape(len(T), nch, f1 - f0).transpose(1, 0, 2)
+                lo = 0 if a == 0 else 1  # blocks overlap by one sample
+                write(slice(p0, p0 + nch), slice(a + lo, a + len(T[0])), slice(f0, f1), T[:, lo:])
+
+            window(solver, "rec", t_rec, record_into)
+            del solver
     return out, info
 
 
@@ -258,7 +333,8 @@ def case_mesh(case):
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 
-def _checkpoint_path(out_path) -> str:
+def checkpoint_path(out_path) -> str:
+    """The checkpoint file of a run writing ``out_path``: ``OUT.checkpoint.npz`` beside it."""
     return str(out_path) + ".checkpoint.npz"
 
 
@@ -285,25 +361,37 @@ def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, all
 
 def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_temperature=None,
                 fixed_spinup=False, property_set=None, allow_inverted=False, output, overwrite=False,
-                progress=None):
-    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically."""
+                progress=None, chunk_mb: float = DEFAULT_CHUNK_MB):
+    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
+
+    The fluxes are read and the temperatures written block by block (memory about ``chunk_mb`` [MB]
+    plus the solver's columns, whatever the run's length and size).
+    ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
+    """
     from crater_thermal import io
 
     io.check_output(output, overwrite)  # fail before any work
     if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
         raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
     profiles = resolve_profiles(labels, density_grid, allow_inverted)
-    ds = io.read_flux_dataset(flux_path)
-    T, info = replay_fluxes(ds, profiles, property_set=property_set, initial_temperature=initial_temperature,
-                            fixed_spinup=fixed_spinup, progress=progress)
+    ds = io.read_flux_dataset(flux_path, load=False)
     tops, bottoms = zip(*(profile_densities(p) for p in profiles))
-    out = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, T,
-                            attrs={"replay_start": info["start"],
-                                   "periodic_iterations": info["periodic_iterations"] or None,
-                                   "periodic_residual_K": info["periodic_residual_K"] or None,
-                                   "initial_temperature_K": initial_temperature,
-                                   "ir_assumption": "saved nominal IR (thesis 7.2)"})
-    return io.write_dataset_atomic(out, output, overwrite)
+    skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
+    shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
+    variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
+    with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=TIME_CHUNK) as stream:
+        with _stage(progress, f"replay ({len(profiles)} profiles x {shape[2]} facets)") as report:
+            _, info = replay_fluxes(ds, profiles, property_set=property_set,
+                                    initial_temperature=initial_temperature, fixed_spinup=fixed_spinup,
+                                    progress=report, chunk_mb=chunk_mb,
+                                    write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T))
+        stream.set_attrs({"replay_start": info["start"],
+                          "periodic_iterations": info["periodic_iterations"] or None,
+                          "periodic_residual_K": info["periodic_residual_K"] or None,
+                          "initial_temperature_K": initial_temperature,
+                          "ir_assumption": "saved nominal IR (thesis 7.2)"})
+    ds.close()
+    return Path(output)
 
 
 def _view_factor_cache_dir() -> str:
@@ -312,61 +400,33 @@ def _view_factor_cache_dir() -> str:
     return os.path.join(base, "viewfactors")
 
 
-def _horizon_cache_dir() -> str:
-    """Folder for cached horizon maps (next to the view factors)."""
-    return os.path.join(os.path.dirname(_view_factor_cache_dir()), "horizons")
-
-
-def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
-    """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings (``method`` "rays" or "horizon").
-
-    The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct".
-    """
-    from crater_thermal import illumination
-
-    timer = timer or Timer()
-    method = getattr(sun, "method", "horizon")
-    if method == "horizon":
-        from crater_thermal import horizons
-
-        with timer("horizons"), progress_bar("horizon map", mesh.n_facets, progress_enabled(progress)) as bar:
-            done = [0]
-
-            def report(n_done, total):
-                bar(n_done - done[0])
-                done[0] = n_done
-
-            hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
-                                        or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
-                                        progress=report)
-        with timer("direct"):
-            return horizons.direct_irradiance_horizon(mesh, hmap, sun_dirs, sun_dist,
-                                                      solar_constant=sun.solar_constant_W_m2,
-                                                      law=None if sun.point_sun else sun.limb_darkening)
-    disk = None if sun.point_sun else illumination.sun_disk(
-        **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
-    with timer("direct"):
-        return illumination.direct_irradiance(mesh, tracer, sun_dirs, sun_dist,
-                                              solar_constant=sun.solar_constant_W_m2, disk=disk,
-                                              progress=progress_enabled(progress))
-
-
 @dataclass
 class Forcing:
-    """Everything a case's coupled run needs before conduction starts (all SI)."""
+    """Everything a case's coupled run needs before conduction starts (all SI).
+
+    The sunlight series (``direct``, ``solar``) run over spin-up + record, the join sample once:
+    held in memory (``compute_forcing``), or kept on disk block by block in ``store`` (a streamed
+    run: ``direct`` and ``solar`` are None, rows come from :meth:`rows`).
+    """
 
     mesh: object
-    F: object  # sparse (nf, nf) or None
+    F: object  # vfoperator.ViewFactorOperator or None (no exchange)
     spin_times: np.ndarray  # (ns,) datetime64[ns]; empty when there is no spin-up window
     times: np.ndarray  # (nt,) datetime64[ns], the recorded period
     sun_dirs: np.ndarray  # (ns + nt - 1, 3) over spin-up + record (shared sample once)
     sun_dist_m: np.ndarray
-    direct: np.ndarray  # (ns + nt - 1, nf) [W m-2]
-    solar: np.ndarray  # direct + scattered [W m-2]
+    direct: np.ndarray | None = None  # (ns + nt - 1, nf) [W m-2]
+    solar: np.ndarray | None = None  # direct + scattered [W m-2]
+    store: object = None  # io.SegmentStore with series "direct" and "solar" (streamed runs)
 
     @property
     def n_spin(self) -> int:
         return len(self.spin_times)
+
+    @property
+    def record_offset(self) -> int:
+        """Row of the record's first sample in the spin-up + record series."""
+        return max(self.n_spin - 1, 0)
 
     def split(self, arr):
         """(spin-up part, record part) of a series over spin-up + record (the join sample is in both)."""
@@ -375,10 +435,25 @@ class Forcing:
             return arr[:0], arr
         return arr[:ns], arr[ns - 1:]
 
+    def rows(self, name: str, k0: int, k1: int) -> np.ndarray:
+        """Rows ``k0 .. k1 - 1`` of ``"direct"`` or ``"solar"`` over spin-up + record [W m-2]."""
+        if self.store is not None:
+            return self.store.read(name, k0, k1)
+        return getattr(self, name)[k0:k1]
 
-def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
-    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window."""
-    from crater_thermal import ephemeris, geometry, illumination, radiosity, raytrace, viewfactors  # noqa: F401
+def view_factor_settings(case) -> tuple[str, float]:
+    """(method, tolerance) of a case's view factors: ``[radiation] view_factors`` and ``tolerance``."""
+    from crater_thermal import vfoperator
+
+    rad = getattr(case, "radiation", None)
+    method = str(getattr(rad, "view_factors", "auto") or "auto")
+    tol = getattr(rad, "tolerance", None)
+    return method, float(vfoperator.DEFAULT_TOLERANCE if tol is None else tol)
+
+
+def case_geometry(case, timer: Timer, progress=None):
+    """Mesh, ray tracer and radiation operator (None for flat ground or no visible pairs)."""
+    from crater_thermal import raytrace, vfoperator
 
     with timer("geometry"):
         mesh = case_mesh(case)
@@ -386,10 +461,20 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     with timer("viewfactors"):
         F = None
         if getattr(case.crater, "kind", "crater") != "flat":
-            F = viewfactors.view_factor_matrix(mesh, tracer, cache_dir=_view_factor_cache_dir(),
-                                               progress=progress_enabled(progress))
-            if F.nnz == 0:
+            method, tol = view_factor_settings(case)
+            kind = vfoperator.resolve_method(method, mesh.n_facets)
+            with _stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
+                F = vfoperator.view_factor_operator(mesh, tracer, method=kind, tolerance=tol,
+                                                    cache_dir=_view_factor_cache_dir(), progress=report)
+            if F.is_zero:
                 F = None
+    return mesh, tracer, F
+
+
+def case_sun(case, timer: Timer):
+    """Spin-up and record times (datetime64[ns]) and the Sun's direction and distance [m] over both."""
+    from crater_thermal import ephemeris
+
     step_s = float(case.steps.flux_step_hours) * 3600.0
     with timer("ephemeris"):
         times = ephemeris.time_grid(case.period.start, case.period.end, step_s)
@@ -403,14 +488,85 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
         sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(
             all_times, case.location.lat_deg, case.location.lon_deg, moon_frame=case.sun.moon_frame,
             correction=case.sun.correction, moon_kernels=case.sun.moon_kernels)
-    direct = direct_sunlight(case.sun, mesh, tracer, sun_dirs, sun_dist, progress, timer)  # "horizons", "direct"
-    with timer("radiosity"):
-        if F is None:
-            solar = direct
-        else:
-            scat = radiosity.ScatteringSolver(F, case.surface.albedo, method=case.scattering.method,
-                                              n_bounces=case.scattering.n_bounces)
-            solar = scat.solar_incident(direct)
+    return spin_times, times, sun_dirs, sun_dist
+
+
+def _horizon_cache_dir() -> str:
+    """Folder for cached horizon maps (next to the view factors)."""
+    return os.path.join(os.path.dirname(_view_factor_cache_dir()), "horizons")
+
+
+class Sunlight:
+    """Direct and scattered sunlight of a case for any range of samples, with the case's ``[sun]``
+    settings (``method`` "rays" or "horizon"): what is per mesh (the horizon map, the scattering
+    solver's factorisation) is made once, at construction; each call computes a block of samples.
+
+    The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct"
+    and "radiosity". ``progress``: optional reporter (:mod:`crater_thermal.progress`).
+    """
+
+    def __init__(self, case, mesh, tracer, F, timer: Timer | None = None, progress=None):
+        from crater_thermal import illumination, radiosity
+
+        timer = timer or Timer()
+        sun = case.sun
+        self.case, self.mesh, self.tracer = case, mesh, tracer
+        self.method = getattr(sun, "method", "horizon")
+        self.hmap = self.disk = None
+        if self.method == "horizon":
+            from crater_thermal import horizons
+
+            with timer("horizons"), _stage(progress, f"horizon map ({mesh.n_facets} facets)") as report:
+                self.hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
+                                                 or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
+                                                 progress=report)
+        elif not sun.point_sun:
+            self.disk = illumination.sun_disk(
+                **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
+        self.scat = None if F is None else radiosity.ScatteringSolver(
+            F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces)
+
+    def __call__(self, sun_dirs, sun_dist_m, timer: Timer, progress=None):
+        """``(direct, solar)`` (n, nf) [W m-2] for Sun directions (n, 3) and distances (n,) [m].
+
+        ``progress``: optional ``(done, total)`` callback of the ray-traced disk (method "rays")."""
+        sun = self.case.sun
+        with timer("direct"):
+            if self.method == "horizon":
+                from crater_thermal import horizons
+
+                direct = horizons.direct_irradiance_horizon(self.mesh, self.hmap, sun_dirs, sun_dist_m,
+                                                            solar_constant=sun.solar_constant_W_m2,
+                                                            law=None if sun.point_sun else sun.limb_darkening)
+            else:
+                from crater_thermal import illumination
+
+                direct = illumination.direct_irradiance(self.mesh, self.tracer, sun_dirs, sun_dist_m,
+                                                        solar_constant=sun.solar_constant_W_m2, disk=self.disk,
+                                                        progress=progress)
+        with timer("radiosity"):
+            solar = direct if self.scat is None else self.scat.solar_incident(direct)
+        return direct, solar
+
+
+def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
+    """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings, all samples at once (see
+    :class:`Sunlight`; a run computes it block by block)."""
+    from types import SimpleNamespace
+
+    case = SimpleNamespace(sun=sun, surface=None, scattering=None)
+    timer = timer or Timer()
+    with _stage(progress, "direct sunlight") as report:
+        return Sunlight(case, mesh, tracer, None, timer, progress)(sun_dirs, sun_dist, timer, report)[0]
+
+
+def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
+    """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window,
+    in memory (a run streams them instead: :func:`run_case`)."""
+    mesh, tracer, F = case_geometry(case, timer, progress)
+    spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
+    with _stage(progress, "direct sunlight") as report:
+        direct, solar = Sunlight(case, mesh, tracer, F, timer, progress)(sun_dirs, sun_dist, timer, report)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
 
 
@@ -420,20 +576,70 @@ def _case_fingerprint(case) -> str:
     return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
 
 
-def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
+def _scratch_path(out_path) -> str:
+    return str(out_path) + ".partial"
+
+
+def run_window(stepper: CoupledStepper, times_s: np.ndarray, solar_rows: Callable, block: int,
+               ir0: np.ndarray | None = None, on_ir: Callable | None = None, on_step: Callable | None = None):
+    """Coupled steps through a window of samples from the solver's state (at sample 0), block by block.
+
+    Parameters
+    ----------
+    times_s : (n,) [s]
+    solar_rows : ``solar_rows(k0, k1)`` -> (k1 - k0, nf) solar irradiance [W m-2] of samples k0..k1-1.
+    block : samples per block (memory: a few (block, nf) float64 arrays).
+    ir0 : IR at sample 0 [W m-2]; default the IR of the solver's surface temperatures.
+    on_ir : ``on_ir(k0, rows)`` receives the IR [W m-2] of samples k0 .. k0 + len(rows) - 1, one call
+        per block (k0 a multiple of ``block``), before the next block is computed.
+    on_step : ``on_step(k)`` after sample k is computed.
+
+    Returns
+    -------
+    IR [W m-2] at the last sample (the surface temperature is the solver's).
+    """
+    n = len(times_s)
+    T = stepper.solver.surface_temperature.copy()
+    ir = stepper.ir(T) if ir0 is None else ir0
+    for b0 in range(0, n, block):
+        b1 = min(n, b0 + block)
+        sol = solar_rows(b0, min(n, b1 + 1))
+        rows = np.empty((b1 - b0, len(ir))) if on_ir is not None else None
+        if rows is not None:
+            rows[0] = ir
+        for k in range(b0, min(b1, n - 1)):
+            T, ir = stepper.step(sol[k - b0], sol[k + 1 - b0], ir, times_s[k + 1] - times_s[k])
+            if rows is not None and k + 1 < b1:
+                rows[k + 1 - b0] = ir
+            if on_step is not None:
+                on_step(k + 1)
+        if rows is not None:
+            on_ir(b0, rows)
+        del sol, rows
+    return ir
+
+
+def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None,
              timer: Timer | None = None):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
 
-    The state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and when
-    the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the same
-    numbers as an uninterrupted run. Returns the output path.
+    Memory stays bounded by ``[output] chunk_mb`` (default 256 MB) for the (time, facet) series, not by
+    run length x facets: sunlight is computed, and temperatures and IR are kept, in blocks of time
+    samples, in a crash-safe scratch store ``OUT.partial/`` (one file per block, written atomically);
+    the netCDF file is written from it block by block at the end (temporary name, then rename).
+    The solver state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and
+    when the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the
+    same numbers as an uninterrupted run. Returns the output path.
+
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view factors,
+    horizon map, sunlight, spin-up windows, recorded period, writing); None (or False) for none.
     """
     from pathlib import Path
 
     from crater_thermal import io, thermal
 
     out_path = Path(out_path)
-    ckpt_path = Path(_checkpoint_path(out_path))
+    ckpt_path = Path(checkpoint_path(out_path))
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():
@@ -448,8 +654,34 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
         io.check_output(out_path, overwrite)
     nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
     timer = timer or Timer()
-    fc = compute_forcing(case, timer, progress)
-    mesh, nf = fc.mesh, fc.mesh.n_facets
+    mesh, tracer, F = case_geometry(case, timer, progress)
+    spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
+    nf = mesh.n_facets
+    block = block_rows(nf, chunk_bytes(case))
+    if ckpt is not None and int(ckpt.get("block", -1)) != block:
+        raise ConfigError(f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
+                          f"samples, this run uses {block}; run again without --resume")
+    scratch = Path(_scratch_path(out_path))
+    store = io.SegmentStore(scratch, block)
+    if ckpt is None:
+        store.remove()
+        store = io.SegmentStore(scratch, block)
+    fc = Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, store=store)
+    n_all = len(sun_dirs)
+    if not store.marked("sunlight"):
+        sunlight = Sunlight(case, mesh, tracer, F, timer, progress)
+        with _stage(progress, f"sunlight ({nf} facets)") as report:
+            for k0 in range(0, n_all, block):
+                k1 = min(n_all, k0 + block)
+                direct, solar = sunlight(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
+                with timer("io"):
+                    store.write("direct", k0, direct)
+                    store.write("solar", k0, solar)
+                del direct, solar
+                if report is not None:
+                    report(k1, n_all)
+        store.mark("sunlight")
+    del tracer
     albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
     solver_kw = {}
     if getattr(case.steps, "conduction_step_s", None):
@@ -457,123 +689,190 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     solver = thermal.ColumnSolver([nominal] * nf, property_set=case.surface.property_set, emissivity=eps,
                                   geothermal_flux=case.surface.geothermal_flux_W_m2, **solver_kw)
     stepper = CoupledStepper(solver, fc.F, albedo, eps)
-    spin_solar, rec_solar = fc.split(fc.solar)
     t0 = fc.times[0]
     spin_t = seconds_since(fc.spin_times, t0)
     rec_t = seconds_since(fc.times, t0)
-    nt = len(fc.times)
+    nt, ns, off = len(fc.times), fc.n_spin, fc.record_offset
     every = int(getattr(case.output, "checkpoint_interval_steps", 0) or 0)
-    mode = case.period.spinup
-    T0 = case.period.initial_temperature_K
-    tol_K = case.period.periodic_tol_K
+    save_spin = bool(getattr(case.output, "save_spinup_fluxes", True)) and ns > 0
 
-    def save_ckpt(phase, k, out_T, out_ir, extra):
+    def save_ckpt(k, info):
         with timer("io"):
-            io.save_npz_atomic(ckpt_path, fingerprint=np.array(fingerprint), phase=np.array(phase), k=np.array(k),
-                               state=solver.state(), out_T=out_T[:k + 1], out_ir=out_ir[:k + 1], **extra)
+            io.save_npz_atomic(ckpt_path, fingerprint=np.array(fingerprint), phase=np.array("record"),
+                               k=np.array(k), block=np.array(block), state=solver.state(),
+                               start_method=np.array(info["start_method"]),
+                               iterations=np.array(info["iterations"]),
+                               residual=np.asarray(info["residual"], float))
 
-    spin_info: dict = {}
-    spin_ir = None
+    # ---- start of the record
     if ckpt is not None:
-        spin_ir = ckpt.get("spin_ir")
         spin_info = {"start_method": str(ckpt["start_method"]), "iterations": int(ckpt["iterations"]),
                      "residual": ckpt["residual"]}
+        k0 = int(ckpt["k"])
+        solver.set_state(ckpt["state"])
+        ir_k = store.read("ir", k0, k0 + 1)[0]
     else:
         with timer("conduction_spinup"):
-            spin_info, spin_ir = _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K,
-                                          progress)
-    # ---- recorded period
-    out_T = np.empty((nt, nf))
-    out_ir = np.empty((nt, nf))
-    if ckpt is not None:
-        k0 = int(ckpt["k"])
-        out_T[:k0 + 1] = ckpt["out_T"]
-        out_ir[:k0 + 1] = ckpt["out_ir"]
-        solver.set_state(ckpt["state"])
-    else:
+            spin_info, ir_start = _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
         k0 = 0
-        out_T[0] = solver.surface_temperature
-        out_ir[0] = spin_ir[-1] if spin_ir is not None and len(spin_ir) else stepper.ir(out_T[0])
-    extra = {"start_method": np.array(spin_info["start_method"]), "iterations": np.array(spin_info["iterations"]),
-             "residual": np.asarray(spin_info["residual"], float)}
-    if spin_ir is not None:
-        extra["spin_ir"] = spin_ir
-    if ckpt is None:
-        save_ckpt("record", 0, out_T, out_ir, extra)
-    with progress_bar("run " + case.name, nt - 1 - k0, progress) as update:
-        with timer("conduction_record"):
-            for k in range(k0, nt - 1):
-                out_T[k + 1], out_ir[k + 1] = stepper.step(rec_solar[k], rec_solar[k + 1], out_ir[k],
-                                                           rec_t[k + 1] - rec_t[k])
-                if every and (k + 1) % every == 0 and k + 1 < nt - 1:
-                    save_ckpt("record", k + 1, out_T, out_ir, extra)
-                update(1, info=str(fc.times[k + 1])[:16])
-    # ---- write
+        ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
+        with timer("io"):
+            store.write("T", 0, solver.surface_temperature[None, :])
+            store.write("ir", 0, ir_k[None, :])
+        save_ckpt(0, spin_info)
+    # ---- recorded period, block by block; rows k0+1 .. are buffered and flushed to the store
+    pend_T = np.empty((block, nf))
+    pend_ir = np.empty((block, nf))
+    pend0, n_pend = k0 + 1, 0  # first buffered row, rows buffered
+
+    def flush():
+        nonlocal pend0, n_pend
+        if n_pend:
+            with timer("io"):
+                store.write_rows("T", pend0, pend_T[:n_pend])
+                store.write_rows("ir", pend0, pend_ir[:n_pend])
+        pend0, n_pend = pend0 + n_pend, 0
+
+    sol, w0 = None, 0
+    with _stage(progress, f"record {case.name}") as report:
+        for k in range(k0, nt - 1):
+            if sol is None or k + 1 >= w0 + len(sol):
+                sol = None
+                w0 = k
+                with timer("io"):
+                    sol = fc.rows("solar", off + k, off + min(nt, k + block + 1))
+            with timer("conduction_record"):
+                T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
+            pend_T[n_pend], pend_ir[n_pend] = T1, ir_k
+            n_pend += 1
+            if (pend0 + n_pend) % block == 0:
+                flush()
+            if every and (k + 1) % every == 0 and k + 1 < nt - 1:
+                flush()
+                save_ckpt(k + 1, spin_info)
+            if report is not None:
+                report(k + 1 - k0, nt - 1 - k0)
+        flush()
+    pend_T = pend_ir = sol = None  # free the buffers before the file is written
+    # ---- write run.nc from the store, block by block
     with timer("io"):
-        spin_direct, rec_direct = fc.split(fc.direct)
-        spin_dirs, rec_dirs = fc.split(fc.sun_dirs)
-        _, rec_dist = fc.split(fc.sun_dist_m)
         from crater_thermal.constants import AU
 
+        _, rec_dirs = fc.split(fc.sun_dirs)
+        _, rec_dist = fc.split(fc.sun_dist_m)
         extra_vars = {"start_residual": (("facet",), np.asarray(spin_info["residual"], float),
                                          {"units": "K", "long_name": "max over the column of |T(end) - T(start)| "
                                           "of the spin-up window's last period"})}
-        if getattr(case.output, "save_spinup_fluxes", True) and fc.n_spin:
-            extra_vars["spinup_solar_incident"] = (("spinup_time", "facet"), spin_solar, {"units": "W m-2"})
-            extra_vars["spinup_ir_incident"] = (("spinup_time", "facet"), spin_ir, {"units": "W m-2"})
-        ds = io.run_dataset(
-            mesh, fc.times, solar_incident=rec_solar, ir_incident=out_ir, solar_direct=rec_direct,
-            surface_temperature=out_T, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU,
-            attrs={"case_name": case.name, "case_toml": case.toml_text, "albedo": albedo, "emissivity": eps,
-                   "lat_deg": float(case.location.lat_deg), "lon_deg": float(case.location.lon_deg),
-                   "property_set": case.surface.property_set, "nominal_profile": nominal.label,
-                   "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
-                   "start_method": spin_info["start_method"], "spinup_iterations": int(spin_info["iterations"]),
-                   "spinup_years": float(case.period.spinup_years),
-                   "initial_temperature_K": T0, "timing_s": dict(timer.split)},
-            extra=extra_vars)
-        if fc.n_spin:
+        attrs = {"case_name": case.name, "case_toml": case.toml_text, "albedo": albedo, "emissivity": eps,
+                 "lat_deg": float(case.location.lat_deg), "lon_deg": float(case.location.lon_deg),
+                 "property_set": case.surface.property_set, "nominal_profile": nominal.label,
+                 "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
+                 "start_method": spin_info["start_method"], "spinup_iterations": int(spin_info["iterations"]),
+                 "spinup_years": float(case.period.spinup_years),
+                 "initial_temperature_K": case.period.initial_temperature_K, "timing_s": dict(timer.split)}
+        ds = io.run_dataset(mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs,
+                            extra=extra_vars)
+        if ns:
             ds = ds.assign_coords(spinup_time=fc.spin_times)
-        io.write_dataset_atomic(ds, out_path, overwrite=True if ckpt is not None else overwrite)
+        # (name, dims, rows, reader of rows k0..k1-1)
+        series = [("solar_incident", "time", nt, lambda a, b: store.read("solar", off + a, off + b)),
+                  ("ir_incident", "time", nt, lambda a, b: store.read("ir", a, b)),
+                  ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
+                  ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b))]
+        if save_spin:
+            series += [("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
+                       ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b))]
+        variables = {name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}))
+                     for name, dim, n, _ in series}
+        with io.stream_dataset(ds, out_path, variables, overwrite=True if ckpt is not None else overwrite,
+                               time_rows=min(TIME_CHUNK, block)) as write:
+            n_blocks = sum(-(-n // block) for _, _, n, _ in series)
+            with _stage(progress, f"write {out_path.name}") as report:
+                done = 0
+                for name, _, n, read in series:
+                    for a in range(0, n, block):
+                        b = min(n, a + block)
+                        write(name, (slice(a, b), slice(None)), read(a, b))
+                        done += 1
+                        if report is not None:
+                            report(done, n_blocks)
     if ckpt_path.exists():
         ckpt_path.unlink()
+    store.remove()
     return out_path
 
 
-def _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K, progress):
-    """Bring the columns to the start of the record. Returns (info, spin-up IR series or None)."""
+def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> np.ndarray:
+    """Time mean over sunlight rows k0..k1-1, block by block: ``fn(solar_rows)`` gives a block's mean (nf,)."""
+    total = None
+    for a in range(k0, k1, block):
+        b = min(k1, a + block)
+        part = fn(fc.rows("solar", a, b)) * (b - a)
+        total = part if total is None else total + part
+    return total / max(1, k1 - k0)
+
+
+def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
+    """Bring the columns to the start of the record, streaming the spin-up window in blocks.
+
+    Writes the spin-up IR series to ``fc.store`` (series ``spin_ir``) when ``save_spin``.
+    Returns (info, IR at the record's first sample or None when there is no spin-up window).
+    """
     from crater_thermal import thermal
 
     ns = len(spin_t)
+    T0 = case.period.initial_temperature_K
+    tol_K = case.period.periodic_tol_K
+    mode = case.period.spinup
+    es = stepper.emissivity * SIGMA
     if ns == 0:
         if T0 is not None:
             solver.set_uniform(float(T0))
             method = f"uniform {float(T0)} K, no spin-up"
         else:
-            solver.set_equilibrium(stepper.absorbed(fc.solar, 0.0 * fc.solar))
+            n_all = len(fc.sun_dirs)
+            ts = _mean_over_rows(fc, 0, n_all, block,
+                                 lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, 0.0)))
+            solver.set_equilibrium(surface_K=ts)
             method = "equilibrium estimate, no spin-up"
         return {"start_method": method, "iterations": 0, "residual": np.full(fc.mesh.n_facets, np.nan)}, None
     # first guess of the absorbed flux: sunlight plus the IR of a radiative-equilibrium crater
-    guess_T = (np.maximum(stepper.absorbed(spin_solar, 0.0), 1e-3) / (stepper.emissivity * SIGMA)) ** 0.25
-    guess_ir = stepper.ir(guess_T.mean(axis=0)) if fc.F is not None else 0.0
-    absorbed_guess = stepper.absorbed(spin_solar, guess_ir)
-    holder = {}
+    guess_T = _mean_over_rows(fc, 0, ns, block,
+                              lambda sol: np.mean((np.maximum(stepper.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0))
+    guess_ir = stepper.ir(guess_T) if fc.F is not None else 0.0
+    eq_surface = _mean_over_rows(fc, 0, ns, block,
+                                 lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, guess_ir)))
+    holder: dict = {}
 
-    def period_map(x):
-        solver.set_state(x)
-        _, ir = stepper.run(spin_t, spin_solar, record=True)
-        holder["ir"] = ir
-        return solver.state()
+    def keep_ir(k0, rows):
+        if save_spin:
+            fc.store.write("spin_ir", k0, rows)
+        if k0 + len(rows) == ns:
+            holder["ir"] = rows[-1].copy()
+
+    n_maps = [0]
+
+    def one_window(report, expected):
+        """One pass through the window; progress in steps, out of ``expected`` windows (more if needed)."""
+        n_maps[0] += 1
+        done0 = (n_maps[0] - 1) * (ns - 1)
+        total = max(expected, n_maps[0]) * (ns - 1)
+        run_window(stepper, spin_t, lambda a, b: fc.rows("solar", a, b), block, on_ir=keep_ir,
+                   on_step=None if report is None else lambda k: report(done0 + k, total))
 
     if mode == "periodic":
         if T0 is not None:
             solver.set_uniform(float(T0))
         else:
-            solver.set_equilibrium(absorbed_guess)
-        info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
-        x_end = period_map(solver.state()) if "ir" not in holder else None
-        if x_end is not None:
-            solver.set_state(x_end)
+            solver.set_equilibrium(surface_K=eq_surface)
+        # ETA: the shooting usually converges in about 4-6 windows; the bar grows if it needs more
+        with _stage(progress, "spin-up (periodic state)") as report:
+            def period_map(x):
+                solver.set_state(x)
+                one_window(report, 5)
+                return solver.state()
+
+            info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
         residual = np.asarray(info["residual_K"], float)
         return {"start_method": f"periodic steady state over {case.period.spinup_years} yr "
                                 f"(tolerance {tol_K} K)", "iterations": int(info["iterations"]),
@@ -583,9 +882,10 @@ def _spin_up(case, fc, solver, stepper, spin_t, spin_solar, mode, T0, tol_K, pro
         solver.set_uniform(float(T0))
         method = f"fixed spin-up {case.period.spinup_years} yr from uniform {float(T0)} K"
     else:
-        solver.set_equilibrium(absorbed_guess)
+        solver.set_equilibrium(surface_K=eq_surface)
         method = f"fixed spin-up {case.period.spinup_years} yr from the equilibrium estimate"
     x0 = solver.state()
-    _, ir = stepper.run(spin_t, spin_solar, record=True)
+    with _stage(progress, "spin-up (fixed)") as report:
+        one_window(report, 1)
     residual = np.max(np.abs(solver.state() - x0), axis=1)
-    return {"start_method": method, "iterations": 1, "residual": residual}, ir
+    return {"start_method": method, "iterations": 1, "residual": residual}, holder["ir"]

@@ -4,10 +4,15 @@ Each case ``NAME.toml`` writes ``OUT/NAME/run.nc`` and, when the case lists prof
 ``OUT/NAME/replay.nc``. A case whose outputs already exist is skipped, so an interrupted sweep
 restarted with the same command finishes only what is missing (a half-finished run resumes from
 its checkpoint).
+
+Local workers are started with the ``spawn`` method (fresh interpreters): forking a process whose
+numba/GNU OpenMP thread pool is already running is not safe. A cluster needs the ``distributed``
+extra; an unreachable scheduler is reported in one line after :data:`SCHEDULER_TIMEOUT_S`.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -15,6 +20,11 @@ from pathlib import Path
 from typing import Sequence
 
 from crater_thermal.errors import ConfigError
+from crater_thermal.extras import missing_extra
+from crater_thermal.progress import bar
+
+#: Seconds to wait for a dask scheduler to answer before giving up [s].
+SCHEDULER_TIMEOUT_S = 5.0
 
 
 def case_outputs(case_path, out_dir) -> tuple[Path, Path]:
@@ -32,7 +42,7 @@ def run_one(case_path: str, out_dir: str) -> dict:
     run_nc, replay_nc = case_outputs(case_path, out_dir)
     done = []
     if not run_nc.exists():
-        ckpt = Path(simulate._checkpoint_path(run_nc))
+        ckpt = Path(simulate.checkpoint_path(run_nc))
         simulate.run_case(case, run_nc, resume=ckpt.exists(), progress=False)
         done.append("run")
     labels = list(case.replay.profiles)
@@ -58,7 +68,6 @@ def sweep(case_paths: Sequence[str], out_dir, *, scheduler: str | None = None, w
     workers : local processes (default: the number of cores, at most the number of cases).
     """
     from crater_thermal import config
-    from crater_thermal.simulate import progress_bar
 
     paths = [str(p) for p in case_paths]
     if not paths:
@@ -70,25 +79,52 @@ def sweep(case_paths: Sequence[str], out_dir, *, scheduler: str | None = None, w
         config.load_case(p)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     results = []
-    with progress_bar("sweep", len(paths), progress) as update:
-        if scheduler:
-            from distributed import Client, as_completed as dask_completed
+    client = _connect(scheduler) if scheduler else None
+    with bar("sweep", progress) as report:
+        if client is not None:
+            from distributed import as_completed as dask_completed  # present: _connect imported it
 
-            with Client(scheduler) as client:
+            with client:
                 futures = client.map(run_one, paths, [str(out_dir)] * len(paths), pure=False)
                 for fut in dask_completed(futures):
                     results.append(fut.result())
-                    update(1, info=Path(results[-1]["case"]).stem)
+                    if report is not None:
+                        report(len(results), len(paths))
         else:
             n = workers or min(len(paths), os.cpu_count() or 1)
             if n <= 1:
                 for p in paths:
                     results.append(run_one(p, str(out_dir)))
-                    update(1, info=Path(p).stem)
+                    if report is not None:
+                        report(len(results), len(paths))
             else:
-                with ProcessPoolExecutor(max_workers=n) as pool:
+                spawn = multiprocessing.get_context("spawn")
+                with ProcessPoolExecutor(max_workers=n, mp_context=spawn) as pool:
                     futs = [pool.submit(run_one, p, str(out_dir)) for p in paths]
                     for fut in as_completed(futs):
                         results.append(fut.result())
-                        update(1, info=Path(results[-1]["case"]).stem)
+                        if report is not None:
+                            report(len(results), len(paths))
     return sorted(results, key=lambda r: paths.index(r["case"]))
+
+
+def _connect(scheduler: str):
+    """A dask.distributed client of the scheduler at ``scheduler`` (``tcp://host:8786``).
+
+    Raises
+    ------
+    MissingExtraError
+        dask.distributed is not installed.
+    ConfigError
+        No scheduler answers at that address within :data:`SCHEDULER_TIMEOUT_S`.
+    """
+    try:
+        from distributed import Client
+    except ImportError:
+        raise missing_extra("dask.distributed", "distributed", "sweeps on a dask cluster (--scheduler)") from None
+    try:
+        return Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+    except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, timed out, malformed
+        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise ConfigError(f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
+                          "(dask scheduler) or leave out --scheduler to run on local processes") from None

@@ -6,21 +6,24 @@ Sun, and the date in the title. It opens an interactive window when a display ex
 it renders off-screen (``pyvista.OFF_SCREEN``; on headless machines VTK can use Mesa EGL with
 ``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow``).
 
-Animations: GIF frames are written with Pillow (pyvista's ``open_gif`` needs imageio, which is
-not a dependency); MP4 uses pyvista's ``open_movie`` and needs ``imageio[ffmpeg]``, else a
-:class:`~crater_thermal.errors.ConfigError` says so.
+Animations: GIF frames are written with Pillow; MP4 uses pyvista's ``open_movie`` through
+imageio-ffmpeg (a wheel that carries its own ffmpeg binary; part of the ``viz`` extra). Without
+pyvista (or imageio-ffmpeg for MP4) a one-line :class:`~crater_thermal.errors.MissingExtraError`
+names the extra to install. Every file goes through :func:`crater_thermal.io.atomic_output`.
 """
 
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
-from typing import Callable, Optional, Sequence, Tuple, Union
+from typing import Optional, Tuple
 
 import numpy as np
 
-from crater_thermal.errors import ConfigError, OutputExistsError
+from crater_thermal import analysis as an
+from crater_thermal import io as ctio
+from crater_thermal.errors import ConfigError
+from crater_thermal.extras import missing_extra
 
 #: Variables :func:`show` can colour by: name -> (label, unit).
 VARIABLES = {
@@ -36,15 +39,15 @@ def _has_display() -> bool:
 
 
 def _pyvista():
-    """Import pyvista; render off-screen when there is no display."""
+    """Import pyvista (the ``viz`` extra); render off-screen when there is no display."""
     if not _has_display():
         # headless: let VTK go straight to EGL instead of warning about a missing X server
         # (override with VTK_DEFAULT_OPENGL_WINDOW, e.g. vtkOSOpenGLRenderWindow for OSMesa builds)
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     try:
         import pyvista as pv
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ConfigError(f"3-D views need pyvista (pip install 'crater_thermal[viz]'): {exc}") from None
+    except ImportError:
+        raise missing_extra("pyvista", "viz", "3-D views") from None
     if not _has_display():
         pv.OFF_SCREEN = True
     return pv
@@ -129,8 +132,6 @@ def field(run, var: str = "surface_temperature", replay=None, profile: Optional[
             raise ConfigError("profile given without a replay dataset (--replay REPLAY.nc)")
         if var != "surface_temperature":
             raise ConfigError(f"var={var!r} with a profile: only surface_temperature differences are shown")
-        from crater_thermal import analysis as an
-
         an.check_pair(run, replay)
         labels = an.profile_labels(replay)
         if profile not in labels:
@@ -172,9 +173,7 @@ class _Scene:
         self.extent = float(max(b[1] - b[0], b[3] - b[2]))
         self.top = float(b[5])
         self.times = np.asarray(run["time"].values)
-        from crater_thermal.analysis import _has
-
-        self.sun = np.asarray(run["sun_direction"].values, float) if _has(run, "sun_direction") else None
+        self.sun = np.asarray(run["sun_direction"].values, float) if an.has_variable(run, "sun_direction") else None
         # look from the equator side, so the pole-side (Sun-facing) inner wall is in view
         lat = float(run.attrs.get("lat_deg", -90.0))
         self.p.view_vector((0.35, 1.0 if lat <= 0 else -1.0, 1.1), viewup=(0.0, 0.0, 1.0))
@@ -194,7 +193,8 @@ class _Scene:
             start = np.array([0.0, 0.0, self.top + 0.05 * self.extent])
             arrow = self.pv.Arrow(start=start, direction=s, scale=0.35 * self.extent)
             self.p.add_mesh(arrow, color="gold" if above else "gray", name="sun", show_scalar_bar=False)
-            title = f"{title}\n{time_label(self.times[i])}   Sun elevation {np.degrees(np.arcsin(np.clip(s[2], -1, 1))):.2f} deg"
+            elev = np.degrees(np.arcsin(np.clip(s[2], -1, 1)))
+            title = f"{title}\n{time_label(self.times[i])}   Sun elevation {elev:.2f} deg"
         else:
             title = f"{title}\n{time_label(self.times[i])}"
         self.p.add_text(title, position="upper_left", font_size=11, color="black", name="title")
@@ -207,42 +207,14 @@ class _Scene:
         self.p.close()
 
 
-def _atomic_target(path: Path, overwrite: bool) -> Path:
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise OutputExistsError(f"{path} exists; pass overwrite=True / --overwrite to replace it")
-    if not path.parent.exists():
-        raise ConfigError(f"output folder {path.parent} does not exist")
-    return path
-
-
-def _ordinary_mode(path) -> None:
-    """mkstemp makes 0600 files; give outputs the usual umask-based mode."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
-
-
-def _save_png(img: np.ndarray, path: Path) -> None:
-    from PIL import Image
-
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        Image.fromarray(img).save(tmp, format="PNG")
-        _ordinary_mode(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def snapshot(run, values, time_index: int, scalar_title: str, title: str, path, cmap: str = "inferno",
              clim: Optional[Tuple[float, float]] = None, window_size: Tuple[int, int] = (900, 700),
-             exaggeration: float = 1.0) -> Path:
+             exaggeration: float = 1.0, overwrite: bool = False) -> Path:
     """Render one off-screen view of per-facet ``values`` (nf,) and write it to ``path`` (PNG).
 
-    Used by the report. ``exaggeration``: vertical exaggeration of the heights. Returns the path.
+    Used by the report. ``exaggeration``: vertical exaggeration of the heights. The PNG is written
+    through :func:`crater_thermal.io.atomic_output`; an existing ``path`` is refused unless
+    ``overwrite``. Returns the path.
     """
     values = np.asarray(values, float)
     if clim is None:
@@ -255,9 +227,11 @@ def snapshot(run, values, time_index: int, scalar_title: str, title: str, path, 
         img = scene.image()
     finally:
         scene.close()
-    path = Path(path)
-    _save_png(img, path)
-    return path
+    from PIL import Image
+
+    with ctio.atomic_output(path, overwrite) as tmp:
+        Image.fromarray(img).save(tmp, format="PNG")
+    return Path(path)
 
 
 def _frame_indices(nt: int, max_frames: int) -> np.ndarray:
@@ -287,7 +261,7 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
     screenshot : path, optional
         Write a PNG (off-screen).
     animate : path, optional
-        Write an animation over time: ``.gif`` (Pillow) or ``.mp4`` (needs imageio[ffmpeg]).
+        Write an animation over time: ``.gif`` (Pillow) or ``.mp4`` (imageio-ffmpeg, ``viz`` extra).
     overwrite : bool
         Replace existing outputs.
     window_size : (int, int) [px]
@@ -304,15 +278,13 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
     -------
     dict with ``time`` (ISO of the shown sample), ``screenshot``, ``animation`` (paths or None), ``n_frames``.
     """
-    from crater_thermal.report import _open_replay, _open_run
-
     opened = []
     try:
         if isinstance(run_path, (str, os.PathLike)):
-            run_path = _open_run(run_path)
+            run_path = ctio.open_run(run_path)
             opened.append(run_path)
         if isinstance(replay, (str, os.PathLike)):
-            replay = _open_replay(replay)
+            replay = ctio.open_replay(replay)
             opened.append(replay)
         return _show(run_path, time, var, profile, replay, screenshot, animate, overwrite, window_size,
                      max_frames, fps, progress, exaggeration)
@@ -326,12 +298,10 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
     exaggeration = _check_exaggeration(exaggeration)
     vals, scalar_title, cmap = field(run, var, rep, profile)
     times = np.asarray(run["time"].values)
-    from crater_thermal.analysis import _has
-
-    sun = np.asarray(run["sun_direction"].values) if _has(run, "sun_direction") else None
+    sun = np.asarray(run["sun_direction"].values) if an.has_variable(run, "sun_direction") else None
     i = select_time(times, time, sun)
-    shot = _atomic_target(Path(screenshot), overwrite) if screenshot else None
-    anim = _atomic_target(Path(animate), overwrite) if animate else None
+    shot = ctio.check_output(screenshot, overwrite) if screenshot else None
+    anim = ctio.check_output(animate, overwrite) if animate else None
     if anim is not None and anim.suffix.lower() not in (".gif", ".mp4"):
         raise ConfigError(f"animate={anim} must end in .gif or .mp4")
     if shot is None and anim is None and not _has_display():
@@ -355,10 +325,10 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
         v = vals[i]
         c = (float(v.min()), float(max(v.max(), v.min() + 1e-3))) if profile is None else clim
         snapshot(run, v, i, scalar_title, title, shot, cmap=cmap, clim=c, window_size=window_size,
-                 exaggeration=exaggeration)
+                 exaggeration=exaggeration, overwrite=overwrite)
         out["screenshot"] = str(shot)
     if anim is not None:
-        out["n_frames"] = _animate(run, vals, scalar_title, title, cmap, clim, anim, window_size,
+        out["n_frames"] = _animate(run, vals, scalar_title, title, cmap, clim, anim, overwrite, window_size,
                                    _frame_indices(len(times), max_frames), fps, progress, exaggeration)
         out["animation"] = str(anim)
     if shot is None and anim is None:  # pragma: no cover - needs a display
@@ -368,45 +338,38 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
     return out
 
 
-def _animate(run, vals, scalar_title, title, cmap, clim, path: Path, window_size, frames, fps, progress,
-             exaggeration: float = 1.0) -> int:
-    from crater_thermal.report import progress_bar
+def _animate(run, vals, scalar_title, title, cmap, clim, path: Path, overwrite: bool, window_size, frames, fps,
+             progress, exaggeration: float = 1.0) -> int:
+    from crater_thermal.progress import bar
 
-    scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True, exaggeration=exaggeration)
-    suffix = path.suffix.lower()
-    fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        images = []
-        movie = False
-        if suffix == ".mp4":
-            try:
-                scene.p.open_movie(tmp, framerate=fps)
-                movie = True
-            except Exception as exc:  # pyvista raises ImportError/ModuleNotFoundError without imageio
-                raise ConfigError(f"animate={path}: MP4 needs imageio[ffmpeg] ({exc.__class__.__name__}); "
-                                  "use a .gif") from None
-        with progress_bar("frames", len(frames), progress) as advance:
-            for i in frames:
-                scene.update(vals[i], int(i), title)
-                if movie:
-                    scene.p.write_frame()
-                else:
-                    from PIL import Image
-
-                    images.append(Image.fromarray(scene.image()).convert("P", palette=Image.ADAPTIVE))
-                advance()
-        if not movie:
-            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
-                           duration=int(round(1000 / fps)), loop=0)
-        scene.close()
-        _ordinary_mode(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with ctio.atomic_output(path, overwrite) as tmp, bar("frames", progress) as report:
+        scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=True, exaggeration=exaggeration)
         try:
-            scene.close()
-        except Exception:  # already closed
-            pass
+            _write_frames(scene, vals, title, tmp, frames, fps, report)
+        finally:
+            scene.close()  # also closes the MP4 writer, before the file is renamed into place
     return len(frames)
+
+
+def _write_frames(scene, vals, title, tmp: Path, frames, fps, report) -> None:
+    """Render ``frames`` into ``tmp``: an MP4 through imageio-ffmpeg, else a GIF through Pillow."""
+    from PIL import Image
+
+    movie = tmp.suffix.lower() == ".mp4"
+    if movie:
+        try:
+            scene.p.open_movie(str(tmp), framerate=fps)
+        except (ImportError, ValueError, RuntimeError):  # imageio or its ffmpeg plugin missing
+            raise missing_extra("imageio-ffmpeg", "viz", "MP4 animations") from None
+    images = []
+    for n, i in enumerate(frames, 1):
+        scene.update(vals[i], int(i), title)
+        if movie:
+            scene.p.write_frame()
+        else:
+            images.append(Image.fromarray(scene.image()).convert("P", palette=Image.ADAPTIVE))
+        if report is not None:
+            report(n, len(frames))
+    if not movie:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                       duration=int(round(1000 / fps)), loop=0)

@@ -2,7 +2,17 @@
 
 from __future__ import annotations
 
-from crater_thermal import choices, ephemeris, illumination, materials, profiles, radiosity, thermal
+from crater_thermal import choices, config, ephemeris, illumination, materials, profiles, radiosity, thermal, vfoperator
+
+_MINIMAL = """
+[crater]
+diameter_km = 1.0
+[location]
+lat_deg = -85.0
+[period]
+start = "2019-01-01"
+end = "2019-01-02"
+"""
 
 
 def test_owning_modules_implement_exactly_the_declared_names():
@@ -10,6 +20,8 @@ def test_owning_modules_implement_exactly_the_declared_names():
     assert illumination.LIMB_DARKENING_LAWS is choices.LIMB_DARKENING_LAWS
     assert tuple(materials.PROPERTY_SETS) == choices.PROPERTY_SETS
     assert radiosity.SCATTERING_METHODS is choices.SCATTERING_METHODS
+    assert vfoperator.METHODS is choices.VIEW_FACTOR_METHODS
+    assert config.loads_case(_MINIMAL).radiation.tolerance == vfoperator.DEFAULT_TOLERANCE
     assert ephemeris.MOON_FRAMES is choices.MOON_FRAMES and ephemeris.SUN_CORRECTIONS is choices.SUN_CORRECTIONS
     assert ephemeris.ephemeris_range("de421") == choices.ephemeris_span("de421")
 

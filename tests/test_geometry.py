@@ -275,7 +275,8 @@ def test_load_rejects_missing_and_garbage(tmp_path):
 
 def _cli(*args):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "crater_thermal", *args], capture_output=True, text=True, env=env, cwd=REPO)
+    return subprocess.run([sys.executable, "-m", "crater_thermal", *args], capture_output=True, text=True, env=env,
+                          cwd=REPO)
 
 
 def test_cli_mesh_crater_and_bowl(tmp_path):
@@ -307,6 +308,40 @@ def test_cli_bad_input_exit_2_one_line(tmp_path, args, word):
     assert r.stderr.startswith("error:") and r.stderr.strip().count("\n") == 0
     assert word in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "x.ply").exists()
+
+
+# ---------------------------------------------------------------------------- orientation (downward meshes)
+
+
+def test_downward_mesh_is_refused_and_flip_restores_it(tmp_path):
+    m = crater_mesh(10.0, 502)
+    # area-weighted mean normal of an upward crater: its plan area over its total area, about 0.9
+    assert 0.8 < m.mean_normal[2] <= 1.0
+    down = Mesh(m.vertices, m.faces[:, [0, 2, 1]], m.meta)
+    assert down.mean_normal[2] == pytest.approx(-m.mean_normal[2], abs=1e-12)
+    p = save_mesh(down, tmp_path / "down.ply")
+    with pytest.raises(MeshError, match="--flip") as err:
+        load_mesh(p)
+    assert "downward" in str(err.value) and "\n" not in str(err.value)
+    back = load_mesh(p, flip=True)
+    assert back.hash == m.hash and back.meta["flipped"] is True
+    assert np.allclose(back.normals, m.normals, atol=0)
+
+
+def test_closed_meshes_have_no_up_and_load_either_way(tmp_path):
+    for inward in (True, False):
+        s = sphere_mesh(200, inward=inward)
+        # the normals of a closed surface sum to zero (to rounding): no downward side to detect
+        assert np.linalg.norm(s.mean_normal) < 1e-12
+        assert load_mesh(save_mesh(s, tmp_path / f"s{inward}.ply")).hash == s.hash
+
+
+def test_cli_downward_mesh_one_line_exit_2(tmp_path):
+    m = crater_mesh(1.0, 60)
+    p = save_mesh(Mesh(m.vertices, m.faces[:, [0, 2, 1]], m.meta), tmp_path / "down.ply")
+    r = _cli("steady", str(p), "--sun-elevation-deg", "10", "-o", str(tmp_path / "s.nc"))
+    assert r.returncode == 2 and r.stderr.startswith("error:") and r.stderr.strip().count("\n") == 0
+    assert "--flip" in r.stderr and "Traceback" not in r.stderr and not (tmp_path / "s.nc").exists()
 
 
 # ------------------------------------------------------------------------- large facet counts (issue 13)

@@ -1,5 +1,6 @@
 """Tests of crater_thermal.report: the report renders from a small synthetic run/replay, and refuses bad input."""
 
+import contextlib
 import json
 import os
 import subprocess
@@ -7,7 +8,6 @@ import sys
 
 import numpy as np
 import pytest
-import xarray as xr
 from PIL import Image
 
 from crater_thermal import report as rp
@@ -94,7 +94,8 @@ def test_summary_values_match_an_independent_computation(report_dir, files):
     c = run["centroid"].values
     floor = np.hypot(c[:, 0], c[:, 1]) <= meta["floor_radius_m"]
     night = run["sun_direction"].values[:, 2] < 0
-    d = (rep["surface_temperature"].sel(profile="800/1100") - rep["surface_temperature"].sel(profile="1300/1800")).values
+    T = rep["surface_temperature"]
+    d = (T.sel(profile="800/1100") - T.sel(profile="1300/1800")).values
     expect = np.median(d[night][:, floor])
     # same numbers through a different path: agreement to float rounding (1e-9 K)
     assert s["night_median_dT_K"]["800/1100"]["floor"] == pytest.approx(expect, abs=1e-9)
@@ -222,3 +223,29 @@ def test_analysis_and_report_do_not_import_xarray_or_pyvista():
             "bad = [m for m in ('xarray', 'pyvista') if m in sys.modules]; assert not bad, bad")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=60)
     assert out.returncode == 0, out.stderr
+
+
+def test_report_without_pyvista_skips_snapshots_with_a_note(files, tmp_path, monkeypatch, capsys):
+    _, run, rep = files
+    monkeypatch.setitem(sys.modules, "pyvista", None)  # as if the viz extra were not installed
+    rp.make_report(run, rep, tmp_path / "r", progress=False)
+    s = _strict_json(tmp_path / "r" / "summary.json")
+    assert set(rp.FIGURES) == set(s["figures"])  # every matplotlib figure, no 3-D snapshot
+    assert "pip install 'crater_thermal[viz]'" in s["snapshot_note"]
+    err = capsys.readouterr().err
+    assert err.startswith("note: 3-D snapshots skipped") and err.count("\n") == 1
+
+
+def test_report_progress_callback_counts_every_step(files, tmp_path, monkeypatch):
+    _, run, rep = files
+    calls = []
+
+    @contextlib.contextmanager
+    def bar(description, flag=None):
+        yield lambda done, total: calls.append((done, total))
+
+    monkeypatch.setattr(rp, "bar", bar)
+    rp.make_report(run, rep, tmp_path / "r", progress=True, snapshots=False)
+    n_profiles = len(rep["profile"]) - 1  # every profile but the nominal one
+    total = n_profiles + len(rp.FIGURES) + 1
+    assert calls == [(k, total) for k in range(1, total + 1)]

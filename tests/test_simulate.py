@@ -214,7 +214,7 @@ def test_resume_after_kill_matches_uninterrupted(tmp_path):
                       every=40, extra_period="initial_temperature_K = 100.0")
     ref = simulate.run_case(config.load_case(path), tmp_path / "ref.nc", progress=False)
     out = tmp_path / "killed.nc"
-    ckpt = Path(simulate._checkpoint_path(out))
+    ckpt = Path(simulate.checkpoint_path(out))
     env = dict(os.environ, PYTHONPATH=str(REPO), CRATER_THERMAL_QUIET="1")
     proc = subprocess.Popen([sys.executable, "-m", "crater_thermal", "run", str(path), "-o", str(out)], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

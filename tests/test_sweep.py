@@ -1,12 +1,19 @@
 """Sweeps: local processes, restart skips finished cases, and a dask.distributed LocalCluster."""
 
+import concurrent.futures
+import os
+import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from crater_thermal import io, sweep
-from crater_thermal.errors import ConfigError
+from crater_thermal.errors import ConfigError, MissingExtraError
+
+REPO = Path(__file__).resolve().parents[1]
 
 CASE = """
 name = "{name}"
@@ -78,3 +85,59 @@ def test_sweep_rejects_bad_case_before_any_work(tmp_path):
     with pytest.raises(ConfigError, match="lat_deg"):
         sweep.sweep(paths + [bad], tmp_path / "out", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_scheduler_is_one_line_config_error(tmp_path, monkeypatch):
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(sweep, "SCHEDULER_TIMEOUT_S", 1.0)
+    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    with pytest.raises(ConfigError, match="cannot reach a dask scheduler") as err:
+        sweep.sweep(_cases(tmp_path, lats=(-70.0,)), tmp_path / "out", scheduler=address, progress=False)
+    assert address in str(err.value) and "\n" not in str(err.value)
+
+
+def test_cli_unreachable_scheduler_exit_2(tmp_path):
+    pytest.importorskip("distributed")
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    r = subprocess.run([sys.executable, "-m", "crater_thermal", "sweep", *map(str, _cases(tmp_path, lats=(-70.0,))),
+                        "-o", str(tmp_path / "out"), "--scheduler", address], capture_output=True, text=True,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.startswith("error:") and r.stderr.strip().count("\n") == 0 and address in r.stderr
+
+
+def test_scheduler_without_dask_names_the_extra(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask.distributed were not installed
+    with pytest.raises(MissingExtraError, match=r"pip install 'crater_thermal\[distributed\]'"):
+        sweep.sweep(_cases(tmp_path, lats=(-70.0,)), tmp_path / "out", scheduler="tcp://127.0.0.1:8786",
+                    progress=False)
+
+
+def test_local_workers_are_spawned(tmp_path, monkeypatch):
+    """GNU OpenMP (numba's threading layer) is not fork-safe: workers must start with 'spawn'."""
+    seen = {}
+
+    class Recorder:  # stands in for ProcessPoolExecutor; runs the jobs inline
+        def __init__(self, max_workers, mp_context):
+            seen["method"] = mp_context.get_start_method()
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            fut = concurrent.futures.Future()
+            fut.set_result({"case": args[0], "skipped": True, "done": []})
+            return fut
+
+    monkeypatch.setattr(sweep, "ProcessPoolExecutor", Recorder)
+    res = sweep.sweep(_cases(tmp_path), tmp_path / "out", workers=2, progress=False)
+    assert seen["method"] == "spawn" and len(res) == 2

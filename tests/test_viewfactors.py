@@ -8,6 +8,7 @@ import scipy.sparse as sp
 from crater_thermal import viewfactors as vf
 from crater_thermal.errors import MeshError
 from crater_thermal.geometry import Mesh, bowl_mesh, crater_mesh, flat_mesh, sphere_mesh
+from crater_thermal.kernels import viewfactors as vf_kernels
 from crater_thermal.raytrace import RayTracer
 from crater_thermal.viewfactors import check_reciprocity, row_sums, view_factor_matrix
 
@@ -110,15 +111,15 @@ def test_near_pair_quadrature_converged(monkeypatch, crater502):
     m, F = crater502
     V, Fc, N, C, A = m.vertices, m.faces, m.normals, m.centroids, m.areas
     poly = np.empty((4, 3))
-    b4 = vf._subtriangle_barycentrics(4)
-    b8 = vf._subtriangle_barycentrics(8)
+    b4 = vf.subtriangle_barycentrics(4)
+    b8 = vf.subtriangle_barycentrics(8)
     assert b4.shape == (16, 3) and np.allclose(b4.sum(1), 1) and np.allclose(b8.mean(0), 1 / 3)
     checked = 0
     for i in range(0, 502, 7):
         for j in F[i].indices:
             if len(set(Fc[i]) & set(Fc[j])) == 2:  # adjacent pairs that exchange radiation
-                k4 = vf._near_kernel(i, j, V, Fc, N, C, A, b4, poly)
-                k8 = vf._near_kernel(i, j, V, Fc, N, C, A, b8, poly)
+                k4 = vf_kernels.near_kernel(i, j, V, Fc, N, C, A, b4, poly)
+                k8 = vf_kernels.near_kernel(i, j, V, Fc, N, C, A, b8, poly)
                 assert k4 == pytest.approx(k8, rel=0.05)
                 assert F[i, j] == pytest.approx(k4 * A[j], rel=1e-12)
                 checked += 1
@@ -161,7 +162,7 @@ def test_crater_floor_sees_crater_outside_the_rim_opening():
 def test_check_reciprocity_detects_asymmetry(crater502):
     m, F = crater502
     G = F.tolil(copy=True)
-    i, j = F[10].indices[0], 10
+    i = F[10].indices[0]
     G[10, i] = G[10, i] * 1.5
     assert check_reciprocity(G.tocsr(), m.areas) > 0.01
     with pytest.raises(MeshError):
@@ -170,15 +171,19 @@ def test_check_reciprocity_detects_asymmetry(crater502):
 
 def test_cache_round_trip(tmp_path, monkeypatch):
     m = crater_mesh(10.0, 300)
-    F1 = view_factor_matrix(m, cache_dir=tmp_path, progress=True)
+    calls = []
+    F1 = view_factor_matrix(m, cache_dir=tmp_path, progress=lambda done, total: calls.append((done, total)))
     files = list(tmp_path.glob("viewfactors_*.npz"))
     assert len(files) == 1 and m.hash in files[0].name and vf.ALGORITHM_VERSION in files[0].name
+    # the progress callback counts the row chunks up to their total
+    assert calls and calls[-1][0] == calls[-1][1] and [c[0] for c in calls] == list(range(1, len(calls) + 1))
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left behind
 
     # the second call must not compute: make computing fail
     def boom(*a, **k):
         raise AssertionError("recomputed despite cache")
 
-    monkeypatch.setattr(vf, "_candidate_pairs", boom)
+    monkeypatch.setattr(vf_kernels, "candidate_pairs", boom)
     F2 = view_factor_matrix(m, cache_dir=tmp_path)
     assert (F1 != F2).nnz == 0 and np.array_equal(F1.indptr, F2.indptr)
     # a different mesh is not served from that cache

@@ -84,3 +84,14 @@ def test_cli_show(files, tmp_path):
                           "--screenshot", str(tmp_path / "n.png")], capture_output=True, text=True, env=ENV,
                          timeout=120)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "var=" in bad.stderr
+
+
+def test_mp4_animation_through_imageio_ffmpeg(files, tmp_path):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    res = viz.show(files / "run.nc", animate=tmp_path / "a.mp4", max_frames=3, fps=5.0, progress=False)
+    assert res["n_frames"] == 3 and res["animation"] == str(tmp_path / "a.mp4")
+    assert (tmp_path / "a.mp4").read_bytes()[4:8] == b"ftyp"  # an ISO-BMFF (MP4) container
+    n_frames, _ = imageio_ffmpeg.count_frames_and_secs(str(tmp_path / "a.mp4"))
+    assert n_frames == 3
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
+

@@ -1,0 +1,313 @@
+"""Benchmark: one recorded year of the same synthetic crater at ~10k, 30k and 100k facets (issue 13).
+
+Run:  PYTHONPATH=$PWD python bench/scale.py [--sizes 10000 30000 100000] [--sun-method horizon]
+                                              [--view-factors compressed] [--quick] [--chunk-mb 256]
+
+Each size runs in its own process (``--one N``): the idealized 10 km crater of the mesh generator
+(thesis Table 7.1 profile) with a 5 km flat surround, N facets, at 86 S; everything from the mesh to
+run.nc through ``simulate.run_case`` (mesh and ray-tracing scene, view factors / radiation operator,
+horizon map, Sun directions, direct sunlight, scattering, spin-up, record, I/O). Per stage: wall time
+and the peak resident set reached inside it (the kernel's high-water mark, reset at each stage start
+through ``/proc/self/clear_refs``); per size: the process's peak resident set (``VmHWM``;
+``ru_maxrss`` of the children as a cross-check).
+
+Full mode (default): one recorded year (2019) at 4 h steps from the converged start, the periodic
+state over the preceding year; the numbers are measured, nothing is scaled.
+
+``--quick``: the same meshes and every once-per-mesh stage (mesh, view factors / operator, horizon map)
+in full, but a short record (``--record-days``, default 5) after a one-day fixed spin-up, and the year
+is extrapolated from measured per-step costs at that size: sunlight, scattering, ephemeris and I/O per
+flux sample x (spin-up year + record year); conduction per coupled step (from the record) x
+(``--windows`` periodic windows + 1 record) x 2190 steps; plus ``--windows`` quasi-Newton passes of the
+periodic shooting, each timed once on N columns (the eigen-decompositions of ``thermal.periodic_state``).
+Each child first runs a 300-facet crater for a day, untimed (imports, numba compilation, ephemeris tables).
+``--windows`` defaults to 5, what the periodic start took on these meshes in full and short runs
+(1000-2000 facets: 5) and in ``bench/thesis.py`` (4 iterations + the final map). ``extrapolated`` says
+which numbers were; ``measured_total_s`` / ``measured_stages_s`` keep the raw ones. Peak memory is as
+measured: a streamed run holds blocks of the chunk budget and the per-mesh operators, not the run's
+length, so a longer run does not raise it.
+
+Growth exponents between the two largest sizes: ``log(y2 / y1) / log(N2 / N1)`` for the (year) time and
+the peak memory. The machine is shared: ``loadavg`` holds ``os.getloadavg()`` at the start and end of
+each size. The last stdout line is one JSON object, also written to ``bench/results/scale.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+YEAR_S = 365.25 * 86400.0
+STEP_S = 4 * 3600.0
+YEAR_STEPS = int(round(YEAR_S / STEP_S))  # coupled steps of a year at 4 h
+#: Stages paid once per mesh, whatever the run's length; every other stage is time-stepped.
+FIXED_STAGES = ("geometry", "viewfactors", "operator", "horizons")
+
+CASE = """
+name = "scale_{facets}"
+[crater]
+kind = "crater"
+diameter_km = {diameter_km}
+facets = {facets}
+surround_km = {surround_km}
+[location]
+lat_deg = {lat_deg}
+lon_deg = 0.0
+[period]
+start = "2019-01-01"
+end = "{end}"
+{spinup}
+[steps]
+flux_step_hours = 4.0
+[surface]
+albedo = 0.12
+emissivity = 0.95
+{extra}
+[output]
+chunk_mb = {chunk_mb}
+checkpoint_interval_steps = 0
+"""
+
+
+def _status_kb(key: str) -> float:
+    """A ``/proc/self/status`` memory field [kB] (nan where there is no procfs)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return float(line.split()[1])
+    except OSError:
+        pass
+    return math.nan
+
+
+def _reset_peak() -> bool:
+    """Reset the kernel's peak-RSS mark (VmHWM) to the current RSS; False where not supported."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def quasi_newton_pass_s(n_cols: int) -> float:
+    """Wall time [s] of one quasi-Newton pass of the periodic shooting over ``n_cols`` columns (the
+    per-column eigen-decompositions of ``thermal.periodic_state``, one BLAS thread, same chunks)."""
+    from threadpoolctl import threadpool_limits
+
+    from crater_thermal import thermal
+    from crater_thermal.constants import SIGMA
+
+    solver = thermal.ColumnSolver(["1300/1800"] * n_cols)
+    solver.set_uniform(100.0)
+    Tm = solver.state()
+    h = np.full(n_cols, 4 * 0.95 * SIGMA * 100.0**3)
+    dt = np.full(n_cols, 1800.0)
+    t0 = time.perf_counter()
+    with threadpool_limits(1, user_api="blas"):
+        for c0 in range(0, n_cols, 4096):
+            cols = np.arange(c0, min(n_cols, c0 + 4096))
+            solver.linear_modes(Tm, h[cols], dt[cols], cols)
+    return time.perf_counter() - t0
+
+
+def run_one(args) -> dict:
+    """One size, in this process: build the case, run it, report stage times and memory."""
+    from crater_thermal import config, progress, simulate
+
+    class StageTimer(simulate.Timer):
+        """The run's own time split, plus the peak RSS reached inside each stage [MB]."""
+
+        def __init__(self):
+            super().__init__()
+            self.peak_mb: dict = {}
+            self.can_reset = _reset_peak()
+
+        @contextmanager
+        def __call__(self, name):
+            if self.can_reset:
+                _reset_peak()
+            with super().__call__(name):
+                yield
+            peak = _status_kb("VmHWM") / 1024.0
+            self.peak_mb[name] = max(self.peak_mb.get(name, 0.0), peak)
+
+    extra = f'[sun]\nmethod = "{args.sun_method}"\n' if args.sun_method else ""
+    extra += f'[radiation]\nview_factors = "{args.view_factors}"\n' if args.view_factors else ""
+    if args.quick:
+        days = args.record_days
+        spinup = 'spinup = "fixed"\nspinup_days = 1.0\ninitial_temperature_K = 100.0'
+    else:
+        days = 365.0
+        spinup = 'spinup = "periodic"\nspinup_years = 1.0'
+    end = str(np.datetime64("2019-01-01T00:00") + np.timedelta64(int(round(days * 86400)), "s"))
+    with tempfile.TemporaryDirectory(prefix="scale_", dir=args.workdir) as tmp:
+        tmp = Path(tmp)
+        case_path = tmp / "case.toml"
+        case_path.write_text(CASE.format(facets=args.one, diameter_km=args.diameter_km, surround_km=args.surround_km,
+                                         lat_deg=args.lat_deg, chunk_mb=args.chunk_mb, extra=extra, end=end,
+                                         spinup=spinup))
+        os.environ.setdefault("CRATER_THERMAL_CACHE", str(tmp / "cache"))  # a cold cache: every stage is paid
+        # warm-up on a small crater (not timed): imports, numba compilation or cache loads, ephemeris tables
+        warm = tmp / "warm.toml"
+        warm.write_text(CASE.format(facets=300, diameter_km=args.diameter_km, surround_km=args.surround_km,
+                                    lat_deg=args.lat_deg, chunk_mb=args.chunk_mb, extra=extra,
+                                    end="2019-01-02T00:00", spinup='spinup = "fixed"\nspinup_days = 1.0'))
+        simulate.run_case(config.load_case(warm), tmp / "warm.nc")
+        case = config.load_case(case_path)
+        timer = StageTimer()
+        rss0 = _status_kb("VmRSS") / 1024.0
+        load0 = os.getloadavg()
+        reporter = progress.reporter(True) if args.progress else None
+        t0 = time.perf_counter()
+        out = simulate.run_case(case, tmp / "run.nc", progress=reporter, timer=timer)
+        total = time.perf_counter() - t0
+        peak = _status_kb("VmHWM") / 1024.0
+        size_mb = out.stat().st_size / 2**20
+        import xarray as xr
+
+        with xr.open_dataset(out) as ds:
+            nf, nt = ds.sizes["facet"], ds.sizes["time"]
+            ns = ds.sizes.get("spinup_time", 0)
+            iterations = int(ds.attrs.get("spinup_iterations", -1))
+    res = {"facets": nf, "samples": nt, "spinup_samples": ns, "total_s": total, "stages_s": dict(timer.split),
+           "stage_peak_mb": timer.peak_mb, "peak_memory_mb": peak, "periodic_iterations": iterations,
+           "run_nc_mb": size_mb, "rss_before_run_mb": rss0, "loadavg": [list(load0), list(os.getloadavg())]}
+    if args.quick:
+        res["quasi_newton_pass_s"] = quasi_newton_pass_s(nf)
+    return res
+
+
+def extrapolate_year(res: dict, args) -> dict:
+    """The year's stage times from a quick run (see the module docstring); a full run as measured."""
+    if not args.quick:
+        return {"extrapolated": False, "year_s": res["total_s"], "year_stages_s": dict(res["stages_s"])}
+    n_run = res["samples"] + max(res["spinup_samples"] - 1, 0)  # flux samples computed in the quick run
+    n_year = 2 * YEAR_STEPS + 1  # spin-up year + recorded year, the join sample once
+    conduction_step_s = res["stages_s"].get("conduction_record", 0.0) / max(1, res["samples"] - 1)
+    stages = {}
+    for name, secs in res["stages_s"].items():
+        if name in FIXED_STAGES:
+            stages[name] = secs
+        elif name == "conduction_spinup":
+            stages[name] = (args.windows * YEAR_STEPS * conduction_step_s
+                            + args.windows * res["quasi_newton_pass_s"])
+        elif name == "conduction_record":
+            stages[name] = YEAR_STEPS * conduction_step_s
+        else:  # sunlight, scattering, ephemeris, I/O: per flux sample
+            stages[name] = secs * n_year / n_run
+    untimed = res["total_s"] - sum(res["stages_s"].values())  # solver set-up, checkpoints outside timers
+    return {"extrapolated": True, "year_s": sum(stages.values()) + untimed, "year_stages_s": stages,
+            "conduction_step_s": conduction_step_s}
+
+
+def exponent(x, y) -> float:
+    """Growth exponent between the two largest sizes: log(y2 / y1) / log(x2 / x1)."""
+    (x1, y1), (x2, y2) = sorted(zip(x, y))[-2:]
+    return math.log(y2 / y1) / math.log(x2 / x1)
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 30_000, 100_000])
+    ap.add_argument("--diameter-km", type=float, default=10.0)
+    ap.add_argument("--surround-km", type=float, default=5.0)
+    ap.add_argument("--lat-deg", type=float, default=-86.0)
+    ap.add_argument("--sun-method", default=None, help="[sun] method of the case (default: the case default)")
+    ap.add_argument("--view-factors", default=None,
+                    help="[radiation] view_factors of the case (default: the case default)")
+    ap.add_argument("--chunk-mb", type=float, default=256.0)
+    ap.add_argument("--quick", action="store_true", help="short run, the year extrapolated (module docstring)")
+    ap.add_argument("--record-days", type=float, default=5.0, help="--quick: recorded days")
+    ap.add_argument("--windows", type=int, default=5, help="--quick: periodic windows assumed for the start")
+    ap.add_argument("--workdir", default=None, help="folder for the runs' files (default: the system temp)")
+    ap.add_argument("--progress", action="store_true", help="progress bars of the runs (on stderr)")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "scale.json"))
+    ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+
+    if args.one is not None:
+        print(json.dumps(run_one(args)))
+        return {}
+
+    results = []
+    for n in args.sizes:
+        cmd = [sys.executable, __file__, "--one", str(n), "--diameter-km", str(args.diameter_km),
+               "--surround-km", str(args.surround_km), "--lat-deg", str(args.lat_deg), "--chunk-mb", str(args.chunk_mb),
+               "--record-days", str(args.record_days), "--windows", str(args.windows)]
+        for flag, value in (("--sun-method", args.sun_method), ("--view-factors", args.view_factors),
+                            ("--workdir", args.workdir)):
+            if value:
+                cmd += [flag, value]
+        cmd += ["--quick"] if args.quick else []
+        cmd += ["--progress"] if args.progress else []
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=dict(os.environ))
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise SystemExit(f"size {n}: the run failed (exit {proc.returncode})")
+        res = json.loads(proc.stdout.strip().splitlines()[-1])
+        res["requested_facets"] = n
+        res["process_wall_s"] = wall
+        res.update(extrapolate_year(res, args))
+        # the largest peak RSS of any child so far [MB] (a cross-check of VmHWM)
+        res["ru_maxrss_children_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+        results.append(res)
+        stages = json.dumps({k: round(v, 1) for k, v in res["stages_s"].items()})
+        print(f"# {res['facets']} facets: measured {res['total_s']:.1f} s, year {res['year_s']:.0f} s, "
+              f"peak {res['peak_memory_mb']:.0f} MB, stages {stages}", file=sys.stderr, flush=True)
+
+    facets = [r["facets"] for r in results]
+    total = [r["year_s"] for r in results]
+    peak = [r["peak_memory_mb"] for r in results]
+    summary = {
+        "benchmark": "scale",
+        "facets": facets,
+        "total_s": total,
+        "peak_memory_mb": peak,
+        "time_exponent": exponent(facets, total) if len(results) >= 2 else None,
+        "memory_exponent": exponent(facets, peak) if len(results) >= 2 else None,
+        "stages_s": [r["year_stages_s"] for r in results],
+        "extrapolated": [r["extrapolated"] for r in results],
+        "measured_total_s": [r["total_s"] for r in results],
+        "measured_stages_s": [r["stages_s"] for r in results],
+        "stage_peak_mb": [r["stage_peak_mb"] for r in results],
+        "conduction_step_s": [r.get("conduction_step_s") for r in results],
+        "quasi_newton_pass_s": [r.get("quasi_newton_pass_s") for r in results],
+        "periodic_iterations": [r["periodic_iterations"] for r in results],
+        "samples": [r["samples"] for r in results],
+        "run_nc_mb": [r["run_nc_mb"] for r in results],
+        "rss_before_run_mb": [r["rss_before_run_mb"] for r in results],
+        "ru_maxrss_children_mb": [r["ru_maxrss_children_mb"] for r in results],
+        "loadavg": [r["loadavg"] for r in results],
+        "case": {"diameter_km": args.diameter_km, "surround_km": args.surround_km, "lat_deg": args.lat_deg,
+                 "flux_step_hours": 4.0, "mode": "quick (year extrapolated)" if args.quick else "full year",
+                 "record_days": args.record_days if args.quick else 365.0,
+                 "windows_assumed": args.windows if args.quick else None,
+                 "sun_method": args.sun_method or "case default",
+                 "view_factors": args.view_factors or "case default", "chunk_mb": args.chunk_mb},
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
+        "targets": {"100k_total_s": 1800, "100k_peak_mb": 8192, "exponent_30k_100k": 1.2},
+    }
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(summary, indent=1) + "\n")
+    print(json.dumps(summary))
+    return summary
+
+
+if __name__ == "__main__":
+    main()

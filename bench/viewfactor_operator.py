@@ -1,0 +1,192 @@
+"""Benchmark: compressed view-factor operator against the exact sparse matrix (issue 13, item 2).
+
+Run:  PYTHONPATH=$PWD python bench/viewfactor_operator.py [--sizes 10000 25000 50000] [--big 100000]
+
+Terrain: a synthetic crater-in-terrain height field (20 km square, a 10 km paraboloid crater 2 km deep
+with a raised rim, 20 m Gaussian roughness), two triangles per grid cell, at each size.  Every
+(size, method) is built in its own subprocess, so that ``peak_rss_mb`` (``ru_maxrss``) is that build's
+own peak (mesh, tracer and numba included; ``rss_before_mb`` is the same process before the build).
+Each subprocess also times products ``F @ x`` (median of 5) and saves them for three fields:
+
+* ``emitted``: ``eps sigma T^4`` of a day-time temperature field (radiative equilibrium with the direct
+  sunlight of a Sun 10 deg high, shadowed facets at 50 K),
+* ``scattered``: the first-bounce exitance ``albedo E`` of the same sunlight,
+* ``ones``: row sums.
+
+The parent compares them (relative 2-norm error, largest row-sum difference) and fits growth exponents
+``log(q2 / q1) / log(N2 / N1)`` between the two largest sizes of each method (``--big`` included for the
+compressed operator).  Times are wall-clock and CPU (both threads) seconds; the machine may be shared,
+so ``load_average`` is recorded.  The last stdout line is one JSON object, also written to
+``bench/results/viewfactor_operator.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def terrain(n_facets: int, seed: int = 0):
+    from crater_thermal.geometry import Mesh
+
+    k = max(2, int(round(np.sqrt(n_facets / 2.0))))
+    x = np.linspace(-10_000.0, 10_000.0, k + 1)
+    X, Y = np.meshgrid(x, x)
+    r = np.hypot(X, Y)
+    R, depth = 5_000.0, 2_000.0
+    z = np.where(r < R, -depth * (1 - (r / R) ** 2), 0.0)
+    z += np.where(r >= R, 0.08 * depth * np.exp(-(((r - R) / (0.3 * R)) ** 2)), 0.08 * depth * (r / R) ** 2)
+    z += 20.0 * np.random.default_rng(seed).standard_normal(z.shape)
+    V = np.column_stack([X.ravel(), Y.ravel(), z.ravel()])
+    idx = np.arange((k + 1) ** 2).reshape(k + 1, k + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    return Mesh(V, np.concatenate([np.stack([a, b, d], 1), np.stack([b, c, d], 1)]), {"kind": "file"})
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def child(method: str, n: int, tol: float, out_npz: str) -> dict:
+    """One build in this process: times, memory, products saved to ``out_npz``."""
+    from crater_thermal import illumination
+    from crater_thermal import vfoperator as vo
+    from crater_thermal import viewfactors as vf
+    from crater_thermal.constants import AU, SIGMA
+    from crater_thermal.raytrace import RayTracer
+
+    small = terrain(600)
+    warm = vo.view_factor_operator(small, RayTracer(small), method=method, tolerance=tol)  # numba warm-up
+    warm @ np.ones(small.n_facets), warm @ np.ones((small.n_facets, 2))
+    mesh = terrain(n)
+    tracer = RayTracer(mesh)
+    sun = illumination.sun_direction_from_angles(10.0, 200.0)
+    E = illumination.direct_irradiance(mesh, tracer, sun[None], np.array([AU]))[0]
+    T = np.maximum((0.88 * E / (0.95 * SIGMA)) ** 0.25, 50.0)
+    fields = {"emitted": 0.95 * SIGMA * T**4, "scattered": 0.12 * E, "ones": np.ones(mesh.n_facets)}
+    rss0 = _rss_mb()
+    w0, c0 = time.perf_counter(), time.process_time()
+    if method == "exact":
+        op = vo.SparseViewFactors(vf.view_factor_matrix(mesh, tracer))
+    else:
+        op = vo.compressed_view_factors(mesh, tracer, tol)
+    build_s, build_cpu_s = time.perf_counter() - w0, time.process_time() - c0
+    peak = _rss_mb()
+    prods = {k: op @ x for k, x in fields.items()}
+    times = []
+    for _ in range(5):
+        t = time.perf_counter()
+        op @ fields["emitted"]
+        times.append(time.perf_counter() - t)
+    X = np.column_stack([fields["emitted"]] * 16)
+    t = time.perf_counter()
+    op @ X
+    matmat16 = time.perf_counter() - t
+    np.savez(out_npz, **prods)
+    res = {"method": method, "facets": mesh.n_facets, "build_s": build_s, "build_cpu_s": build_cpu_s,
+           "nbytes": int(op.nbytes), "rss_before_mb": rss0, "peak_rss_mb": peak,
+           "matvec_s": float(np.median(times)), "matmat16_s": matmat16}
+    if method == "exact":
+        res["nnz"] = int(op.nnz)
+    else:
+        res["stats"] = op.stats
+    return res
+
+
+def _run_child(method, n, tol, tmp) -> tuple[dict, str]:
+    npz = os.path.join(tmp, f"{method}_{n}.npz")
+    cmd = [sys.executable, __file__, "--child", method, str(n), "--tolerance", str(tol), "--npz", npz]
+    p = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+    if p.returncode != 0:
+        return {"method": method, "facets": n, "error": p.stderr.strip().splitlines()[-1:]}, npz
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    print(json.dumps(res), file=sys.stderr, flush=True)
+    return res, npz
+
+
+def _exponent(rows, key):
+    rows = [r for r in rows if key in r]
+    if len(rows) < 2:
+        return None
+    a, b = rows[-2], rows[-1]
+    return float(np.log(b[key] / a[key]) / np.log(b["facets"] / a["facets"]))
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 25_000, 50_000])
+    ap.add_argument("--big", type=int, nargs="*", default=[100_000], help="compressed operator only")
+    ap.add_argument("--exact-max", type=int, default=50_000, help="largest size built exactly")
+    ap.add_argument("--tolerance", type=float, default=None)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "viewfactor_operator.json"))
+    ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--npz", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    from crater_thermal import vfoperator as vo
+
+    tol = vo.DEFAULT_TOLERANCE if args.tolerance is None else args.tolerance
+    if args.child:
+        res = child(args.child[0], int(args.child[1]), tol, args.npz)
+        print(json.dumps(res))
+        return res
+
+    load0 = os.getloadavg()
+    rows_exact, rows_comp, errors = [], [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in args.sizes:
+            ex = None
+            if n <= args.exact_max:
+                ex, npz_e = _run_child("exact", n, tol, tmp)
+                rows_exact.append(ex)
+            co, npz_c = _run_child("compressed", n, tol, tmp)
+            rows_comp.append(co)
+            if ex is not None and "error" not in ex and "error" not in co:
+                with np.load(npz_e) as ze, np.load(npz_c) as zc:
+                    err = {"facets": co["facets"]}
+                    for k in ("emitted", "scattered"):
+                        err[f"rel_error_{k}"] = float(np.linalg.norm(zc[k] - ze[k]) / np.linalg.norm(ze[k]))
+                    err["rowsum_max_abs_diff"] = float(np.abs(zc["ones"] - ze["ones"]).max())
+                    err["rowsum_max_exact"] = float(ze["ones"].max())
+                    err["memory_ratio"] = ex["nbytes"] / co["nbytes"]
+                    errors.append(err)
+                    print(json.dumps(err), file=sys.stderr, flush=True)
+        for n in args.big:
+            co, _ = _run_child("compressed", n, tol, tmp)
+            rows_comp.append(co)
+    ok_e = [r for r in rows_exact if "error" not in r]
+    ok_c = [r for r in rows_comp if "error" not in r]
+    result = {
+        "tolerance": tol,
+        "terrain": "20 km height field, 10 km paraboloid crater 2 km deep, raised rim, 20 m roughness",
+        "exact": rows_exact,
+        "compressed": rows_comp,
+        "errors": errors,
+        "exponents": {
+            "exact": {k: _exponent(ok_e, k) for k in ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb", "matvec_s")},
+            "compressed": {k: _exponent(ok_c, k) for k in ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb",
+                                                           "matvec_s")},
+        },
+        "load_average_start": load0,
+        "load_average_end": os.getloadavg(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result))
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,292 @@
+"""Numba kernels of the compressed view-factor operator (:mod:`crater_thermal.vfoperator`).
+
+Only numpy and numba are imported here; the near-pair quadrature kernel of the exact matrix is passed
+in as an argument (so that both paths compute the very same entries).  Kernels never raise and never
+do I/O.
+
+All arrays are in the operator's *cluster order* (facets permuted so that every cluster of the tree
+is a contiguous index range).  The operator stores the symmetric matrix ``G_ij = A_i F_ij = A_i A_j
+K_ij`` [m2]: far blocks as low-rank factors ``U V^T`` (float32), everything else as the upper triangle
+``i < j`` of a sparse matrix (float32 values, CSR rows).
+"""
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(nogil=True, cache=True)
+def far_block_rays(r0, r1, c0, c1, C, N, P, A, cos_cut, o32, d32, pos, val):
+    """Candidate (facing) pairs of the far block rows r0..r1-1 x columns c0..c1-1.
+
+    Writes, per pair, the float32 ray from ``P_i`` to ``P_j`` (tfar = 1 reaches ``P_j``), the flat
+    position ``(i - r0) * (c1 - c0) + (j - c0)`` in the block and ``G_ij`` from the centroid kernel
+    ``A_i A_j cos_i cos_j / (pi d^2) / d^2`` [m2].  Returns the number of pairs.
+    """
+    n = 0
+    nc = c1 - c0
+    cc2 = cos_cut * cos_cut
+    for i in range(r0, r1):
+        cix = C[i, 0]
+        ciy = C[i, 1]
+        ciz = C[i, 2]
+        nix = N[i, 0]
+        niy = N[i, 1]
+        niz = N[i, 2]
+        for j in range(c0, c1):
+            dx = C[j, 0] - cix
+            dy = C[j, 1] - ciy
+            dz = C[j, 2] - ciz
+            d2 = dx * dx + dy * dy + dz * dz
+            ci = nix * dx + niy * dy + niz * dz
+            cj = -(N[j, 0] * dx + N[j, 1] * dy + N[j, 2] * dz)
+            if ci > 0.0 and cj > 0.0 and ci * ci > cc2 * d2 and cj * cj > cc2 * d2:
+                val[n] = A[i] * A[j] * ci * cj / (math.pi * d2 * d2)
+                pos[n] = (i - r0) * nc + (j - c0)
+                o32[n, 0] = P[i, 0]
+                o32[n, 1] = P[i, 1]
+                o32[n, 2] = P[i, 2]
+                d32[n, 0] = P[j, 0] - P[i, 0]
+                d32[n, 1] = P[j, 1] - P[i, 1]
+                d32[n, 2] = P[j, 2] - P[i, 2]
+                n += 1
+    return n
+
+
+@njit(nogil=True, cache=True)
+def scatter_visible(n, pos, val, blocked, out):
+    """``out[pos[k]] = val[k]`` for the first n pairs that are not blocked (out: flat block, zeros)."""
+    for k in range(n):
+        if blocked[k] == -1:
+            out[pos[k]] = val[k]
+
+
+@njit(nogil=True, cache=True)
+def near_block_pairs(r0, r1, c0, c1, diag, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut,
+                     o32, d32, pi_, pj_, gg, need, near_kernel):
+    """Candidate pairs of a near block (rows r0..r1-1, columns c0..c1-1; ``diag``: only j > i).
+
+    Same rule as the exact matrix: sub-facet quadrature for pairs closer than ``near_factor`` facet
+    sizes (``near_kernel(i, j, V, Fc, N, C, A, bary, poly)``, the exact matrix's njit function), the
+    centroid kernel otherwise; ``need[k]`` False for near pairs taken as visible without a
+    ray.  Writes ``G_ij`` [m2] into gg; returns the number of pairs.
+    """
+    n = 0
+    cc2 = cos_cut * cos_cut
+    poly = np.empty((4, 3))
+    for i in range(r0, r1):
+        cix = C[i, 0]
+        ciy = C[i, 1]
+        ciz = C[i, 2]
+        nix = N[i, 0]
+        niy = N[i, 1]
+        niz = N[i, 2]
+        si = S[i]
+        j0 = i + 1 if diag else c0
+        for j in range(j0, c1):
+            dx = C[j, 0] - cix
+            dy = C[j, 1] - ciy
+            dz = C[j, 2] - ciz
+            d2 = dx * dx + dy * dy + dz * dz
+            ci = nix * dx + niy * dy + niz * dz
+            cj = -(N[j, 0] * dx + N[j, 1] * dy + N[j, 2] * dz)
+            sm = si if si > S[j] else S[j]
+            lim = near_factor * sm
+            facing = ci > 0.0 and cj > 0.0 and ci * ci > cc2 * d2 and cj * cj > cc2 * d2
+            if d2 < lim * lim:
+                k = near_kernel(i, j, V, Fc, N, C, A, bary, poly)
+                if k <= 0.0:
+                    continue
+                need[n] = facing
+            elif facing:
+                k = ci * cj / (math.pi * d2 * d2)
+                need[n] = True
+            else:
+                continue
+            o32[n, 0] = P[i, 0]
+            o32[n, 1] = P[i, 1]
+            o32[n, 2] = P[i, 2]
+            d32[n, 0] = P[j, 0] - P[i, 0]
+            d32[n, 1] = P[j, 1] - P[i, 1]
+            d32[n, 2] = P[j, 2] - P[i, 2]
+            pi_[n] = i
+            pj_[n] = j
+            gg[n] = k * A[i] * A[j]
+            n += 1
+    return n
+
+
+@njit(nogil=True, cache=True)
+def keep_visible(n, blocked, need, pi_, pj_, gg):
+    """Compact the first n pairs to the visible ones (in place); returns their number."""
+    m = 0
+    for k in range(n):
+        if blocked[k] != -1 and need[k]:
+            continue
+        pi_[m] = pi_[k]
+        pj_[m] = pj_[k]
+        gg[m] = gg[k]
+        m += 1
+    return m
+
+
+@njit(nogil=True, cache=True)
+def sym_sparse_matvec(indptr, indices, data, x, y):
+    """``y += (S + S^T) x`` for the strictly upper-triangular CSR ``S`` (x, y: (n, k) float64)."""
+    nr = indptr.shape[0] - 1
+    k = x.shape[1]
+    for i in range(nr):
+        for q in range(indptr[i], indptr[i + 1]):
+            j = indices[q]
+            g = np.float64(data[q])
+            for c in range(k):
+                y[i, c] += g * x[j, c]
+                y[j, c] += g * x[i, c]
+
+
+@njit(nogil=True, cache=True)
+def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
+    """``y += sum_b (U_b V_b^T) x[c] (into rows r) + (V_b U_b^T) x[r] (into columns c)``.
+
+    Block b covers rows r0[b]..r1[b]-1 and columns c0[b]..c1[b]-1; ``U_b`` is (m, rank) row-major at
+    ``U[uoff[b]:]``, ``V_b`` (n, rank) at ``V[voff[b]:]`` (float32).  x, y: (n, k) float64; tmp: a
+    work array of at least (2 * max rank, k).
+    """
+    k = x.shape[1]
+    for b in range(r0.shape[0]):
+        r = rank[b]
+        m = r1[b] - r0[b]
+        nn = c1[b] - c0[b]
+        uo = uoff[b]
+        vo = voff[b]
+        for q in range(2 * r):
+            for c in range(k):
+                tmp[q, c] = 0.0
+        # tmp[:r] = V^T x[c-range], tmp[r:2r] = U^T x[r-range]
+        for jj in range(nn):
+            j = c0[b] + jj
+            base = vo + jj * r
+            for q in range(r):
+                v = np.float64(V[base + q])
+                for c in range(k):
+                    tmp[q, c] += v * x[j, c]
+        for ii in range(m):
+            i = r0[b] + ii
+            base = uo + ii * r
+            for q in range(r):
+                u = np.float64(U[base + q])
+                for c in range(k):
+                    tmp[r + q, c] += u * x[i, c]
+        for ii in range(m):
+            i = r0[b] + ii
+            base = uo + ii * r
+            for q in range(r):
+                u = np.float64(U[base + q])
+                for c in range(k):
+                    y[i, c] += u * tmp[q, c]
+        for jj in range(nn):
+            j = c0[b] + jj
+            base = vo + jj * r
+            for q in range(r):
+                v = np.float64(V[base + q])
+                for c in range(k):
+                    y[j, c] += v * tmp[r + q, c]
+
+
+@njit(nogil=True, cache=True)
+def aca_full(R, budget, rmax, U, V):
+    """Adaptive cross approximation with full pivoting of a block held in memory.
+
+    ``R`` (m, n) float64 is overwritten by the residual.  Each step takes the residual's largest entry
+    as pivot, subtracts the cross ``u v^T`` through it (``u`` its column, ``v`` its row over the
+    pivot) and recomputes ``||R||_F^2`` exactly.  Stops when ``||R||_F^2 <= budget`` [same units^2]:
+    returns the rank r (columns ``U[:, :r]``, ``V[:, :r]`` hold the factors, ``M ~ U V^T``), or -1 if
+    more than ``rmax`` crosses would be needed.
+    """
+    m, n = R.shape
+    fro2 = 0.0
+    best = -1.0
+    bi = 0
+    bj = 0
+    for i in range(m):
+        for j in range(n):
+            x = R[i, j]
+            fro2 += x * x
+            if abs(x) > best:
+                best = abs(x)
+                bi = i
+                bj = j
+    r = 0
+    while fro2 > budget:
+        if r >= rmax:
+            return -1
+        p = R[bi, bj]
+        if p == 0.0:
+            return -1
+        for i in range(m):
+            U[i, r] = R[i, bj]
+        for j in range(n):
+            V[j, r] = R[bi, j] / p
+        fro2 = 0.0
+        best = -1.0
+        for i in range(m):
+            ui = U[i, r]
+            for j in range(n):
+                x = R[i, j] - ui * V[j, r]
+                R[i, j] = x
+                fro2 += x * x
+                if abs(x) > best:
+                    best = abs(x)
+                    bi = i
+                    bj = j
+        r += 1
+    return r
+
+
+@njit(nogil=True, cache=True)
+def sym_sparse_matvec1(indptr, indices, data, x, y):
+    """One right-hand side: ``y += (S + S^T) x`` (x, y: (n,) float64)."""
+    nr = indptr.shape[0] - 1
+    for i in range(nr):
+        xi = x[i]
+        acc = 0.0
+        for q in range(indptr[i], indptr[i + 1]):
+            j = indices[q]
+            g = np.float64(data[q])
+            acc += g * x[j]
+            y[j] += g * xi
+        y[i] += acc
+
+
+@njit(nogil=True, cache=True)
+def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
+    """One right-hand side of :func:`lowrank_matvec` (x, y: (n,) float64; tmp: (2 * max rank,))."""
+    for b in range(r0.shape[0]):
+        r = rank[b]
+        uo = uoff[b]
+        vo = voff[b]
+        for q in range(2 * r):
+            tmp[q] = 0.0
+        for jj in range(c1[b] - c0[b]):
+            xj = x[c0[b] + jj]
+            base = vo + jj * r
+            for q in range(r):
+                tmp[q] += V[base + q] * xj
+        for ii in range(r1[b] - r0[b]):
+            xi = x[r0[b] + ii]
+            base = uo + ii * r
+            for q in range(r):
+                tmp[r + q] += U[base + q] * xi
+        for ii in range(r1[b] - r0[b]):
+            base = uo + ii * r
+            acc = 0.0
+            for q in range(r):
+                acc += U[base + q] * tmp[q]
+            y[r0[b] + ii] += acc
+        for jj in range(c1[b] - c0[b]):
+            base = vo + jj * r
+            acc = 0.0
+            for q in range(r):
+                acc += V[base + q] * tmp[r + q]
+            y[c0[b] + jj] += acc

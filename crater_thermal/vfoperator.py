@@ -1,0 +1,670 @@
+"""View-factor operators: the exact sparse matrix and a hierarchically compressed one, one interface.
+
+Both are :class:`ViewFactorOperator` objects: ``F @ x`` (= :meth:`~ViewFactorOperator.matvec`, x of
+shape (n,) or (n, k)), :meth:`~ViewFactorOperator.rmatvec` (``F^T y``), :meth:`~ViewFactorOperator.row_sums`,
+``shape``, ``nbytes``.  ``F[i, j]`` is the fraction of the radiation leaving facet ``i`` that reaches
+facet ``j``, and the irradiance on ``i`` from exitances ``B`` [W m-2] is ``(F @ B)_i``
+(:mod:`crater_thermal.viewfactors`).
+
+Compressed operator (``method = "compressed"``)
+----------------------------------------------
+What is stored is the symmetric matrix ``G = diag(A) F`` (``G_ij = A_i A_j K_ij`` [m2], reciprocity is
+its symmetry), in blocks of a hierarchical partition:
+
+* **Cluster tree.** A kd-tree on the facet centroids (median split of the longest bounding-box side)
+  down to :data:`LEAF_SIZE` facets; facets are renumbered so that every cluster is an index range.
+* **Block partition.** Starting from (root, root), a pair of clusters ``(s, t)`` is *admissible* (far)
+  when the distance between their centroid bounding boxes is at least ``max(diam_s, diam_t) /``
+  :data:`ADMISSIBILITY` and at least ``NEAR_DISTANCE_FACTOR`` facet sizes (so that every pair of it is a
+  far pair of the exact matrix, centroid kernel); otherwise both clusters are split.  Non-admissible
+  leaf pairs are *near blocks*.
+* **Near blocks** are computed exactly like the exact matrix (near-pair quadrature, one visibility ray
+  per candidate pair) and kept as sparse entries.
+* **Far blocks** are computed once, entry by entry (centroid kernel, one visibility ray per facing pair,
+  at most :data:`MAX_BLOCK_ENTRIES` entries at a time) and compressed right away by adaptive cross
+  approximation with full pivoting (the block is in memory, so the residual and its Frobenius norm are
+  exact at every step): crosses are added until ``||M - U V^T||_F <= tolerance * ||M||_F``.  The factors
+  are kept (float32) when they take less memory than the block's non-zeros would as sparse entries;
+  otherwise the block is split into its children blocks (reusing the computed entries, no new rays) and,
+  at leaf level, kept sparse.  All-zero blocks (facets that face away from each other, coplanar plains,
+  fully occluded pairs) cost nothing.
+
+Error control: every far block satisfies ``||M - M~||_F <= tol ||M||_F`` and near blocks are exact, so
+``||G - G~||_F <= tol ||G||_F``; products with the smooth, positive fields the model uses (emitted IR,
+scattered sunlight) come out far more accurate than this bound (measured in
+``bench/viewfactor_operator.py``).  Reciprocity ``A_i F_ij = A_j F_ji`` is exact by construction (only
+blocks above the diagonal are stored; the lower ones are their transposes).  Row sums ``F @ 1`` are those
+of the exact matrix to the tolerance; if any exceeds 1 (closed cavities, discretisation), ``G`` is
+scaled to ``D G D`` with ``d_i = min(1, 1 / rowsum_i)``, which keeps the symmetry and every row sum
+<= 1 (the exact matrix uses ``min(s_i, s_j)``; both only act on rows above 1).
+
+Cost: memory and product cost grow like the number of stored entries: near blocks O(N * LEAF_SIZE),
+far blocks O(N log N * rank) when visibility is smooth.  On crater terrain occlusion raises the ranks
+with block size (mean rank 8 at 10k facets, 19 at 100k), and blocks above MAX_BLOCK_ENTRIES are split:
+measured memory 8.8 MB at 10k, 103 MB at 50k, 381 MB at 100k (exact matrix: 53 MB, 982 MB, ~3.5 GB),
+i.e. ~N^1.7-1.9 at these sizes (bench/results/viewfactor_operator.json); the build evaluates every facing pair once
+(rays like the exact matrix, O(N^2) time, but never more than one block of entries in memory per
+thread) plus the cross approximation (O(entries * rank)).  Products run in numba
+(:mod:`crater_thermal.kernels.vfoperator`), one pass over the stored entries per product, for any
+number of right-hand sides at once.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from crater_thermal.choices import VIEW_FACTOR_METHODS as METHODS
+from crater_thermal.errors import ConfigError, MeshError
+from crater_thermal.geometry import Mesh
+
+__all__ = [
+    "METHODS",
+    "DEFAULT_TOLERANCE",
+    "AUTO_COMPRESSED_MIN_FACETS",
+    "ViewFactorOperator",
+    "SparseViewFactors",
+    "CompressedViewFactors",
+    "as_operator",
+    "compressed_view_factors",
+    "view_factor_operator",
+]
+
+# METHODS ("auto", "exact", "compressed"), the accepted ``view_factors`` methods, is declared in
+# crater_thermal.choices (the case schema's list) and re-exported here.
+#: Default relative Frobenius tolerance of each compressed far block (the case schema's default too).
+DEFAULT_TOLERANCE = 1e-3
+#: ``"auto"`` uses the compressed operator from this many facets on (exact below).  Measured
+#: (bench/viewfactor_operator.py): at 10k facets the exact matrix builds in about half the CPU time but
+#: takes 6x the memory (9x at 25k), and above 8,000 facets its scattering solve is a sparse LU of a
+#: matrix with 0.05-0.12 N^2 non-zeros; below, the exact matrix and its dense LU are cheaper.
+AUTO_COMPRESSED_MIN_FACETS = 10_000
+#: Facets per leaf cluster of the kd-tree.
+LEAF_SIZE = 32
+#: Admissibility: far when ``max(diam_s, diam_t) <= ADMISSIBILITY * distance``.
+ADMISSIBILITY = 1.0
+#: Largest far block computed at once (entries; 8 bytes each plus rays).
+MAX_BLOCK_ENTRIES = 1 << 21
+#: Rays traced per call.
+RAY_CHUNK = 1 << 19
+#: Near blocks per work unit (candidate pairs).
+NEAR_BATCH_PAIRS = 1 << 18
+#: Part of the cache key of a compressed operator: bump it when the numbers change.
+ALGORITHM_VERSION = "c1"
+
+
+# --------------------------------------------------------------------------------------------- interface
+
+
+class ViewFactorOperator:
+    """A linear operator ``x -> F x`` on per-facet fields (see the module docstring).
+
+    Subclasses implement :meth:`matvec`, :meth:`rmatvec`, :attr:`nbytes`; ``F @ x`` calls
+    :meth:`matvec`.
+    """
+
+    kind = "abstract"
+    shape: tuple[int, int]
+    #: Largest ``rowsum - 1`` before the rescaling that keeps row sums <= 1 (0 if none was needed).
+    rowsum_excess: float = 0.0
+
+    @property
+    def n_facets(self) -> int:
+        return int(self.shape[0])
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:  # pragma: no cover - interface
+        """``F x`` for x of shape (n,) or (n, k) [any unit]; same shape back."""
+        raise NotImplementedError
+
+    def rmatvec(self, y: np.ndarray) -> np.ndarray:  # pragma: no cover - interface
+        """``F^T y`` for y of shape (n,) or (n, k); same shape back."""
+        raise NotImplementedError
+
+    @property
+    def nbytes(self) -> int:  # pragma: no cover - interface
+        """Bytes held by the operator's arrays."""
+        raise NotImplementedError
+
+    @property
+    def is_zero(self) -> bool:
+        """True when no facet sees any other (flat ground): no exchange at all."""
+        raise NotImplementedError  # pragma: no cover
+
+    def row_sums(self) -> np.ndarray:
+        """(n,) float [-]: ``sum_j F_ij``, the fraction of facet i's emission that stays in the scene."""
+        return self.matvec(np.ones(self.shape[0]))
+
+    def __matmul__(self, x):
+        return self.matvec(x)
+
+    def _check(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim not in (1, 2) or x.shape[0] != self.shape[1]:
+            raise ConfigError(f"view-factor product: operand has shape {x.shape}; expected ({self.shape[1]},) "
+                              f"or ({self.shape[1]}, k)")
+        return x
+
+
+class SparseViewFactors(ViewFactorOperator):
+    """The exact sparse matrix (:func:`crater_thermal.viewfactors.view_factor_matrix`) as an operator.
+
+    Parameters
+    ----------
+    F : (n, n) scipy.sparse matrix [-]
+    """
+
+    kind = "exact"
+
+    def __init__(self, F):
+        self.matrix = sp.csr_matrix(F, dtype=np.float64)
+        if self.matrix.shape[0] != self.matrix.shape[1]:
+            raise ConfigError(f"view-factor matrix has shape {self.matrix.shape}; expected square (nf, nf)")
+        self.shape = self.matrix.shape
+        self.rowsum_excess = float(getattr(F, "rowsum_excess", 0.0))
+        self._T = None
+
+    def matvec(self, x):
+        return np.asarray(self.matrix @ self._check(x))
+
+    def rmatvec(self, y):
+        if self._T is None:
+            self._T = self.matrix.T.tocsr()
+        return np.asarray(self._T @ self._check(y))
+
+    @property
+    def nbytes(self) -> int:
+        m = self.matrix
+        return int(m.data.nbytes + m.indices.nbytes + m.indptr.nbytes)
+
+    @property
+    def is_zero(self) -> bool:
+        return self.matrix.nnz == 0
+
+    @property
+    def nnz(self) -> int:
+        return int(self.matrix.nnz)
+
+
+def as_operator(F) -> ViewFactorOperator:
+    """``F`` as a :class:`ViewFactorOperator` (sparse or dense arrays are wrapped as exact matrices)."""
+    if isinstance(F, ViewFactorOperator):
+        return F
+    if sp.issparse(F):
+        return SparseViewFactors(F)
+    a = np.asarray(F, dtype=float)
+    if a.ndim != 2:
+        raise ConfigError(f"view-factor matrix has shape {a.shape}; expected (nf, nf)")
+    return SparseViewFactors(sp.csr_matrix(a))
+
+
+class CompressedViewFactors(ViewFactorOperator):
+    """Hierarchically compressed view factors (module docstring); build with :func:`compressed_view_factors`.
+
+    Attributes
+    ----------
+    tolerance : float [-]
+        Relative Frobenius tolerance of each far block.
+    stats : dict
+        Build statistics: block counts, ranks, stored entries, seconds.
+    """
+
+    kind = "compressed"
+
+    def __init__(self, perm, areas, sparse, lowrank, scale, tolerance, stats):
+        n = len(perm)
+        self.shape = (n, n)
+        self.perm = np.ascontiguousarray(perm, np.int64)
+        self.areas_perm = np.ascontiguousarray(areas[self.perm], np.float64)
+        self.indptr, self.indices, self.data = sparse
+        (self.r0, self.r1, self.c0, self.c1, self.rank, self.uoff, self.voff, self.U, self.V) = lowrank
+        self.scale = scale  # None or (n,) in cluster order
+        self.tolerance = float(tolerance)
+        self.stats = dict(stats)
+        self._max_rank = int(self.rank.max()) if len(self.rank) else 1
+
+    @property
+    def nbytes(self) -> int:
+        arrs = [self.perm, self.areas_perm, self.indptr, self.indices, self.data, self.r0, self.r1, self.c0,
+                self.c1, self.rank, self.uoff, self.voff, self.U, self.V]
+        if self.scale is not None:
+            arrs.append(self.scale)
+        return int(sum(a.nbytes for a in arrs))
+
+    @property
+    def is_zero(self) -> bool:
+        return len(self.data) == 0 and len(self.rank) == 0
+
+    def _apply_G(self, X: np.ndarray) -> np.ndarray:
+        """``G X`` for X (n, k) in cluster order (D G D when rescaled)."""
+        from crater_thermal.kernels import vfoperator as kv
+
+        if self.scale is not None:
+            X = X * self.scale[:, None]
+        Y = np.zeros_like(X)
+        lr = (self.r0, self.r1, self.c0, self.c1, self.rank, self.uoff, self.voff, self.U, self.V)
+        if X.shape[1] == 1:
+            x1, y1 = np.ascontiguousarray(X[:, 0]), np.zeros(X.shape[0])
+            kv.sym_sparse_matvec1(self.indptr, self.indices, self.data, x1, y1)
+            if len(self.rank):
+                kv.lowrank_matvec1(*lr, x1, y1, np.empty(2 * self._max_rank))
+            Y[:, 0] = y1
+        else:
+            kv.sym_sparse_matvec(self.indptr, self.indices, self.data, X, Y)
+            if len(self.rank):
+                kv.lowrank_matvec(*lr, X, Y, np.empty((2 * self._max_rank, X.shape[1])))
+        if self.scale is not None:
+            Y *= self.scale[:, None]
+        return Y
+
+    def matvec(self, x):
+        x = self._check(x)
+        X = np.ascontiguousarray(x.reshape(x.shape[0], -1)[self.perm])
+        Y = self._apply_G(X)
+        Y /= self.areas_perm[:, None]
+        out = np.empty_like(Y)
+        out[self.perm] = Y
+        return out.reshape(x.shape)
+
+    def rmatvec(self, y):
+        y = self._check(y)
+        Y = np.ascontiguousarray(y.reshape(y.shape[0], -1)[self.perm]) / self.areas_perm[:, None]
+        X = self._apply_G(Y)
+        out = np.empty_like(X)
+        out[self.perm] = X
+        return out.reshape(y.shape)
+
+
+# --------------------------------------------------------------------------------------------- cluster tree
+
+
+class _Tree:
+    """kd-tree on points: node ranges in the permuted order, bounding boxes, children (-1 for leaves)."""
+
+    def __init__(self, C: np.ndarray, S: np.ndarray, leaf: int):
+        n = C.shape[0]
+        self.perm = np.arange(n)
+        lo, hi, left, right = [], [], [], []
+
+        def build(a, b):
+            k = len(lo)
+            lo.append(a)
+            hi.append(b)
+            left.append(-1)
+            right.append(-1)
+            if b - a > leaf:
+                idx = self.perm[a:b]
+                pts = C[idx]
+                axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+                mid = (b - a) // 2
+                part = np.argpartition(pts[:, axis], mid)
+                self.perm[a:b] = idx[part]
+                left[k] = build(a, a + mid)
+                right[k] = build(a + mid, b)
+            return k
+
+        build(0, n)
+        self.lo = np.array(lo)
+        self.hi = np.array(hi)
+        self.left = np.array(left)
+        self.right = np.array(right)
+        Cp = C[self.perm]
+        Sp = S[self.perm]
+        m = len(lo)
+        self.bmin = np.empty((m, 3))
+        self.bmax = np.empty((m, 3))
+        self.smax = np.empty(m)
+        for k in range(m):
+            seg = Cp[self.lo[k]:self.hi[k]]
+            self.bmin[k] = seg.min(axis=0)
+            self.bmax[k] = seg.max(axis=0)
+            self.smax[k] = Sp[self.lo[k]:self.hi[k]].max()
+        self.diam = np.linalg.norm(self.bmax - self.bmin, axis=1)
+
+    def size(self, k) -> int:
+        return int(self.hi[k] - self.lo[k])
+
+    def is_leaf(self, k) -> bool:
+        return self.left[k] < 0
+
+    def children(self, k):
+        return (int(self.left[k]), int(self.right[k])) if self.left[k] >= 0 else (int(k),)
+
+    def distance(self, s, t) -> float:
+        gap = np.maximum(0.0, np.maximum(self.bmin[t] - self.bmax[s], self.bmin[s] - self.bmax[t]))
+        return float(np.sqrt(gap @ gap))
+
+
+def _partition(tree: _Tree, near_factor: float, admissibility: float, max_entries: int):
+    """Upper-triangle block partition: (far blocks [(s, t)], near blocks [(s, t, diagonal)])."""
+    far, near = [], []
+    stack = [(0, 0)]
+    while stack:
+        s, t = stack.pop()
+        if s == t:
+            if tree.is_leaf(s):
+                near.append((s, s, True))
+            else:
+                a, b = tree.children(s)
+                stack += [(a, a), (a, b), (b, b)]
+            continue
+        d = tree.distance(s, t)
+        adm = (d > 0.0 and max(tree.diam[s], tree.diam[t]) <= admissibility * d
+               and d >= near_factor * max(tree.smax[s], tree.smax[t]))
+        if adm and tree.size(s) * tree.size(t) <= max_entries:
+            far.append((s, t))
+            continue
+        if tree.is_leaf(s) and tree.is_leaf(t):
+            if adm:
+                far.append((s, t))
+            else:
+                near.append((s, t, False))
+            continue
+        # split the larger cluster (both when of similar size)
+        cs, ct = tree.children(s), tree.children(t)
+        if len(cs) > 1 and len(ct) > 1 and 0.5 <= tree.size(s) / tree.size(t) <= 2.0:
+            stack += [(a, b) for a in cs for b in ct]
+        elif len(cs) > 1 and (tree.size(s) >= tree.size(t) or len(ct) == 1):
+            stack += [(a, t) for a in cs]
+        else:
+            stack += [(s, b) for b in ct]
+    return far, near
+
+
+# --------------------------------------------------------------------------------------------- compression
+
+
+class _Builder:
+    """Computes the blocks of one operator (shared geometry in cluster order, the tracer, settings)."""
+
+    def __init__(self, mesh: Mesh, tracer, tree: _Tree, tolerance: float):
+        from crater_thermal import viewfactors as vf
+
+        p = tree.perm
+        centre = tracer.centre
+        self.tree = tree
+        self.tracer = tracer
+        self.tol = float(tolerance)
+        self.C = np.ascontiguousarray((mesh.centroids - centre)[p])
+        self.N = np.ascontiguousarray(mesh.normals[p])
+        self.S = np.ascontiguousarray(mesh.facet_size[p])
+        self.A = np.ascontiguousarray(mesh.areas[p])
+        self.P = np.ascontiguousarray((tracer.origins - centre)[p])
+        self.V = np.ascontiguousarray(mesh.vertices - centre)
+        self.Fc = np.ascontiguousarray(mesh.faces[p])
+        from crater_thermal.kernels.viewfactors import near_kernel
+
+        self.near_kernel = near_kernel  # the exact matrix's near-pair quadrature
+        self.bary = vf.subtriangle_barycentrics(vf.NEAR_SUBDIVISIONS)
+        self.near_factor = float(vf.NEAR_DISTANCE_FACTOR)
+        self.cos_cut = float(vf.COS_CUTOFF)
+        self.ones = np.ones(RAY_CHUNK, np.float32)
+
+    def _trace(self, o32, d32, n):
+        return self.tracer.run_raw(o32[:n], d32[:n], self.ones[:n], "OCCLUDED")
+
+    # ---- far blocks
+    def far_block(self, s: int, t: int):
+        from crater_thermal.kernels import vfoperator as kv
+
+        tr = self.tree
+        r0, r1, c0, c1 = int(tr.lo[s]), int(tr.hi[s]), int(tr.lo[t]), int(tr.hi[t])
+        m, n = r1 - r0, c1 - c0
+        M = np.zeros(m * n)
+        rows = max(1, RAY_CHUNK // n)
+        cap = min(RAY_CHUNK, rows * n)
+        o32 = np.empty((cap, 3), np.float32)
+        d32 = np.empty((cap, 3), np.float32)
+        pos = np.empty(cap, np.int64)
+        val = np.empty(cap)
+        rays = 0
+        for a in range(r0, r1, rows):
+            b = min(r1, a + rows)
+            k = kv.far_block_rays(a, b, c0, c1, self.C, self.N, self.P, self.A, self.cos_cut, o32, d32, pos, val)
+            if k:
+                blocked = self._trace(o32, d32, k)
+                pos[:k] += (a - r0) * n
+                kv.scatter_visible(k, pos, val, blocked, M)
+                rays += k
+        M = M.reshape(m, n)
+        lowrank, coo = [], []
+        self._compress(M, s, t, lowrank, coo)
+        return lowrank, coo, rays, 0
+
+    def _compress(self, M, s, t, lowrank, coo):
+        from crater_thermal.kernels import vfoperator as kv
+
+        tr = self.tree
+        m, n = M.shape
+        nz = np.count_nonzero(M)
+        if nz == 0:
+            return
+        fro2 = float(np.einsum("ij,ij->", M, M))
+        # float32 factors (4 bytes per number) against 8 bytes per sparse non-zero (value + column)
+        rmax = min(int(8 * nz / (4 * (m + n))), min(m, n) // 2)
+        if rmax >= 1:
+            U = np.empty((m, rmax))
+            V = np.empty((n, rmax))
+            r = kv.aca_full(M.copy(), self.tol * self.tol * fro2, rmax, U, V)
+            if r >= 0:
+                lowrank.append((int(tr.lo[s]), int(tr.lo[t]), np.ascontiguousarray(U[:, :r], np.float32),
+                                np.ascontiguousarray(V[:, :r], np.float32)))
+                return
+        cs, ct = tr.children(s), tr.children(t)
+        if len(cs) > 1 or len(ct) > 1:
+            for a in cs:
+                ra = slice(tr.lo[a] - tr.lo[s], tr.hi[a] - tr.lo[s])
+                for b in ct:
+                    rb = slice(tr.lo[b] - tr.lo[t], tr.hi[b] - tr.lo[t])
+                    self._compress(M[ra, rb], a, b, lowrank, coo)
+            return
+        i, j = np.nonzero(M)
+        coo.append((i + int(tr.lo[s]), j + int(tr.lo[t]), M[i, j]))
+
+    # ---- near blocks
+    def near_blocks(self, blocks):
+        from crater_thermal.kernels import vfoperator as kv
+
+        tr = self.tree
+        cap = sum(tr.size(s) * tr.size(t) for s, t, _ in blocks)
+        o32 = np.empty((cap, 3), np.float32)
+        d32 = np.empty((cap, 3), np.float32)
+        pi_ = np.empty(cap, np.int64)
+        pj_ = np.empty(cap, np.int64)
+        gg = np.empty(cap)
+        need = np.empty(cap, np.bool_)
+        n = 0
+        for s, t, diag in blocks:
+            n += kv.near_block_pairs(int(tr.lo[s]), int(tr.hi[s]), int(tr.lo[t]), int(tr.hi[t]), diag, self.C,
+                                     self.N, self.S, self.A, self.P, self.V, self.Fc, self.bary, self.near_factor,
+                                     self.cos_cut, o32[n:], d32[n:], pi_[n:], pj_[n:], gg[n:], need[n:],
+                                     self.near_kernel)
+        if n == 0:
+            return [], [], 0, 0
+        blocked = np.empty(n, np.int32)
+        for a in range(0, n, RAY_CHUNK):
+            b = min(n, a + RAY_CHUNK)
+            blocked[a:b] = self.tracer.run_raw(o32[a:b], d32[a:b], self.ones[:b - a], "OCCLUDED")
+        m = kv.keep_visible(n, blocked, need, pi_, pj_, gg)
+        return [], [(pi_[:m].copy(), pj_[:m].copy(), gg[:m].copy())], n, m
+
+
+def compressed_view_factors(mesh: Mesh, tracer=None, tolerance: float = DEFAULT_TOLERANCE,
+                            progress: Callable | None = None, n_threads: int | None = None,
+                            leaf_size: int = LEAF_SIZE, admissibility: float = ADMISSIBILITY,
+                            max_block_entries: int = MAX_BLOCK_ENTRIES) -> CompressedViewFactors:
+    """Build the compressed view-factor operator (module docstring) without holding the full matrix.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    tracer : RayTracer, optional
+        Built from ``mesh`` if not given.
+    tolerance : float [-]
+        Relative Frobenius error allowed per far block, in (0, 0.1].
+    progress : callable, optional
+        ``progress(done, total)`` in work units (blocks), called as they finish.
+    n_threads : int, optional
+        Worker threads (default: the tracer's).
+    leaf_size, admissibility, max_block_entries :
+        Tuning (see :data:`LEAF_SIZE`, :data:`ADMISSIBILITY`, :data:`MAX_BLOCK_ENTRIES`).
+
+    Returns
+    -------
+    CompressedViewFactors
+    """
+    from crater_thermal import viewfactors as vf
+
+    if not isinstance(mesh, Mesh):
+        raise MeshError(f"compressed_view_factors needs a geometry.Mesh, got {type(mesh).__name__}")
+    tolerance = float(tolerance)
+    if not (0.0 < tolerance <= 0.1):
+        raise ConfigError(f"view-factor tolerance = {tolerance!r} is outside (0, 0.1]")
+    if tracer is None:
+        from crater_thermal.raytrace import RayTracer
+
+        tracer = RayTracer(mesh)
+    elif tracer.mesh.hash != mesh.hash:
+        raise MeshError("tracer was built for a different mesh")
+    t_start = time.perf_counter()
+    nf = mesh.n_facets
+    tree = _Tree(np.asarray(mesh.centroids), np.asarray(mesh.facet_size), int(leaf_size))
+    far, near = _partition(tree, float(vf.NEAR_DISTANCE_FACTOR), float(admissibility), int(max_block_entries))
+    builder = _Builder(mesh, tracer, tree, tolerance)
+    # work units: far blocks one by one (largest first), near blocks batched
+    far.sort(key=lambda st: -tree.size(st[0]) * tree.size(st[1]))
+    units = [("far", st) for st in far]
+    batch, acc = [], 0
+    for blk in near:
+        batch.append(blk)
+        acc += tree.size(blk[0]) * tree.size(blk[1])
+        if acc >= NEAR_BATCH_PAIRS:
+            units.append(("near", batch))
+            batch, acc = [], 0
+    if batch:
+        units.append(("near", batch))
+
+    def work(u):
+        kind, arg = u
+        return builder.far_block(*arg) if kind == "far" else builder.near_blocks(arg)
+
+    n_threads = max(1, int(n_threads or tracer.n_threads))
+    lowrank, coo = [], []
+    rays = 0
+    near_pairs = 0
+    done = 0
+    pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
+    try:
+        results = pool.map(work, units) if pool is not None else map(work, units)
+        for lr, cc, nr, npairs in results:
+            lowrank += lr
+            coo += cc
+            rays += nr
+            near_pairs += npairs
+            done += 1
+            if progress is not None:
+                progress(done, len(units))
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    # sparse part: upper triangle (i < j by construction), CSR, float32 values
+    if coo:
+        ii = np.concatenate([c[0] for c in coo])
+        jj = np.concatenate([c[1] for c in coo])
+        gg = np.concatenate([c[2] for c in coo])
+    else:
+        ii = jj = np.empty(0, np.int64)
+        gg = np.empty(0)
+    del coo
+    if len(ii) and np.any(ii >= jj):
+        raise MeshError("internal: compressed view factors: a sparse entry below the diagonal")  # pragma: no cover
+    S = sp.csr_matrix((gg.astype(np.float32), (ii, jj)), shape=(nf, nf))
+    S.sum_duplicates()
+    sparse = (S.indptr.astype(np.int64), S.indices.astype(np.int32), S.data.astype(np.float32))
+    n_sparse = int(S.nnz)
+    del S, ii, jj, gg
+    # low-rank part, packed
+    nb = len(lowrank)
+    r0 = np.array([b[0] for b in lowrank], np.int64)
+    c0 = np.array([b[1] for b in lowrank], np.int64)
+    r1 = r0 + np.array([b[2].shape[0] for b in lowrank], np.int64)
+    c1 = c0 + np.array([b[3].shape[0] for b in lowrank], np.int64)
+    rank = np.array([b[2].shape[1] for b in lowrank], np.int64)
+    usz = (r1 - r0) * rank
+    vsz = (c1 - c0) * rank
+    uoff = np.concatenate([[0], np.cumsum(usz)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
+    voff = np.concatenate([[0], np.cumsum(vsz)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
+    U = np.concatenate([b[2].ravel() for b in lowrank]) if nb else np.empty(0, np.float32)
+    V = np.concatenate([b[3].ravel() for b in lowrank]) if nb else np.empty(0, np.float32)
+    del lowrank
+    stats = {
+        "facets": nf,
+        "tolerance": tolerance,
+        "leaf_size": int(leaf_size),
+        "admissibility": float(admissibility),
+        "far_blocks": len(far),
+        "near_blocks": len(near),
+        "lowrank_blocks": nb,
+        "mean_rank": float(rank.mean()) if nb else 0.0,
+        "max_rank": int(rank.max()) if nb else 0,
+        "lowrank_numbers": int(U.size + V.size),
+        "sparse_pairs": n_sparse,
+        "near_pairs": int(near_pairs),
+        "rays": int(rays),
+    }
+    op = CompressedViewFactors(tree.perm, np.asarray(mesh.areas), sparse,
+                               (r0, r1, c0, c1, rank, uoff, voff, U, V), None, tolerance, stats)
+    rs = op.row_sums()
+    excess = float(rs.max() - 1.0) if nf else 0.0
+    if excess > 0.0:
+        op.scale = np.minimum(1.0, 1.0 / np.maximum(rs, 1e-300))[tree.perm]
+        op.rowsum_excess = excess
+    op.stats["build_s"] = time.perf_counter() - t_start
+    op.stats["nbytes"] = op.nbytes
+    return op
+
+
+# --------------------------------------------------------------------------------------------- entry point
+
+
+def resolve_method(method: str, n_facets: int) -> str:
+    """``"exact"`` or ``"compressed"`` for a configured method and facet count."""
+    if method not in METHODS:
+        raise ConfigError(f"view_factors = {method!r}; allowed: {', '.join(METHODS)}")
+    if method == "auto":
+        return "compressed" if n_facets >= AUTO_COMPRESSED_MIN_FACETS else "exact"
+    return method
+
+
+def view_factor_operator(mesh: Mesh, tracer=None, method: str = "auto", tolerance: float = DEFAULT_TOLERANCE,
+                         cache_dir=None, progress: Callable | None = None) -> ViewFactorOperator:
+    """The view-factor operator of a mesh: exact sparse matrix or compressed (module docstring).
+
+    Parameters
+    ----------
+    mesh : Mesh
+    tracer : RayTracer, optional
+    method : {"auto", "exact", "compressed"}
+        ``"auto"``: exact below :data:`AUTO_COMPRESSED_MIN_FACETS` facets, compressed from there on.
+    tolerance : float [-]
+        Compressed operator only: relative Frobenius error per far block.
+    cache_dir : path-like, optional
+        Exact matrix only: its ``.npz`` cache folder.
+    progress : callable, optional
+        ``progress(done, total)`` (:mod:`crater_thermal.progress` contract).
+
+    Returns
+    -------
+    ViewFactorOperator
+    """
+    from crater_thermal import viewfactors as vf
+
+    if not isinstance(mesh, Mesh):
+        raise MeshError(f"view_factor_operator needs a geometry.Mesh, got {type(mesh).__name__}")
+    kind = resolve_method(method, mesh.n_facets)
+    if kind == "exact":
+        return SparseViewFactors(vf.view_factor_matrix(mesh, tracer, cache_dir=cache_dir, progress=progress))
+    return compressed_view_factors(mesh, tracer, tolerance, progress=progress)

@@ -1,0 +1,163 @@
+"""The compressed view-factor operator against the exact sparse matrix (issue 13, item 2)."""
+
+import numpy as np
+import pytest
+from terrains import grid_mesh
+
+from crater_thermal import illumination, radiosity, simulate, thermal
+from crater_thermal import vfoperator as vo
+from crater_thermal.constants import AU, SIGMA
+from crater_thermal.errors import ConfigError
+from crater_thermal.geometry import flat_mesh
+from crater_thermal.raytrace import RayTracer
+from crater_thermal.viewfactors import view_factor_matrix
+
+
+def terrain_mesh(n_facets, size_m=20_000.0, diameter_m=10_000.0, depth_m=2_000.0, rough_m=0.0, flat_plain=False,
+                 seed=0):
+    """Height field on a regular grid (two triangles per cell): a paraboloid crater in a plain, with a
+    raised rim and optional Gaussian roughness; ``flat_plain``: exactly z = 0 outside the crater."""
+    k = max(2, int(round(np.sqrt(n_facets / 2.0))))
+    x = np.linspace(-size_m / 2, size_m / 2, k + 1)
+    X, Y = np.meshgrid(x, x, indexing="xy")
+    r = np.hypot(X, Y)
+    R = diameter_m / 2
+    z = np.where(r < R, -depth_m * (1 - (r / R) ** 2), 0.0)
+    if not flat_plain:
+        rim = 0.08 * depth_m
+        z += np.where(r >= R, rim * np.exp(-(((r - R) / (0.3 * R)) ** 2)), rim * (r / R) ** 2)
+        z += rough_m * np.random.default_rng(seed).standard_normal(z.shape)
+    return grid_mesh(x, x, z)
+
+
+def _rel(a, b):
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+@pytest.fixture(scope="module")
+def terrain5k():
+    m = terrain_mesh(5000, rough_m=20.0)
+    tr = RayTracer(m)
+    exact = vo.SparseViewFactors(view_factor_matrix(m, tr))
+    comp = vo.compressed_view_factors(m, tr)
+    return m, tr, exact, comp
+
+
+def test_compressed_products_match_exact(terrain5k):
+    m, tr, exact, comp = terrain5k
+    assert comp.shape == exact.shape == (m.n_facets, m.n_facets)
+    # physical fields: radiative equilibrium of the terrain under a low Sun (shadowed crater floor,
+    # lit wall), its emitted IR and its scattered sunlight
+    sun = illumination.sun_direction_from_angles(10.0, 200.0)
+    res = radiosity.steady_state(m, exact.matrix, tr, sun, AU)
+    emitted = 0.95 * SIGMA * res["surface_temperature"] ** 4
+    scattered = 0.12 * res["solar_incident"]
+    for x in (emitted, scattered, np.ones(m.n_facets)):
+        # issue 13: relative error of F x at most 1e-3 for physical x (measured ~1e-5 at the default tolerance)
+        assert _rel(comp @ x, exact @ x) <= 1e-3
+    # several right-hand sides at once give the same as one by one
+    X = np.column_stack([emitted, scattered])
+    np.testing.assert_allclose(comp @ X, np.column_stack([comp @ emitted, comp @ scattered]), rtol=1e-12)
+    # the operator is much smaller than the exact matrix already at 5k facets
+    assert comp.nbytes < 0.5 * exact.nbytes
+
+
+def test_compressed_reciprocity_and_row_sums(terrain5k):
+    m, _, exact, comp = terrain5k
+    rng = np.random.default_rng(3)
+    cols = rng.choice(m.n_facets, 40, replace=False)
+    E = np.zeros((m.n_facets, len(cols)))
+    E[cols, np.arange(len(cols))] = 1.0
+    Fc = comp @ E  # columns F[:, cols]
+    G = m.areas[cols][:, None] * Fc[cols]  # A_i F_ij on the sampled pairs
+    # reciprocity A_i F_ij = A_j F_ji: symmetric by construction, up to float32 storage (6e-8)
+    assert np.abs(G - G.T).max() <= 1e-6 * np.abs(G).max()
+    # row sums equal the exact ones to the tolerance (absolute: row sums are fractions <= 1)
+    rs, rse = comp.row_sums(), exact.row_sums()
+    assert np.abs(rs - rse).max() <= comp.tolerance
+    assert rs.max() <= 1.0 + 1e-6
+    # the transpose product is the adjoint: y . (F x) = (F^T y) . x
+    x, y = rng.random(m.n_facets), rng.random(m.n_facets)
+    assert abs(y @ (comp @ x) - comp.rmatvec(y) @ x) <= 1e-10 * abs(y @ (comp @ x))
+    assert abs(y @ (exact @ x) - exact.rmatvec(y) @ x) <= 1e-10 * abs(y @ (exact @ x))
+
+
+def test_plain_with_bowl_and_flat_plain():
+    # an exactly flat plain around a bowl: plain facets see nothing (coplanar, or the bowl lies behind
+    # their plane), the bowl sees itself
+    m = terrain_mesh(2400, size_m=12_000.0, flat_plain=True)
+    tr = RayTracer(m)
+    exact = vo.SparseViewFactors(view_factor_matrix(m, tr))
+    comp = vo.compressed_view_factors(m, tr, leaf_size=16)
+    plain = (m.normals[:, 2] > 1.0 - 1e-15) & (m.centroids[:, 2] == 0.0)
+    rs, rse = comp.row_sums(), exact.row_sums()
+    assert plain.sum() > 0.3 * m.n_facets
+    # (the near-pair quadrature leaves ~1e-16 on coplanar neighbours: rounding, in both)
+    assert rse[plain].max() < 1e-12 and np.abs(rs[plain]).max() < 1e-12
+    assert rs[~plain].min() > 0.0
+    x = SIGMA * (100.0 + m.centroids[:, 2] / 50.0) ** 4
+    assert _rel(comp @ x, exact @ x) <= 1e-3
+    # a flat plain alone: no exchange at all
+    f = flat_mesh(1000.0, 2000)
+    assert vo.compressed_view_factors(f, leaf_size=16).is_zero
+
+
+def test_scattering_and_equilibrium_with_compressed_operator(terrain5k):
+    m, tr, exact, comp = terrain5k
+    sun = illumination.sun_direction_from_angles(8.0, 30.0)
+    E = illumination.direct_irradiance(m, tr, sun[None], np.array([AU]))[0]
+    Qe = radiosity.ScatteringSolver(exact, 0.3).solar_incident(E)
+    sc = radiosity.ScatteringSolver(comp, 0.3)
+    Qc = sc.solar_incident(np.vstack([E, 0.5 * E]))
+    assert sc.iterations < 20  # contraction by albedo x rowsum ~ 0.05 per product
+    # scattered part within 1e-3 (relative), the totals much closer
+    assert _rel(Qc[0] - E, Qe - E) <= 1e-3
+    np.testing.assert_allclose(Qc[1], 0.5 * Qc[0], rtol=1e-6, atol=1e-9)
+    Te = radiosity.equilibrium_temperature(exact, Qe)
+    Tc = radiosity.equilibrium_temperature(comp, Qc[0])
+    # temperatures from fluxes within 1e-3: 0.025 % in T^4 -> well below 0.1 K at 100-400 K
+    assert np.abs(Tc - Te).max() < 0.1
+
+
+def test_coupled_night_temperatures_match_exact():
+    m = terrain_mesh(2000, rough_m=20.0)
+    tr = RayTracer(m)
+    exact = vo.SparseViewFactors(view_factor_matrix(m, tr))
+    comp = vo.compressed_view_factors(m, tr, leaf_size=16)
+    assert comp.stats["lowrank_blocks"] > 0  # the far field is really compressed here
+    # one lunation at 4 h steps, Sun at azimuth turning once, elevation -3..+5 deg (half the time night)
+    t = np.arange(0.0, 29.53 * 86400.0, 4 * 3600.0)
+    ph = 2 * np.pi * t / (29.53 * 86400.0)
+    el = np.radians(1.0 + 4.0 * np.sin(ph))
+    az = ph
+    sun = np.column_stack([np.cos(el) * np.sin(az), np.cos(el) * np.cos(az), np.sin(el)])
+    E = illumination.direct_irradiance(m, tr, sun, np.full(len(t), AU), disk=None)
+    out = {}
+    for name, op in (("exact", exact), ("compressed", comp)):
+        solar = radiosity.ScatteringSolver(op, 0.12).solar_incident(E)
+        solver = thermal.ColumnSolver(["1300/1800"] * m.n_facets)
+        solver.set_uniform(150.0)
+        T, _ = simulate.CoupledStepper(solver, op, 0.12, 0.95).run(t, solar)
+        out[name] = T
+    night = E == 0.0
+    assert night.mean() > 0.3
+    # issue 13: coupled-run night temperatures within 0.05 K of the exact matrix's
+    assert np.abs(out["compressed"] - out["exact"])[night].max() <= 0.05
+
+
+def test_operator_interface_and_bad_input():
+    m = terrain_mesh(800)
+    op = vo.view_factor_operator(m, method="exact")
+    assert op.kind == "exact" and op.nbytes > 0 and not op.is_zero
+    assert vo.resolve_method("auto", 1000) == "exact"
+    assert vo.resolve_method("auto", vo.AUTO_COMPRESSED_MIN_FACETS) == "compressed"
+    with pytest.raises(ConfigError, match="view_factors"):
+        vo.resolve_method("dense", 10)
+    with pytest.raises(ConfigError, match="tolerance"):
+        vo.compressed_view_factors(m, tolerance=0.5)
+    with pytest.raises(ConfigError, match="operand"):
+        op @ np.ones(3)
+    # radiosity accepts operators, sparse and dense matrices alike
+    F = op.matrix.toarray()
+    T = np.full(m.n_facets, 200.0)
+    np.testing.assert_allclose(radiosity.ir_incident(op, T), radiosity.ir_incident(F, T), rtol=1e-12)
