@@ -288,8 +288,8 @@ SCHEMA: Tuple[Key, ...] = (
       'required for `"de421"`; relative to the case file'),
     K("sun", "correction", "choice", "apparent", "which Sun direction (ephemeris/README.md)",
       choices=choices.SUN_CORRECTIONS),
-    K("sun", "method", "choice", "rays", "direct sunlight: one ray per disk patch, facet and step (reference) / "
-      "horizon map per facet, traced once per mesh and cached (README: cost and accuracy)",
+    K("sun", "method", "choice", "horizon", "direct sunlight: one ray per disk patch, facet and step (the "
+      "reference) / horizon map per facet, traced once per mesh and cached (README: cost and accuracy)",
       choices=choices.SUN_METHODS),
     K("sun", "horizon_azimuths", "int", 720, "azimuths of the horizon map", lo=8, hi=4096,
       only=("method", ("horizon",))),

@@ -520,7 +520,7 @@ class Sunlight:
         timer = timer or Timer()
         sun = case.sun
         self.case, self.mesh, self.tracer = case, mesh, tracer
-        self.method = getattr(sun, "method", "rays")
+        self.method = getattr(sun, "method", "horizon")
         self.hmap = self.disk = None
         if self.method == "horizon":
             from crater_thermal import horizons
