@@ -607,6 +607,9 @@ def region_masks(run, wall_split: float = 0.5, threshold_W_m2: float = LIT_THRES
         out.update(facing_classes(normals, lat, sun))
     if has_variable(run, "solar_direct"):
         out.update(illumination_classes(run["solar_direct"].values, threshold_W_m2, rarely_max_fraction))
+    if "inner" in run:  # a DEM site's outer ring only casts shadows and radiates: not analysed
+        inner = np.asarray(run["inner"].values).astype(bool)
+        out = {k: np.asarray(v, bool) & inner for k, v in out.items()}
     return out
 
 

@@ -78,6 +78,8 @@ SUMMARY_KEYS = {
                "{pole,equator,east,west}_facing (by the facet normal's azimuth, +-45 deg; at |lat| >= 89.5 deg "
                "{antisun,sun,sun_left,sun_right}_facing), surround, never_lit / rarely_lit / often_lit; may overlap.",
     "region_facet_count": "{region: int}: facets per region.",
+    "site": "dict|null: the DEM site (dem_source, crs_name, center_lat/lon_deg, radius_km, resolution_m, "
+            "outer_radius_km, outer_resolution_m, height_kind, dem_pixel_m, n_inner, n_outer); null for craters.",
     "profiles": "list[str]: replayed profile labels.",
     "nominal_profile": "str: the nominal profile label (differences are profile minus this).",
     "loose_profile": "str|null: the loose profile label (800/1100 if replayed).",
@@ -285,6 +287,7 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instruments: Sequence[in
         lat_dwell[key] = {i: {r: v["dwell_s"] for r, v in per.items()} for i, per in b_det.items()}
     s = dict(
         schema_version=2,
+        site=site_summary(A),
         mesh_hash=str(A.run.attrs.get("mesh_hash")),
         lat_deg=A.lat,
         lon_deg=float(A.run.attrs.get("lon_deg", np.nan)),
@@ -673,10 +676,11 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
     f = np.asarray(A.run["mesh_faces"].values, int)
     inner = np.asarray(A.run["inner"].values, bool) if "inner" in A.run else np.ones(len(f), bool)
     tri = Triangulation(xy[:, 0], xy[:, 1], f)
-    T_night = _night_facet_median(A.T_nom, A.night)
+    night = getattr(A, "night_f", A.night)  # per-facet night where the analysis has it
+    T_night = _night_facet_median(A.T_nom, night)
     panels = [(T_night, "night-time median T, nominal [K]", "inferno", None)]
     if A.loose is not None:
-        dT = _night_facet_median(A.loose_dT, A.night) if A.loose_dT is not None else A.night_map[A.loose]
+        dT = _night_facet_median(A.loose_dT, night) if A.loose_dT is not None else A.night_map[A.loose]
         lim = float(np.nanmax(np.abs(dT[inner]))) if np.isfinite(dT[inner]).any() else 1.0
         panels.append((dT, f"night-time median {A.loose} - nominal [K]", "RdBu_r", (-max(lim, 1e-3), max(lim, 1e-3))))
         if instruments:
@@ -842,11 +846,16 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
            if summary["night_definition"] == "facet" else
            "night = Sun's centre below the horizon at the crater centre (thesis)")
         + f" ({summary['night_fraction_samples']:.2f} of the samples are night). "
-        "Regions: floor; lower/upper wall (below/above half the wall's height); top wall ring (the facets at the "
-        "crest); rim (outer flank); surround; each wall/rim part split into +-45 deg sectors by the azimuth its "
-        "slope faces (<i>equator_facing</i>: on the pole side, facing the equator and the Sun); never / rarely "
-        "(&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap.</p>",
+        + ("Regions: classes by slope, by the azimuth the slope faces (+-45 deg sectors; <i>level</i> below 5 deg) "
+           "and by direct sunlight (never / rarely (&lt; 10% of samples) / often lit), over the analysed facets "
+           "only. Regions may overlap.</p>" if summary.get("site") else
+           "Regions: floor; lower/upper wall (below/above half the wall's height); top wall ring (the facets at "
+           "the crest); rim (outer flank); surround; each wall/rim part split into +-45 deg sectors by the "
+           "azimuth its slope faces (<i>equator_facing</i>: on the pole side, facing the equator and the Sun); "
+           "never / rarely (&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap.</p>"),
     ]
+    if summary.get("site"):  # a DEM site: say what was meshed (no crater radii here)
+        parts.append(_html_site(summary["site"]))
     loose = summary["loose_profile"]
     if loose:
         rows = []
@@ -1019,6 +1028,9 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
             ("fig7_8_night_map.png", lambda p: _fig_night_map(all_A, p)),
             ("fig7_9_quartiles.png", lambda p: _fig_quartiles(all_A, p)),
         ]
+        if is_site(A):  # a DEM site: maps in the DEM's own coordinates replace the crater-centred plan view
+            jobs = [(n, j) for n, j in jobs if n != "fig7_8_night_map.png"]
+            jobs.append(("site_maps.png", lambda p: _fig_site_maps(A, p, instruments, observation)))
         figures: List[str] = []
         note = None
         for name, job in jobs:
@@ -1048,5 +1060,5 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         summary["figures"] = figures
         summary["snapshot_note"] = note
         json_tmp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-        html_tmp.write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS}), encoding="utf-8")
+        html_tmp.write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS, **SITE_FIGURES}), encoding="utf-8")
     return out_dir / "report.html"

@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from crater_thermal import config, geometry, io, raytrace, simulate, terrain, viewfactors
+from crater_thermal import cli, config, geometry, io, raytrace, simulate, terrain, viewfactors
+from crater_thermal.materials import DensityExtrapolationWarning
 
 LAT, LON = -85.0, 0.0
 D_KM = 2.0
@@ -92,3 +93,42 @@ def test_crater_as_dem_matches_the_generator(crater_dem):
             assert meta["kind"] == "dem" and meta["dem_source"] == "crater.tif" and "crs_wkt" in meta
         ds.close()
     assert night["dem"] == pytest.approx(night["gen"], abs=3.5)  # measured -2.6 K at D/20 (see docstring)
+
+
+def test_synthetic_site_end_to_end(tmp_path):
+    """dem synth -> [crater] kind = "dem" run (with an outer ring) -> replay -> report with the site sections."""
+    tif = tmp_path / "site.tif"
+    cli.app(["dem", "synth", "--lat-deg", "-87", "--lon-deg", "45", "--size-km", "7", "--pixel-m", "40",
+             "--crater", "1.2", "--crater", "0.6@1.0,-0.8", "--roughness", "4", "--seed", "2", "-o", str(tif)],
+            standalone_mode=False)
+    crater = ('kind = "dem"\ndem = "site.tif"\nradius_km = 1.2\nresolution_m = 200.0\n'
+              "outer_radius_km = 2.5\nouter_resolution_m = 600.0")
+    text = CASE.format(name="site", crater=crater, lat=-87.0, lon=45.0)
+    text = text.replace('end = "2019-01-08"', 'end = "2019-01-03"').replace("spinup_days = 29.53", "spinup_days = 3.0")
+    (tmp_path / "site.toml").write_text(text)  # short: a smoke test of the whole chain, not of the physics
+    case = config.load_case(tmp_path / "site.toml")
+    run = simulate.run_case(case, tmp_path / "run.nc", progress=False)
+    ds = io.open_run(run)
+    inner = io.dataset_inner(ds)
+    assert 0 < inner.sum() < inner.size and inner[: inner.sum()].all()
+    assert np.isfinite(ds["surface_temperature"].values).all()
+    assert json.loads(ds.attrs["mesh_meta"])["outer_radius_km"] == 2.5
+    ds.close()
+    with pytest.warns(DensityExtrapolationWarning):  # 800 kg m-3 is below Table 7.2 (the thesis's loose)
+        rep = simulate.replay_file(run, ["1300/1800", "800/1100"], fixed_spinup=True,
+                                   output=tmp_path / "replay.nc", progress=False)
+    rds = io.open_replay(rep)
+    assert "inner" in rds
+    rds.close()
+    from crater_thermal.report import make_report
+
+    html = make_report(run, rep, tmp_path / "report", snapshots=False)
+    summary = json.loads((tmp_path / "report" / "summary.json").read_text())
+    site = summary["site"]
+    assert site["dem_source"] == "site.tif" and site["n_inner"] == int(inner.sum())
+    assert "site_maps.png" in summary["figures"] and "fig7_8_night_map.png" not in summary["figures"]
+    # regions are terrain classes over the analysed facets only (no crater radii on a DEM site)
+    assert "floor" not in summary["regions"]
+    assert summary["region_facet_count"]["never_lit"] <= site["n_inner"]
+    text = html.read_text()
+    assert "<b>Site</b>" in text and "lower/upper wall" not in text
