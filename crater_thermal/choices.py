@@ -20,6 +20,7 @@ __all__ = [
     "SPINUP_MODES",
     "PROPERTY_SETS",
     "LIMB_DARKENING_LAWS",
+    "ALBEDO_MODELS",
     "SCATTERING_METHODS",
     "VIEW_FACTOR_METHODS",
     "MOON_FRAMES",
@@ -43,6 +44,8 @@ SPINUP_MODES = ("periodic", "fixed")
 PROPERTY_SETS = ("apollo", "hayne2017")
 #: Limb-darkening laws of the Sun's disk (illumination.LIMB_DARKENING_COEFFS has one law per name).
 LIMB_DARKENING_LAWS = ("linear", "quadratic", "neckel_labs", "uniform")
+#: Albedo of direct sunlight (illumination.direct_albedo): constant, or A(i) of Hayne et al. (2017).
+ALBEDO_MODELS = ("constant", "hayne2017")
 #: Methods for the scattered sunlight (radiosity).
 SCATTERING_METHODS = ("exact", "bounces")
 #: View-factor operators (vfoperator): by facet count, exact sparse matrix, compressed.

@@ -300,6 +300,10 @@ def report(
                                             help="Footprint-to-footprint scatter of true temperatures [K]."),
     false_alarm: float = typer.Option(0.01, "--false-alarm", help="False-alarm rate of the one-sided test (0-1)."),
     no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
+    night: str = typer.Option("facet", "--night", help="Night: facet (no direct sunlight on the facet for "
+                              "--min-dark-hours), centre (thesis: Sun below the crater centre's horizon), "
+                              "facet_and_centre."),
+    min_dark_hours: float = typer.Option(24.0, "--min-dark-hours", help="Darkness before a facet's night [h]."),
 ) -> None:
     """Figures (thesis Figs. 7.4-7.9), detection statistics, report.html and summary.json."""
     from crater_thermal import instrument as ins
@@ -319,7 +323,7 @@ def report(
     obs = ins.Observation(footprint_fraction=footprint_fraction, reference_footprints=reference_footprints,
                           natural_scatter_K=natural_scatter_k, false_alarm=false_alarm)
     path = make_report(run, replay, out, overwrite=overwrite, instruments=insts or None, observation=obs,
-                       snapshots=not no_snapshots)
+                       snapshots=not no_snapshots, night_definition=night, min_dark_hours=min_dark_hours)
     typer.echo(str(path))
 
 

@@ -56,7 +56,8 @@ from typing import Any, Mapping, Optional, Tuple
 import numpy as np
 
 from crater_thermal import choices, profiles
-from crater_thermal.constants import ALBEDO, EMISSIVITY, GEOTHERMAL_FLUX, SOLAR_CONSTANT, YEAR
+from crater_thermal.constants import (ALBEDO, EMISSIVITY, GEOTHERMAL_FLUX, HAYNE2017_ALBEDO_A, HAYNE2017_ALBEDO_B,
+                                      SOLAR_CONSTANT, YEAR)
 from crater_thermal.errors import ConfigError, EphemerisRangeError, ProfileError
 
 __all__ = [
@@ -261,7 +262,12 @@ SCHEMA: Tuple[Key, ...] = (
       hi=lambda v: v["flux_step_hours"] * 3600.0, lo_open=True, default_doc="solver default",
       allowed_doc="0 < dt ≤ flux step [s]"),
     # [surface]
-    K("surface", "albedo", "float", ALBEDO, "Bond albedo (constant)", lo=0.0, hi=1.0, hi_open=True),
+    K("surface", "albedo", "float", ALBEDO, "Bond albedo; with `albedo_model = \"hayne2017\"` the normal-incidence "
+      "value A0 (also used for scattered light)", lo=0.0, hi=1.0, hi_open=True),
+    K("surface", "albedo_model", "choice", "constant", "albedo of direct sunlight: constant, or Hayne et al. (2017) "
+      "A(i) = A0 + a (i/45°)³ + b (i/90°)⁸ (illumination.direct_albedo)", choices=choices.ALBEDO_MODELS),
+    K("surface", "albedo_a", "float", HAYNE2017_ALBEDO_A, "coefficient a of the hayne2017 model", lo=0.0, hi=1.0),
+    K("surface", "albedo_b", "float", HAYNE2017_ALBEDO_B, "coefficient b of the hayne2017 model", lo=0.0, hi=1.0),
     K("surface", "emissivity", "float", EMISSIVITY, "infrared emissivity", lo=0.0, hi=1.0, lo_open=True),
     K("surface", "property_set", "choice", "apollo", "heat capacity / conductivity models",
       choices=choices.PROPERTY_SETS),
@@ -282,8 +288,8 @@ SCHEMA: Tuple[Key, ...] = (
       'required for `"de421"`; relative to the case file'),
     K("sun", "correction", "choice", "apparent", "which Sun direction (ephemeris/README.md)",
       choices=choices.SUN_CORRECTIONS),
-    K("sun", "method", "choice", "rays", "direct sunlight: one ray per disk patch, facet and step (reference) / "
-      "horizon map per facet, traced once per mesh and cached (README: cost and accuracy)",
+    K("sun", "method", "choice", "horizon", "direct sunlight: one ray per disk patch, facet and step (the "
+      "reference) / horizon map per facet, traced once per mesh and cached (README: cost and accuracy)",
       choices=choices.SUN_METHODS),
     K("sun", "horizon_azimuths", "int", 720, "azimuths of the horizon map", lo=8, hi=4096,
       only=("method", ("horizon",))),

@@ -39,3 +39,7 @@ NOMINAL_PROFILE = (1300.0, 1800.0)
 LOOSE_PROFILE = (800.0, 1100.0)
 #: Density of rock [kg m-3] (thesis 7.1.2)
 ROCK_DENSITY = 3070.0
+#: Incidence-dependent albedo A(i) = A0 + a (i / 45 deg)^3 + b (i / 90 deg)^8, coefficients a, b [-]
+#: (Keihm 1984 form; Hayne et al. 2017, JGR Planets 122, 2371, Appendix A: a = 0.06, b = 0.25)
+HAYNE2017_ALBEDO_A = 0.06
+HAYNE2017_ALBEDO_B = 0.25

@@ -50,8 +50,8 @@ from typing import Callable, Sequence, Union
 
 import numpy as np
 
-from crater_thermal.choices import LIMB_DARKENING_LAWS
-from crater_thermal.constants import AU, SOLAR_CONSTANT, SUN_RADIUS
+from crater_thermal.choices import ALBEDO_MODELS, LIMB_DARKENING_LAWS
+from crater_thermal.constants import ALBEDO, AU, HAYNE2017_ALBEDO_A, HAYNE2017_ALBEDO_B, SOLAR_CONSTANT, SUN_RADIUS
 from crater_thermal.errors import ConfigError
 from crater_thermal.kernels import illumination as _kern
 
@@ -491,3 +491,57 @@ def sun_direction_from_angles(elevation_deg: float, azimuth_deg: float = 180.0) 
         raise ConfigError(f"sun_azimuth_deg = {azimuth_deg!r} must be finite (degrees from north, clockwise)")
     e, a = np.deg2rad(el), np.deg2rad(az % 360.0)
     return np.array([np.cos(e) * np.sin(a), np.cos(e) * np.cos(a), np.sin(e)])
+
+
+# ------------------------------------------------------------------------- incidence-dependent albedo
+
+
+def albedo_hayne2017(incidence_rad, albedo0: float = ALBEDO, a: float = HAYNE2017_ALBEDO_A,
+                     b: float = HAYNE2017_ALBEDO_B) -> np.ndarray:
+    """Directional albedo of regolith for direct sunlight, Hayne et al. (2017) / Keihm (1984).
+
+    ``A(i) = A0 + a (i / 45 deg)^3 + b (i / 90 deg)^8``, with i clipped to [0, 90 deg] and A capped
+    at 1.
+
+    Parameters
+    ----------
+    incidence_rad : array [rad]
+        Solar incidence angle from the facet normal.
+    albedo0 : float [-]
+        Albedo at normal incidence, A0, in [0, 1).
+    a, b : float [-]
+        Coefficients (Hayne et al. 2017: 0.06, 0.25), >= 0.
+
+    Returns
+    -------
+    array [-], the shape of ``incidence_rad``.
+    """
+    if not 0.0 <= albedo0 < 1.0:
+        raise ConfigError(f"albedo0={albedo0} out of range [0, 1)")
+    if not (a >= 0.0 and b >= 0.0):
+        raise ConfigError(f"albedo coefficients a={a}, b={b} must be >= 0")
+    i = np.clip(np.asarray(incidence_rad, float), 0.0, 0.5 * np.pi)
+    return np.minimum(albedo0 + a * (i / (0.25 * np.pi)) ** 3 + b * (i / (0.5 * np.pi)) ** 8, 1.0)
+
+
+def direct_albedo(normals, sun_dirs, albedo0: float = ALBEDO, model: str = "constant",
+                  a: float = HAYNE2017_ALBEDO_A, b: float = HAYNE2017_ALBEDO_B) -> np.ndarray:
+    """(nt, nf) albedo [-] each facet applies to direct sunlight at each time.
+
+    The incidence angle is that of the Sun's centre, ``cos i = n . s``; a facet that sees only the
+    part of the disk above its horizon (centre below it) is at i = 90 deg. ``model="constant"`` gives
+    ``albedo0`` everywhere; ``"hayne2017"`` :func:`albedo_hayne2017`.
+
+    Parameters
+    ----------
+    normals : (nf, 3) float [unit]
+    sun_dirs : (nt, 3) float [unit], crater frame
+    """
+    if model not in ALBEDO_MODELS:
+        raise ConfigError(f"albedo_model={model!r} not one of {', '.join(ALBEDO_MODELS)}")
+    n = np.asarray(normals, float)
+    s = np.asarray(sun_dirs, float)
+    if model == "constant":
+        return np.full((s.shape[0], n.shape[0]), float(albedo0))
+    cos_i = np.clip(s @ n.T, -1.0, 1.0)
+    return albedo_hayne2017(np.arccos(np.maximum(cos_i, 0.0)), albedo0, a, b)

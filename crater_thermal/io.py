@@ -26,7 +26,6 @@ import json
 import os
 import secrets
 import shutil
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Mapping
 
@@ -123,7 +122,8 @@ def _remove(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False,
+                  durable: bool = True) -> Iterator[Path]:
     """Write an output atomically: the one writer every crater_thermal output goes through.
 
     Yields a temporary path in the same folder as ``path`` (an empty file, or with ``folder`` an empty
@@ -141,6 +141,9 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False, folder: bool
         Replace an existing output (checked again at the rename, in case one appeared meanwhile).
     folder : bool
         The output is a folder; an existing one (with ``overwrite``) is replaced as a whole.
+    durable : bool
+        Flush a file to disk before the rename (survives a power cut). False for scratch files that
+        only need to survive a killed process (a rename is atomic either way).
 
     Raises
     ------
@@ -171,7 +174,8 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False, folder: bool
                 raise
             _remove(old)
         else:
-            _fsync(tmp)  # the data reach the disk before the name does
+            if durable:
+                _fsync(tmp)  # the data reach the disk before the name does
             os.replace(tmp, path)
     finally:
         if os.path.lexists(tmp):
@@ -311,14 +315,9 @@ class SegmentStore:
         if k0 % self.block or len(rows) > self.block:
             raise ValueError(f"{name}: rows {k0}..{k0 + len(rows)} do not fit block {self.block}")
         target = self._file(name, k0 // self.block)
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=self._dir)
-        try:
-            with os.fdopen(fd, "wb") as fh:
+        with atomic_output(target, overwrite=True, durable=False) as tmp:
+            with open(tmp, "wb") as fh:
                 np.save(fh, np.ascontiguousarray(rows))
-            os.replace(tmp, target)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
 
     def write_rows(self, name: str, k0: int, rows: np.ndarray) -> None:
         """Store rows ``k0 .. k0 + len(rows) - 1`` of ``name``, split at block boundaries (any ``k0``;
@@ -603,6 +602,14 @@ def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
     if len(groups) > 1 and ds["spinup_time"].values[-1] > ds["time"].values[0]:
         raise FluxFileError(f"{path}: 'spinup_time' must end at or before the first 'time' "
                             f"({ds['spinup_time'].values[-1]} > {ds['time'].values[0]})")
+    for name in ("solar_absorbed", "spinup_solar_absorbed"):  # optional: incidence-dependent albedo
+        if name in ds:
+            if ds[name].attrs.get("units") not in FLUX_UNITS:
+                raise FluxFileError(f"{path}: '{name}' has units {ds[name].attrs.get('units')!r}, "
+                                    f"expected {FLUX_UNITS[0]!r}")
+            v = ds[name].values
+            if not np.all(np.isfinite(v)) or np.any(v < 0):
+                raise FluxFileError(f"{path}: '{name}' has NaN/inf or negative values")
     _check_attr_range(ds, path, "albedo", 0.0, 1.0)
     _check_attr_range(ds, path, "emissivity", 1e-6, 1.0)
     return ds

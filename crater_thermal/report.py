@@ -41,11 +41,9 @@ FIGURES = {
     "fig7_5_temperature.png": (
         "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5)."),
     "fig7_6_loose_minus_nominal.png": "Loose minus nominal surface temperature over the run, night shaded (Fig. 7.6).",
-    "fig7_7a_density_grid.png": (
-        "Night-time median difference to nominal on the floor over the density grid, top x bottom density; "
-        "nominal outlined (Fig. 7.7a)."),
-    "fig7_7b_regions.png": (
-        "Night-time median loose minus nominal by crater region (and latitude), bars = quartiles (Fig. 7.7b)."),
+    "fig7_7a_density_grid.png": "Night-time median difference to nominal on the floor over the density grid, top x bottom density; nominal outlined (Fig. 7.7a).",
+    "fig7_7b_regions.png": "Night-time (per facet) median loose minus nominal by crater region and illumination class "
+                           "(and latitude), bars = quartiles (Fig. 7.7b).",
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
     "fig7_9_quartiles.png": (
         "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9)."),
@@ -60,7 +58,7 @@ SNAPSHOTS = {
     "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
 }
 
-#: Top-level keys of summary.json and what they hold (units in the names; regions are analysis.REGIONS).
+#: Top-level keys of summary.json and what they hold (units in the names; regions: analysis.region_masks).
 SUMMARY_KEYS = {
     "schema_version": "int: layout version of this file (2: detection statistics replace the k-sigma "
                       "detectability of 1).",
@@ -72,9 +70,13 @@ SUMMARY_KEYS = {
     "n_times": "int: number of time samples.",
     "n_facets": "int: number of mesh facets.",
     "night_fraction": "float [-]: fraction of samples with the Sun's centre below the horizon at the crater centre.",
-    "regions": (
-        "list[str]: region labels (analysis.REGIONS); *_poleward = on the pole side of the axis, facing the "
-        "equator."),
+    "night_definition": "str: 'facet' (night = no direct sunlight on the facet for night_min_dark_hours; day = "
+                        "directly lit) or 'centre' (the thesis: Sun's centre below the crater centre's horizon).",
+    "night_min_dark_hours": "float [h]: darkness a facet needs before its samples count as night ('facet').",
+    "night_fraction_samples": "float [-]: fraction of (time, facet) samples that are night.",
+    "regions": "list[str]: region names (analysis.region_masks): floor, {lower_wall, upper_wall, top_wall_ring, rim}_"
+               "{pole,equator,east,west}_facing (by the facet normal's azimuth, +-45 deg; at |lat| >= 89.5 deg "
+               "{antisun,sun,sun_left,sun_right}_facing), surround, never_lit / rarely_lit / often_lit; may overlap.",
     "region_facet_count": "{region: int}: facets per region.",
     "profiles": "list[str]: replayed profile labels.",
     "nominal_profile": "str: the nominal profile label (differences are profile minus this).",
@@ -86,7 +88,8 @@ SUMMARY_KEYS = {
         "facets."),
     "night_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, night.",
     "night_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, night.",
-    "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (Sun above the horizon).",
+    "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (night_definition: facet directly lit, "
+                       "or Sun above the crater centre's horizon).",
     "day_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, day.",
     "day_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, day.",
     "night_frac_abs_dT_above_threshold": (
@@ -147,14 +150,19 @@ def _clean(x):
 class _Analysis:
     """Everything the figures and the summary need, computed once."""
 
-    def __init__(self, run, replay, threshold_K: float, advance: Callable[[], None] = lambda: None):
+    def __init__(self, run, replay, threshold_K: float, advance: Callable[[], None] = lambda: None,
+                 night_definition: str = "facet", min_dark_hours: float = an.MIN_DARK_HOURS):
         an.check_pair(run, replay)
         self.run, self.replay = run, replay
         self.times = np.asarray(run["time"].values).astype("datetime64[ns]")
         self.days = (self.times - self.times[0]).astype(np.int64) / 86400e9
-        self.night = an.night_mask(run)
+        self.night = an.night_mask(run)  # the crater centre's night: shading of the time series
+        self.night_definition, self.min_dark_hours = night_definition, float(min_dark_hours)
+        # per (time, facet) night and day used by every statistic (analysis.night_day_masks)
+        self.night_f, self.day_f = an.night_day_masks(run, night_definition, min_dark_hours)
+        self.regions = an.region_masks(run)  # name -> (nf,) bool
+        self.nf = int(run["surface_temperature"].shape[1])
         self.local_time = an.local_solar_time_h(run, float(run.attrs.get("lat_deg", np.nan)))
-        self.regions = an.regions_of(run)
         self.meta = an.mesh_meta(run)
         self.lat = float(run.attrs.get("lat_deg", np.nan))
         self.nominal = an.nominal_label(run, replay)
@@ -168,15 +176,18 @@ class _Analysis:
         self.night_stats, self.day_stats, self.night_map, self.floor_night_median = {}, {}, {}, {}
         self.loose_dT = None
         for p, d in an.iter_profile_differences(run, replay, self.T_nom):
-            self.night_stats[p] = an.region_statistics(d, self.night, self.regions, threshold_K)
-            self.day_stats[p] = an.region_statistics(d, ~self.night, self.regions, threshold_K)
-            self.night_map[p] = an.night_median_map(d, self.night)
-            self.floor_night_median[p] = self.night_stats[p]["floor"]["median_K"]
+            self.night_stats[p] = an.masked_statistics(d, self.night_f, self.regions, threshold_K)
+            self.day_stats[p] = an.masked_statistics(d, self.day_f, self.regions, threshold_K)
+            self.night_map[p] = an.facet_median_map(d, self.night_f)
+            self.floor_night_median[p] = self.night_stats[p].get("floor", {}).get("median_K")
             if p == self.loose:
                 self.loose_dT = d
             advance()
-        self.nom_night = {r: (float(np.median(self.T_nom[self.night][:, self.regions == r]))
-                              if self.night.any() and (self.regions == r).any() else None) for r in an.REGIONS}
+        self.nom_night = {r: an.masked_median(self.T_nom, self.night_f, m) for r, m in self.regions.items()}
+
+    def region_label(self, i: int) -> str:
+        """The first crater region (or class) holding facet ``i``."""
+        return next((r for r, m in self.regions.items() if m[i]), "-")
 
     def profile_T(self, label):
         return an.profile_temperature(self.replay, label)
@@ -195,7 +206,7 @@ _LT_BINS = 24
 
 def _local_time_bins(A, r) -> Tuple[np.ndarray, np.ndarray]:
     """Per lunar-hour bin (24) medians of loose - nominal [K] and of nominal T [K] in region r (NaN if empty)."""
-    cols = A.regions == r
+    cols = A.regions[r]
     dT, Tn = np.full(_LT_BINS, np.nan), np.full(_LT_BINS, np.nan)
     if A.loose is None or not cols.any():
         return dT, Tn
@@ -227,11 +238,11 @@ def _best_local_time(bins, inst: ins.Instrument, obs: ins.Observation) -> dict:
 def _detection(A, instruments: Sequence[ins.Instrument], obs: ins.Observation, with_time: bool = True) -> dict:
     """{instrument: {region: ...}} loose vs nominal from the night-time medians (SUMMARY_KEYS["detection"])."""
     out = {}
-    bins = {r: _local_time_bins(A, r) for r in an.REGIONS} if with_time else {}
+    bins = {r: _local_time_bins(A, r) for r in A.regions} if with_time else {}
     for inst in instruments:
         grid = ins.dwell_grid(inst)
         per = {}
-        for r in an.REGIONS:
+        for r in A.regions:
             st = A.night_stats[A.loose][r] if A.loose is not None else {}
             med, Tn = st.get("median_K"), A.nom_night.get(r)
             row = dict(dT_median_K=med, dT_q1_K=st.get("q1_K"), dT_q3_K=st.get("q3_K"), T_nominal_K=Tn)
@@ -268,8 +279,8 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instruments: Sequence[in
         if B.loose is None:
             continue
         key = f"{B.lat:g}"
-        lat_night[key] = {r: B.night_stats[B.loose][r]["median_K"] for r in an.REGIONS}
-        lat_day[key] = {r: B.day_stats[B.loose][r]["median_K"] for r in an.REGIONS}
+        lat_night[key] = {r: B.night_stats[B.loose][r]["median_K"] for r in B.regions}
+        lat_day[key] = {r: B.day_stats[B.loose][r]["median_K"] for r in B.regions}
         b_det = det if B is A else _detection(B, instruments, obs, with_time=False)
         lat_dwell[key] = {i: {r: v["dwell_s"] for r, v in per.items()} for i, per in b_det.items()}
     s = dict(
@@ -280,10 +291,13 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instruments: Sequence[in
         time_start_utc=str(np.datetime_as_string(A.times[0], unit="s")) + "Z",
         time_end_utc=str(np.datetime_as_string(A.times[-1], unit="s")) + "Z",
         n_times=int(A.times.size),
-        n_facets=int(A.regions.size),
+        n_facets=A.nf,
         night_fraction=float(A.night.mean()),
-        regions=list(an.REGIONS),
-        region_facet_count={r: int((A.regions == r).sum()) for r in an.REGIONS},
+        night_definition=A.night_definition,
+        night_min_dark_hours=A.min_dark_hours,
+        night_fraction_samples=float(A.night_f.mean()),
+        regions=list(A.regions),
+        region_facet_count={r: int(m.sum()) for r, m in A.regions.items()},
         profiles=list(A.labels),
         nominal_profile=A.nominal,
         loose_profile=A.loose,
@@ -339,7 +353,7 @@ def _shade_night(ax, days, night):
 
 def _facet_title(A, key):
     i = A.facets[key]
-    return f"{key.replace('_', ' ')} (facet {i}, {A.regions[i].replace('_', ' ')})"
+    return f"{key.replace('_', ' ')} (facet {i}, {A.region_label(i).replace('_', ' ')})"
 
 
 def _fig_fluxes(A, path):
@@ -354,7 +368,7 @@ def _fig_fluxes(A, path):
         a.set_ylabel("flux [W m-2]")
         a.set_title(_facet_title(A, key), fontsize=10)
         a.legend(fontsize=8, loc="upper right")
-    ax[1, 0].set_xlabel("days since start (grey: night at the crater centre)")
+    ax[1, 0].set_xlabel("days since start (grey: night at the crater centre; statistics use per-facet night)")
     fig.suptitle(f"Incident fluxes, lat {A.lat:g} deg")
     fig.savefig(path)
 
@@ -425,31 +439,61 @@ def _fig_density_grid(A, path):
 
 
 def _region_ticks(a, regions):
-    a.set_xticks(range(len(regions)), [r.replace("_", "\n") for r in regions], fontsize=7)
+    a.set_xticks(range(len(regions)), [r.replace("_facing", "-facing").replace("_", " ") for r in regions],
+                 fontsize=7, rotation=45, ha="right", rotation_mode="anchor")
+
+
+def _aligned_regions(all_A) -> Tuple[List[str], List[List[Optional[str]]]]:
+    """Region names of the first analysis and, per analysis, its name for each of them (None if absent).
+
+    Regions of runs at different latitudes match by name, or by position when a polar run names its
+    sectors by the Sun (``upper_wall_sun_facing`` beside ``upper_wall_equator_facing``)."""
+    base = list(all_A[0].regions)
+    per = []
+    for B in all_A:
+        names = list(B.regions)
+        if names == base:
+            per.append(list(base))
+        elif len(names) == len(base):
+            per.append(names)
+        else:
+            per.append([r if r in B.regions else None for r in base])
+    return base, per
+
+
+def _region_tick(base: str, others: Sequence[Optional[str]]) -> str:
+    alt = sorted({o for o in others if o and o != base})
+    return " ".join([base.replace("_facing", "-facing").replace("_", " ")]
+                    + [f"({a.replace('_facing', '-facing').replace('_', ' ')})" for a in alt])
 
 
 def _fig_regions(all_A, path):
-    fig, ax = _figure(1, 1, (10, 4.5))
+    base, per = _aligned_regions(all_A)
+    keep = [j for j, r in enumerate(base) if any(p[j] and A.loose and A.night_stats[A.loose][p[j]]["n"]
+                                                  for A, p in zip(all_A, per))]
+    fig, ax = _figure(1, 1, (max(10.0, 0.75 * len(keep) + 2), 5.0))
     a = ax[0, 0]
     n = len(all_A)
     w = 0.8 / n
-    x = np.arange(len(an.REGIONS))
-    for k, A in enumerate(all_A):
+    x = np.arange(len(keep))
+    for k, (A, names) in enumerate(zip(all_A, per)):
         if A.loose is None:
             continue
         st = A.night_stats[A.loose]
-        med = np.array([np.nan if st[r]["median_K"] is None else st[r]["median_K"] for r in an.REGIONS])
-        q1 = np.array([np.nan if st[r]["q1_K"] is None else st[r]["q1_K"] for r in an.REGIONS])
-        q3 = np.array([np.nan if st[r]["q3_K"] is None else st[r]["q3_K"] for r in an.REGIONS])
+        q = np.array([[np.nan if names[j] is None or st[names[j]][key] is None else st[names[j]][key]
+                       for key in ("q1_K", "median_K", "q3_K")] for j in keep]).reshape(-1, 3)
         xs = x - 0.4 + w * (k + 0.5)
-        a.bar(xs, med, w, label=f"lat {A.lat:g} deg")
-        a.errorbar(xs, med, yerr=[med - q1, q3 - med], fmt="none", ecolor="k", lw=1)
+        a.bar(xs, q[:, 1], w, label=f"lat {A.lat:g} deg")
+        a.errorbar(xs, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], fmt="none", ecolor="k", lw=1)
     a.axhline(0, color="k", lw=0.5)
-    _region_ticks(a, an.REGIONS)
+    a.set_xticks(x, [_region_tick(base[j], [p[j] for p in per]) for j in keep], fontsize=7, rotation=45,
+                 ha="right", rotation_mode="anchor")
     a.set_ylabel("night-time median loose - nominal [K]")
     a.legend(fontsize=8)
-    a.set_title("By crater region (error bars: quartiles); poleward = pole side of the axis, faces the equator",
-                fontsize=10)
+    night = ("per facet: no direct sunlight for %g h" % all_A[0].min_dark_hours
+             if all_A[0].night_definition == "facet" else "Sun below the crater centre's horizon")
+    a.set_title("By region (error bars: quartiles). Sectors: the azimuth the slope faces, +-45 deg; "
+                f"night {night}", fontsize=9)
     fig.savefig(path)
 
 
@@ -459,7 +503,7 @@ def _fig_night_map(all_A, path):
 
     n = len(all_A)
     fig, ax = _figure(1, n, (5.2 * n + 1.0, 5.0))
-    maps = [np.abs(A.night_map[A.loose]) if A.loose else np.full(A.regions.size, np.nan) for A in all_A]
+    maps = [np.abs(A.night_map[A.loose]) if A.loose else np.full(A.nf, np.nan) for A in all_A]
     vmax = max([float(np.nanmax(m)) for m in maps if np.isfinite(m).any()] + [1e-3])
     for k, A in enumerate(all_A):
         a = ax[0, k]
@@ -490,8 +534,13 @@ def _fig_quartiles(all_A, path):
         order = np.argsort(lats)
         for j, when in enumerate(("night", "day")):
             a = ax[0, j]
-            for r in ("floor", "upper_wall_poleward", "upper_wall_equatorward"):
-                q = np.array([_quart(getattr(all_A[i], f"{when}_stats")[all_A[i].loose], r) for i in order])
+            base, per = _aligned_regions(all_A)
+            for r in ("floor", "upper_wall_equator_facing", "upper_wall_pole_facing"):
+                if r not in base:
+                    continue
+                j = base.index(r)
+                q = np.array([_quart(getattr(all_A[i], f"{when}_stats")[all_A[i].loose], per[i][j])
+                              if per[i][j] else [np.nan] * 3 for i in order])
                 line, = a.plot(lats[order], q[:, 1], marker="o", label=f"{r} median")
                 a.fill_between(lats[order], q[:, 0], q[:, 2], color=line.get_color(), alpha=0.2)
             a.set_xlabel("latitude [deg]")
@@ -499,15 +548,15 @@ def _fig_quartiles(all_A, path):
             a.legend(fontsize=7)
     else:
         A = all_A[0]
-        x = np.arange(len(an.REGIONS))
+        x = np.arange(len(A.regions))
         for j, when in enumerate(("night", "day")):
             a = ax[0, j]
             if A.loose:
-                q = np.array([_quart(getattr(A, f"{when}_stats")[A.loose], r) for r in an.REGIONS])
+                q = np.array([_quart(getattr(A, f"{when}_stats")[A.loose], r) for r in A.regions])
                 a.errorbar(x, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], fmt="o", capsize=4,
                            color="tab:blue" if when == "night" else "tab:orange")
             a.axhline(0, color="k", lw=0.5)
-            _region_ticks(a, an.REGIONS)
+            _region_ticks(a, list(A.regions))
             a.set_title(f"{when} (lat {A.lat:g} deg): median and quartiles", fontsize=10)
     ax[0, 0].set_ylabel("loose - nominal [K]")
     fig.savefig(path)
@@ -787,9 +836,16 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
         f"<p>{summary['time_start_utc']} to {summary['time_end_utc']}, {summary['n_times']} samples, "
         f"{summary['n_facets']} facets (mesh {html.escape(summary['mesh_hash'])}); night fraction "
         f"{summary['night_fraction']:.2f}. Differences are replayed profile minus nominal "
-        f"({html.escape(summary['nominal_profile'])}); night = Sun's centre below the horizon at the crater centre. "
-        "Regions: floor, lower/upper wall (inner/outer half of the wall in radius), rim (outer flank), surround; "
-        "<i>poleward</i> = on the pole side of the axis (these slopes face the equator and the Sun).</p>",
+        f"({html.escape(summary['nominal_profile'])}); "
+        + (f"night = no direct sunlight on the facet for at least {summary['night_min_dark_hours']:g} h, day = "
+           "the facet directly lit (a never-lit facet has no day)"
+           if summary["night_definition"] == "facet" else
+           "night = Sun's centre below the horizon at the crater centre (thesis)")
+        + f" ({summary['night_fraction_samples']:.2f} of the samples are night). "
+        "Regions: floor; lower/upper wall (below/above half the wall's height); top wall ring (the facets at the "
+        "crest); rim (outer flank); surround; each wall/rim part split into +-45 deg sectors by the azimuth its "
+        "slope faces (<i>equator_facing</i>: on the pole side, facing the equator and the Sun); never / rarely "
+        "(&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap.</p>",
     ]
     loose = summary["loose_profile"]
     if loose:
@@ -856,7 +912,8 @@ def sweep_pairs(folder) -> Tuple[List[Path], List[Path]]:
 def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: Optional[bool] = None,
                 instruments: Optional[Sequence[ins.Instrument]] = None,
                 observation: ins.Observation = ins.Observation(), threshold_K: float = an.NATURAL_SCATTER_K,
-                snapshots: bool = True) -> Path:
+                snapshots: bool = True, night_definition: str = "facet",
+                min_dark_hours: float = an.MIN_DARK_HOURS) -> Path:
     """Write figures, report.html and summary.json for a run and its replay.
 
     Parameters
@@ -878,6 +935,11 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         |dT| threshold for the fraction-above statistic (default the 0.94 K natural scatter).
     snapshots : bool
         Also render 3-D views with pyvista (a note replaces them if rendering fails).
+    night_definition : str
+        "facet" (default: no direct sunlight on the facet for ``min_dark_hours``), "centre" (the thesis:
+        Sun below the crater centre's horizon) or "facet_and_centre" (analysis.night_day_masks).
+    min_dark_hours : float [h]
+        Darkness a facet needs before its samples count as night (24 h).
 
     Returns
     -------
@@ -897,6 +959,10 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         raise ConfigError("need at least one instrument")
     if replay_ds is None:
         run_ds, replay_ds = sweep_pairs(run_ds)
+    if night_definition not in an.NIGHT_DEFINITIONS:
+        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(an.NIGHT_DEFINITIONS)}")
+    if not (np.isfinite(min_dark_hours) and min_dark_hours >= 0):
+        raise ConfigError(f"min_dark_hours={min_dark_hours} out of range [0, inf)")
     runs, reps = _as_list(run_ds), _as_list(replay_ds)
     if len(runs) != len(reps) or not runs:
         raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
@@ -905,7 +971,7 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
         runs = [_track(ctio.open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
         reps = [_track(ctio.open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
         return _make_report(runs, reps, out_dir, overwrite, progress, instruments, threshold_K,
-                            observation, snapshots)
+                            observation, snapshots, night_definition, min_dark_hours)
     finally:
         for ds in opened:
             ds.close()
@@ -917,7 +983,7 @@ def _track(ds, opened: list):
 
 
 def _make_report(runs, reps, out_dir: Path, overwrite, progress, instruments, threshold_K, observation,
-                 snapshots) -> Path:
+                 snapshots, night_definition="facet", min_dark_hours=an.MIN_DARK_HOURS) -> Path:
     for run, rep in zip(runs, reps):
         an.check_run(run, an.RUN_VARIABLES + ("solar_incident", "ir_incident"))
         an.check_pair(run, rep)
@@ -931,7 +997,8 @@ def _make_report(runs, reps, out_dir: Path, overwrite, progress, instruments, th
             if report is not None:
                 report(done[0], n_steps)
 
-        all_A = [_Analysis(r, p, threshold_K, advance) for r, p in zip(runs, reps)]
+        all_A = [_Analysis(r, p, threshold_K, advance, night_definition, min_dark_hours)
+                 for r, p in zip(runs, reps)]
         return _write_report(all_A, out_dir, overwrite, advance, instruments, observation, snapshots)
 
 

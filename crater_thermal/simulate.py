@@ -157,6 +157,16 @@ def seconds_since(times: np.ndarray, t0: np.datetime64) -> np.ndarray:
     return (np.asarray(times, "datetime64[ns]") - np.datetime64(t0, "ns")).astype(np.int64) / 1e9
 
 
+def absorbed_solar_of(flux_ds, incident: str = "solar_incident", rows=slice(None), cols=slice(None)) -> np.ndarray:
+    """Absorbed sunlight [W m-2] of a flux dataset (rows = samples, cols = facets): its ``solar_absorbed``
+    (``spinup_solar_absorbed`` for ``incident="spinup_solar_incident"``) when present (runs with an
+    incidence-dependent albedo), else ``(1 - albedo) incident`` (constant albedo, flux files of other tools)."""
+    name = incident.replace("solar_incident", "solar_absorbed")
+    if name in flux_ds:
+        return np.asarray(flux_ds[name][rows, cols].values, float)
+    return (1 - float(flux_ds.attrs["albedo"])) * flux_ds[incident][rows, cols].values
+
+
 def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
                   geothermal_flux: float | None = None, initial_temperature: float | None = None,
                   fixed_spinup: bool = False, chunk_columns: int = 50_000,
@@ -189,7 +199,6 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     """
     from crater_thermal import thermal
 
-    albedo = float(flux_ds.attrs["albedo"])
     eps = float(flux_ds.attrs["emissivity"])
     pset = property_set or str(flux_ds.attrs.get("property_set", "apollo"))
     qgeo = float(flux_ds.attrs.get("geothermal_flux", 0.033) if geothermal_flux is None else geothermal_flux)
@@ -234,11 +243,11 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
             if n_all <= rows:  # the whole window fits the budget: read it once
                 if which not in cache:
                     sol, ir = names[which]
-                    cache[which] = ((1 - albedo) * flux_ds[sol][:, f0:f1].values
+                    cache[which] = (absorbed_solar_of(flux_ds, sol, slice(None), slice(f0, f1))
                                     + eps * flux_ds[ir][:, f0:f1].values)
                 return cache[which][k0:k1]
             sol, ir = names[which]
-            return ((1 - albedo) * flux_ds[sol][k0:k1, f0:f1].values
+            return (absorbed_solar_of(flux_ds, sol, slice(k0, k1), slice(f0, f1))
                     + eps * flux_ds[ir][k0:k1, f0:f1].values)
 
         spin_which = "spin" if has_spin else "rec"
@@ -511,7 +520,7 @@ class Sunlight:
         timer = timer or Timer()
         sun = case.sun
         self.case, self.mesh, self.tracer = case, mesh, tracer
-        self.method = getattr(sun, "method", "rays")
+        self.method = getattr(sun, "method", "horizon")
         self.hmap = self.disk = None
         if self.method == "horizon":
             from crater_thermal import horizons
@@ -568,6 +577,33 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     with _stage(progress, "direct sunlight") as report:
         direct, solar = Sunlight(case, mesh, tracer, F, timer, progress)(sun_dirs, sun_dist, timer, report)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
+
+
+def absorbed_sunlight(case, mesh, sun_dirs, direct, scat, F):
+    """Incident and absorbed sunlight [W m-2] with an incidence-dependent albedo for direct light.
+
+    Direct sunlight is reflected with A(i) (``illumination.direct_albedo``, the case's ``albedo_model``);
+    scattered light, which arrives from many directions, with the case's albedo A0 (the normal-incidence
+    value, a lower bound of the hemispherical average of A(i)). Radiosity: B = A(i) E + A0 F B, so the
+    scattered irradiance is F (I - A0 F)^-1 A(i) E, computed with the A0 solver on the equivalent direct
+    flux A(i) E / A0. Returns ``(solar_incident, solar_absorbed)``, both (nt, nf):
+    ``solar_absorbed = (1 - A(i)) E + (1 - A0) (solar_incident - E)``.
+    """
+    from crater_thermal import illumination
+
+    A0 = float(case.surface.albedo)
+    A_dir = illumination.direct_albedo(mesh.normals, sun_dirs, A0, case.surface.albedo_model,
+                                       getattr(case.surface, "albedo_a", illumination.HAYNE2017_ALBEDO_A),
+                                       getattr(case.surface, "albedo_b", illumination.HAYNE2017_ALBEDO_B))
+    if scat is None:
+        scattered = np.zeros_like(direct)
+    elif A0 > 0:
+        equivalent = direct * (A_dir / A0)
+        scattered = np.maximum(scat.solar_incident(equivalent) - equivalent, 0.0)
+    else:  # no multiple scattering: one bounce of the directly reflected light
+        scattered = np.asarray((F @ (A_dir * direct).T).T)
+    solar = direct + scattered
+    return solar, (1.0 - A_dir) * direct + (1.0 - A0) * scattered
 
 
 def _case_fingerprint(case) -> str:
@@ -640,6 +676,11 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
 
     out_path = Path(out_path)
     ckpt_path = Path(checkpoint_path(out_path))
+    if getattr(case.surface, "albedo_model", "constant") != "constant":
+        # absorbed_sunlight() and the replay of solar_absorbed exist; the streamed run (SegmentStore) does not
+        # yet store an absorbed-sunlight series (issue 10, to be wired in)
+        raise ConfigError(f"albedo_model = {case.surface.albedo_model!r} is not yet supported by the streamed "
+                          "run; use albedo_model = \"constant\"")
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():

@@ -164,7 +164,10 @@ def test_latitude_statistics(pair):
     out = an.latitude_statistics([(run, rep), (run2, make_replay(run2))])
     assert set(out) == {-86.0, -80.0}
     assert out[-80.0]["profile"] == "800/1100"
-    assert set(out[-86.0]["night"]) == set(an.REGIONS)
+    assert set(out[-86.0]["night"]) == set(an.region_names(-86.0))
+    assert out[-86.0]["night_definition"] == "facet"
+    centre = an.latitude_statistics([(run, rep)], night_definition="centre", region_names=["floor"])
+    assert list(centre[-86.0]["night"]) == ["floor"]
 
 
 def test_local_solar_time_from_sun_direction():

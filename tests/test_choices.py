@@ -32,3 +32,9 @@ def test_thermal_uses_the_base_profile_parser():
     assert materials.DENSITY_LIMITS is profiles.DENSITY_LIMITS
     for label in ("1300/1800", "rock", "hayne2017", "1500"):
         assert thermal.parse_profile(label, warn=False) == profiles.parse_profile(label)
+
+
+def test_albedo_models_are_implemented():
+    assert illumination.ALBEDO_MODELS is choices.ALBEDO_MODELS
+    for model in choices.ALBEDO_MODELS:
+        assert illumination.direct_albedo([[0.0, 0.0, 1.0]], [[0.0, 0.0, 1.0]], 0.12, model).shape == (1, 1)

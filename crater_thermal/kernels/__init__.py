@@ -5,5 +5,7 @@ status codes or flags, and the wrapping physics module turns them into exception
 
 * :mod:`~crater_thermal.kernels.conduction`: 1-D nonlinear heat conduction (wrapped by ``thermal``);
 * :mod:`~crater_thermal.kernels.viewfactors`: view-factor quadrature and sparse assembly (``viewfactors``);
-* :mod:`~crater_thermal.kernels.illumination`: direct-sunlight ray candidates (``illumination``).
+* :mod:`~crater_thermal.kernels.illumination`: direct-sunlight ray candidates (``illumination``);
+* :mod:`~crater_thermal.kernels.horizons`: horizon bisection, disk-segment tables and the per-step
+  direct flux from horizon maps (``horizons``).
 """
