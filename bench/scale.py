@@ -220,6 +220,43 @@ def exponent(x, y) -> float:
     return math.log(y2 / y1) / math.log(x2 / x1)
 
 
+def summarize(results: list, args) -> dict:
+    """The JSON summary of the sizes finished so far."""
+    facets = [r["facets"] for r in results]
+    total = [r["year_s"] for r in results]
+    peak = [r["peak_memory_mb"] for r in results]
+    summary = {
+        "benchmark": "scale",
+        "facets": facets,
+        "total_s": total,
+        "peak_memory_mb": peak,
+        "time_exponent": exponent(facets, total) if len(results) >= 2 else None,
+        "memory_exponent": exponent(facets, peak) if len(results) >= 2 else None,
+        "stages_s": [r["year_stages_s"] for r in results],
+        "extrapolated": [r["extrapolated"] for r in results],
+        "measured_total_s": [r["total_s"] for r in results],
+        "measured_stages_s": [r["stages_s"] for r in results],
+        "stage_peak_mb": [r["stage_peak_mb"] for r in results],
+        "conduction_step_s": [r.get("conduction_step_s") for r in results],
+        "quasi_newton_pass_s": [r.get("quasi_newton_pass_s") for r in results],
+        "periodic_iterations": [r["periodic_iterations"] for r in results],
+        "samples": [r["samples"] for r in results],
+        "run_nc_mb": [r["run_nc_mb"] for r in results],
+        "rss_before_run_mb": [r["rss_before_run_mb"] for r in results],
+        "ru_maxrss_children_mb": [r["ru_maxrss_children_mb"] for r in results],
+        "loadavg": [r["loadavg"] for r in results],
+        "case": {"diameter_km": args.diameter_km, "surround_km": args.surround_km, "lat_deg": args.lat_deg,
+                 "flux_step_hours": 4.0, "mode": "quick (year extrapolated)" if args.quick else "full year",
+                 "record_days": args.record_days if args.quick else 365.0,
+                 "windows_assumed": args.windows if args.quick else None,
+                 "sun_method": args.sun_method or "case default",
+                 "view_factors": args.view_factors or "case default", "chunk_mb": args.chunk_mb},
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
+        "targets": {"100k_total_s": 1800, "100k_peak_mb": 8192, "exponent_30k_100k": 1.2},
+    }
+    return summary
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 30_000, 100_000])
@@ -266,45 +303,14 @@ def main(argv=None) -> dict:
         # the largest peak RSS of any child so far [MB] (a cross-check of VmHWM)
         res["ru_maxrss_children_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
         results.append(res)
+        if args.out:  # after every size: a run stopped before the largest one keeps the others
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.out).write_text(json.dumps(summarize(results, args), indent=1) + "\n")
         stages = json.dumps({k: round(v, 1) for k, v in res["stages_s"].items()})
         print(f"# {res['facets']} facets: measured {res['total_s']:.1f} s, year {res['year_s']:.0f} s, "
               f"peak {res['peak_memory_mb']:.0f} MB, stages {stages}", file=sys.stderr, flush=True)
 
-    facets = [r["facets"] for r in results]
-    total = [r["year_s"] for r in results]
-    peak = [r["peak_memory_mb"] for r in results]
-    summary = {
-        "benchmark": "scale",
-        "facets": facets,
-        "total_s": total,
-        "peak_memory_mb": peak,
-        "time_exponent": exponent(facets, total) if len(results) >= 2 else None,
-        "memory_exponent": exponent(facets, peak) if len(results) >= 2 else None,
-        "stages_s": [r["year_stages_s"] for r in results],
-        "extrapolated": [r["extrapolated"] for r in results],
-        "measured_total_s": [r["total_s"] for r in results],
-        "measured_stages_s": [r["stages_s"] for r in results],
-        "stage_peak_mb": [r["stage_peak_mb"] for r in results],
-        "conduction_step_s": [r.get("conduction_step_s") for r in results],
-        "quasi_newton_pass_s": [r.get("quasi_newton_pass_s") for r in results],
-        "periodic_iterations": [r["periodic_iterations"] for r in results],
-        "samples": [r["samples"] for r in results],
-        "run_nc_mb": [r["run_nc_mb"] for r in results],
-        "rss_before_run_mb": [r["rss_before_run_mb"] for r in results],
-        "ru_maxrss_children_mb": [r["ru_maxrss_children_mb"] for r in results],
-        "loadavg": [r["loadavg"] for r in results],
-        "case": {"diameter_km": args.diameter_km, "surround_km": args.surround_km, "lat_deg": args.lat_deg,
-                 "flux_step_hours": 4.0, "mode": "quick (year extrapolated)" if args.quick else "full year",
-                 "record_days": args.record_days if args.quick else 365.0,
-                 "windows_assumed": args.windows if args.quick else None,
-                 "sun_method": args.sun_method or "case default",
-                 "view_factors": args.view_factors or "case default", "chunk_mb": args.chunk_mb},
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
-        "targets": {"100k_total_s": 1800, "100k_peak_mb": 8192, "exponent_30k_100k": 1.2},
-    }
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(summary, indent=1) + "\n")
+    summary = summarize(results, args)
     print(json.dumps(summary))
     return summary
 
