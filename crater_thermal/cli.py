@@ -188,6 +188,7 @@ def steady(
     scattering: str = typer.Option("exact", "--scattering", help="exact | bounces."),
     n_bounces: int = typer.Option(3, "--bounces", help="Reflections kept with --scattering bounces."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Folder caching view factors by mesh hash."),
+    flip: bool = typer.Option(False, "--flip", help="Reverse every facet's winding (normals pointing down)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output netCDF file."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
 ) -> None:
@@ -197,7 +198,7 @@ def steady(
     path, res = steady_mod.steady_file(
         mesh, output, sun_elevation_deg, sun_azimuth_deg, albedo=albedo, emissivity=emissivity,
         solar_constant=solar_constant, point_sun=point_sun, limb_darkening=limb_darkening, n_rings=n_rings,
-        method=scattering, n_bounces=n_bounces, cache_dir=cache_dir, overwrite=overwrite,
+        method=scattering, n_bounces=n_bounces, cache_dir=cache_dir, overwrite=overwrite, flip=flip,
     )
     T = res["surface_temperature"]
     typer.echo(f"wrote {path}: {T.size} facets, surface temperature {T.min():.2f} to {T.max():.2f} K")

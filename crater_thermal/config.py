@@ -210,6 +210,8 @@ SCHEMA: Tuple[Key, ...] = (
       hi=100.0, only=("kind", ("crater",)), field_default=0.0),
     K("crater", "mesh", "file", REQUIRED, "`.ply`/`.obj`/`.stl` in metres, x east, y north, z up; "
       "**relative to the case file**", only=("kind", ("mesh",))),
+    K("crater", "flip", "bool", False, "reverse every facet's winding (a mesh file whose normals point down, "
+      "which is refused otherwise)", only=("kind", ("mesh",)), field_default=False),
     K("crater", "dem", "file", REQUIRED, "digital elevation model: GeoTIFF, PDS3 `.LBL`/`.IMG` (LOLA `LDEM_*`), any "
       "GDAL raster with a projected lunar CRS; **relative to the case file**", only=("kind", ("dem",))),
     K("crater", "center_lat_deg", "float", None, "site centre latitude (as `mesh dem --center-lat`); must "
@@ -386,7 +388,7 @@ class Crater:
     diameter_km : float or None [km]  rim diameter (kind "crater")
     facets : int or None  number of triangles (kind "crater")
     surround_km : float [km]  flat plain around the rim (kind "crater")
-    mesh : Path or None  absolute path of the mesh file (kind "mesh")
+    mesh : Path or None  absolute path of the mesh file (kind "mesh"); flip : bool  reverse its winding
     dem : Path or None  absolute path of the DEM (kind "dem"); center_lat_deg, center_lon_deg [deg] (None:
         the location), radius_km [km], resolution_m [m], outer_radius_km [km], outer_resolution_m [m],
         height_kind, max_facets: the site mesh (terrain.site_mesh)

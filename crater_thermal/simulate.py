@@ -329,7 +329,7 @@ def case_mesh(case):
 
     c = case.crater
     if getattr(c, "mesh", None):
-        return geometry.load_mesh(c.mesh)
+        return geometry.load_mesh(c.mesh, flip=bool(getattr(c, "flip", False)))
     if getattr(c, "kind", "crater") == "flat":
         return geometry.flat_mesh()
     if getattr(c, "kind", "crater") == "dem":

@@ -107,8 +107,7 @@ def test_single_facet_and_flat_plains():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("n_threads", [1, 2])
-def test_pcc_topo81_regression(n_threads):
+def test_pcc_topo81_regression():
     """The terrain that crashed (12,800 facets, segfault in the assembly) now gives a valid matrix.
 
     Ingersoll-like check on top: the bowl's floor at a 10 deg Sun is in shadow, lit only by
@@ -117,7 +116,7 @@ def test_pcc_topo81_regression(n_threads):
     """
     mesh = pcc_topo81()
     assert mesh.n_facets == 12_800
-    tracer = RayTracer(mesh, n_threads=n_threads)
+    tracer = RayTracer(mesh)  # default threads: the chunks are filled concurrently, as in production
     F = view_factor_matrix(mesh, tracer)
     assert check_reciprocity(F, mesh) <= 1e-12
     rs = row_sums(F)
@@ -127,13 +126,12 @@ def test_pcc_topo81_regression(n_threads):
     # the plain beyond the rim sees nothing: exactly 0, up to the ~1e-17 round-off of the contour
     # integral between coplanar neighbours (near pairs)
     assert rs[outside].max() < 1e-15
-    if n_threads == 1:
-        res = radiosity.steady_state(mesh, F, tracer, sun_direction_from_angles(10.0, 180.0), AU)
-        T = res["surface_temperature"]
-        assert np.all(np.isfinite(T))
-        shadowed = (res["solar_direct"] == 0.0) & ~flat
-        assert shadowed.any()
-        assert 40.0 < T[shadowed].min() and T[shadowed].max() < T.max()
+    res = radiosity.steady_state(mesh, F, tracer, sun_direction_from_angles(10.0, 180.0), AU)
+    T = res["surface_temperature"]
+    assert np.all(np.isfinite(T))
+    shadowed = (res["solar_direct"] == 0.0) & ~flat
+    assert shadowed.any()
+    assert 40.0 < T[shadowed].min() and T[shadowed].max() < T.max()
 
 
 @pytest.mark.slow
@@ -144,3 +142,29 @@ def test_plain_with_bowl_20k():
     mesh = grid_mesh(x, x, spherical_bowl(np.hypot(X, Y), 300.0, 0.2))
     assert mesh.n_facets == 20_000
     _check(mesh, steady=False)
+
+
+def test_downward_mesh_refused_then_flipped(tmp_path):
+    """A terrain saved with reversed winding is refused with a one-line error naming --flip (exit 2);
+    ``--flip`` on the command line and ``flip = true`` in a case load it with upward normals."""
+    import subprocess
+    import sys
+
+    from crater_thermal.config import loads_case
+    from crater_thermal.geometry import Mesh, save_mesh
+    from crater_thermal.simulate import case_mesh
+
+    x = np.linspace(-50, 50, 5)
+    X, Y = np.meshgrid(x, x)
+    up = grid_mesh(x, x, spherical_bowl(np.hypot(X, Y), 80.0, 0.2))
+    save_mesh(Mesh(up.vertices, up.faces[:, ::-1]), tmp_path / "down.ply")
+    cmd = [sys.executable, "-m", "crater_thermal", "steady", str(tmp_path / "down.ply"), "--sun-elevation-deg", "30"]
+    bad = subprocess.run(cmd + ["-o", str(tmp_path / "a.nc")], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--flip" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "a.nc").exists()
+    good = subprocess.run(cmd + ["--flip", "-o", str(tmp_path / "b.nc")], capture_output=True, text=True)
+    assert good.returncode == 0, good.stderr
+    text = ('[crater]\nkind = "mesh"\nmesh = "down.ply"\nflip = true\n[location]\nlat_deg = -85.0\n'
+            '[period]\nstart = "2019-01-01"\nend = "2019-01-02"\n')
+    mesh = case_mesh(loads_case(text, base_dir=tmp_path))
+    assert mesh.normals[:, 2].min() > 0.0
