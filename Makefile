@@ -25,6 +25,7 @@ run: $(STAMP)
 # Lint (ruff, config in pyproject.toml) and the import contracts (layering, [tool.importlinter]).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports
 
 test: lint

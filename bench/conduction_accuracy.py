@@ -49,21 +49,28 @@ def main():
     settled = (ph > 0.25 + 1 / 29.5) & (ph < 0.75) & late
     first_day = (ph > 0.25) & (ph <= 0.25 + 1 / 29.5) & late
     rows = []
-    for frac, dt, growth, scheme in [(1, 14400.0, thermal.DEFAULT_GROWTH, "trbdf2"),
-                                     (0.5, 7200.0, thermal.DEFAULT_GROWTH, "trbdf2"),
-                                     (1, 14400.0, 1.2, "trbdf2"),
-                                     (1, 14400.0, 1.1, "trbdf2"),
-                                     (1, 14400.0, thermal.DEFAULT_GROWTH, "euler"),
-                                     (1, 3600.0, thermal.DEFAULT_GROWTH, "euler")]:
+    for frac, dt, growth, scheme in [
+        (1, 14400.0, thermal.DEFAULT_GROWTH, "trbdf2"),
+        (0.5, 7200.0, thermal.DEFAULT_GROWTH, "trbdf2"),
+        (1, 14400.0, 1.2, "trbdf2"),
+        (1, 14400.0, 1.1, "trbdf2"),
+        (1, 14400.0, thermal.DEFAULT_GROWTH, "euler"),
+        (1, 3600.0, thermal.DEFAULT_GROWTH, "euler"),
+    ]:
         nz, T = run(f0 * frac, dt, growth, scheme, t, Q)
         err = np.abs(T - ref)
-        rows.append({
-            "first_layer_m": f0 * frac, "dt_s": dt, "growth": growth, "scheme": scheme, "nz": nz,
-            "columns": [f"{p} {k}" for p, k in zip(PROFS, KINDS)],
-            "settled_night_max_err_K": [round(float(err[settled, j].max()), 4) for j in range(6)],
-            "first_day_after_sunset_max_err_K": [round(float(err[first_day, j].max()), 4)
-                                                 for j in range(6)],
-        })
+        rows.append(
+            {
+                "first_layer_m": f0 * frac,
+                "dt_s": dt,
+                "growth": growth,
+                "scheme": scheme,
+                "nz": nz,
+                "columns": [f"{p} {k}" for p, k in zip(PROFS, KINDS)],
+                "settled_night_max_err_K": [round(float(err[settled, j].max()), 4) for j in range(6)],
+                "first_day_after_sunset_max_err_K": [round(float(err[first_day, j].max()), 4) for j in range(6)],
+            }
+        )
         print(rows[-1])
     result = {"reference": {"dt_s": 450.0, "first_layer_m": f0 / 4, "growth": 1.03}, "runs": rows}
     out = ROOT / "bench" / "results" / "conduction_accuracy.json"

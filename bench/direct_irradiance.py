@@ -55,10 +55,21 @@ def main():
     E = il.direct_irradiance(mesh, tracer, s, r, disk=disk)
     wall = time.perf_counter() - t0
     evals = a.steps * mesh.n_facets * disk.n_patches
-    print(json.dumps({"lat_deg": a.lat, "steps": a.steps, "facets": mesh.n_facets, "patches": disk.n_patches,
-                      "wall_s": round(wall, 2), "rays_traced": calls["rays"],
-                      "evaluations_per_s": round(evals / wall), "rays_per_s": round(calls["rays"] / wall),
-                      "mean_direct_W_m2": float(E.mean())}))
+    print(
+        json.dumps(
+            {
+                "lat_deg": a.lat,
+                "steps": a.steps,
+                "facets": mesh.n_facets,
+                "patches": disk.n_patches,
+                "wall_s": round(wall, 2),
+                "rays_traced": calls["rays"],
+                "evaluations_per_s": round(evals / wall),
+                "rays_per_s": round(calls["rays"] / wall),
+                "mean_direct_W_m2": float(E.mean()),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -116,8 +116,7 @@ def main(argv=None) -> dict:
     if args.rough:
         rows.append(_one(f"rough_{args.facets[0]}", rough_site(args.facets[0]), s, r, args.n_azimuths))
         print(json.dumps(rows[-1]), flush=True)
-    result = {"benchmark": "horizons", "python": platform.python_version(), "machine": platform.machine(),
-              "rows": rows}
+    result = {"benchmark": "horizons", "python": platform.python_version(), "machine": platform.machine(), "rows": rows}
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")

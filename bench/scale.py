@@ -157,15 +157,33 @@ def run_one(args) -> dict:
     with tempfile.TemporaryDirectory(prefix="scale_", dir=args.workdir) as tmp:
         tmp = Path(tmp)
         case_path = tmp / "case.toml"
-        case_path.write_text(CASE.format(facets=args.one, diameter_km=args.diameter_km, surround_km=args.surround_km,
-                                         lat_deg=args.lat_deg, chunk_mb=args.chunk_mb, extra=extra, end=end,
-                                         spinup=spinup))
+        case_path.write_text(
+            CASE.format(
+                facets=args.one,
+                diameter_km=args.diameter_km,
+                surround_km=args.surround_km,
+                lat_deg=args.lat_deg,
+                chunk_mb=args.chunk_mb,
+                extra=extra,
+                end=end,
+                spinup=spinup,
+            )
+        )
         os.environ.setdefault("CRATER_THERMAL_CACHE", str(tmp / "cache"))  # a cold cache: every stage is paid
         # warm-up on a small crater (not timed): imports, numba compilation or cache loads, ephemeris tables
         warm = tmp / "warm.toml"
-        warm.write_text(CASE.format(facets=300, diameter_km=args.diameter_km, surround_km=args.surround_km,
-                                    lat_deg=args.lat_deg, chunk_mb=args.chunk_mb, extra=extra,
-                                    end="2019-01-02T00:00", spinup='spinup = "fixed"\nspinup_days = 1.0'))
+        warm.write_text(
+            CASE.format(
+                facets=300,
+                diameter_km=args.diameter_km,
+                surround_km=args.surround_km,
+                lat_deg=args.lat_deg,
+                chunk_mb=args.chunk_mb,
+                extra=extra,
+                end="2019-01-02T00:00",
+                spinup='spinup = "fixed"\nspinup_days = 1.0',
+            )
+        )
         simulate.run_case(config.load_case(warm), tmp / "warm.nc")
         case = config.load_case(case_path)
         timer = StageTimer()
@@ -183,9 +201,19 @@ def run_one(args) -> dict:
             nf, nt = ds.sizes["facet"], ds.sizes["time"]
             ns = ds.sizes.get("spinup_time", 0)
             iterations = int(ds.attrs.get("spinup_iterations", -1))
-    res = {"facets": nf, "samples": nt, "spinup_samples": ns, "total_s": total, "stages_s": dict(timer.split),
-           "stage_peak_mb": timer.peak_mb, "peak_memory_mb": peak, "periodic_iterations": iterations,
-           "run_nc_mb": size_mb, "rss_before_run_mb": rss0, "loadavg": [list(load0), list(os.getloadavg())]}
+    res = {
+        "facets": nf,
+        "samples": nt,
+        "spinup_samples": ns,
+        "total_s": total,
+        "stages_s": dict(timer.split),
+        "stage_peak_mb": timer.peak_mb,
+        "peak_memory_mb": peak,
+        "periodic_iterations": iterations,
+        "run_nc_mb": size_mb,
+        "rss_before_run_mb": rss0,
+        "loadavg": [list(load0), list(os.getloadavg())],
+    }
     if args.quick:
         res["quasi_newton_pass_s"] = quasi_newton_pass_s(nf)
     return res
@@ -203,15 +231,18 @@ def extrapolate_year(res: dict, args) -> dict:
         if name in FIXED_STAGES:
             stages[name] = secs
         elif name == "conduction_spinup":
-            stages[name] = (args.windows * YEAR_STEPS * conduction_step_s
-                            + args.windows * res["quasi_newton_pass_s"])
+            stages[name] = args.windows * YEAR_STEPS * conduction_step_s + args.windows * res["quasi_newton_pass_s"]
         elif name == "conduction_record":
             stages[name] = YEAR_STEPS * conduction_step_s
         else:  # sunlight, scattering, ephemeris, I/O: per flux sample
             stages[name] = secs * n_year / n_run
     untimed = res["total_s"] - sum(res["stages_s"].values())  # solver set-up, checkpoints outside timers
-    return {"extrapolated": True, "year_s": sum(stages.values()) + untimed, "year_stages_s": stages,
-            "conduction_step_s": conduction_step_s}
+    return {
+        "extrapolated": True,
+        "year_s": sum(stages.values()) + untimed,
+        "year_stages_s": stages,
+        "conduction_step_s": conduction_step_s,
+    }
 
 
 def exponent(x, y) -> float:
@@ -245,12 +276,18 @@ def summarize(results: list, args) -> dict:
         "rss_before_run_mb": [r["rss_before_run_mb"] for r in results],
         "ru_maxrss_children_mb": [r["ru_maxrss_children_mb"] for r in results],
         "loadavg": [r["loadavg"] for r in results],
-        "case": {"diameter_km": args.diameter_km, "surround_km": args.surround_km, "lat_deg": args.lat_deg,
-                 "flux_step_hours": 4.0, "mode": "quick (year extrapolated)" if args.quick else "full year",
-                 "record_days": args.record_days if args.quick else 365.0,
-                 "windows_assumed": args.windows if args.quick else None,
-                 "sun_method": args.sun_method or "case default",
-                 "view_factors": args.view_factors or "case default", "chunk_mb": args.chunk_mb},
+        "case": {
+            "diameter_km": args.diameter_km,
+            "surround_km": args.surround_km,
+            "lat_deg": args.lat_deg,
+            "flux_step_hours": 4.0,
+            "mode": "quick (year extrapolated)" if args.quick else "full year",
+            "record_days": args.record_days if args.quick else 365.0,
+            "windows_assumed": args.windows if args.quick else None,
+            "sun_method": args.sun_method or "case default",
+            "view_factors": args.view_factors or "case default",
+            "chunk_mb": args.chunk_mb,
+        },
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
         "targets": {"100k_total_s": 1800, "100k_peak_mb": 8192, "exponent_30k_100k": 1.2},
     }
@@ -264,8 +301,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--surround-km", type=float, default=5.0)
     ap.add_argument("--lat-deg", type=float, default=-86.0)
     ap.add_argument("--sun-method", default=None, help="[sun] method of the case (default: the case default)")
-    ap.add_argument("--view-factors", default=None,
-                    help="[radiation] view_factors of the case (default: the case default)")
+    ap.add_argument(
+        "--view-factors", default=None, help="[radiation] view_factors of the case (default: the case default)"
+    )
     ap.add_argument("--chunk-mb", type=float, default=256.0)
     ap.add_argument("--quick", action="store_true", help="short run, the year extrapolated (module docstring)")
     ap.add_argument("--record-days", type=float, default=5.0, help="--quick: recorded days")
@@ -282,11 +320,29 @@ def main(argv=None) -> dict:
 
     results = []
     for n in args.sizes:
-        cmd = [sys.executable, __file__, "--one", str(n), "--diameter-km", str(args.diameter_km),
-               "--surround-km", str(args.surround_km), "--lat-deg", str(args.lat_deg), "--chunk-mb", str(args.chunk_mb),
-               "--record-days", str(args.record_days), "--windows", str(args.windows)]
-        for flag, value in (("--sun-method", args.sun_method), ("--view-factors", args.view_factors),
-                            ("--workdir", args.workdir)):
+        cmd = [
+            sys.executable,
+            __file__,
+            "--one",
+            str(n),
+            "--diameter-km",
+            str(args.diameter_km),
+            "--surround-km",
+            str(args.surround_km),
+            "--lat-deg",
+            str(args.lat_deg),
+            "--chunk-mb",
+            str(args.chunk_mb),
+            "--record-days",
+            str(args.record_days),
+            "--windows",
+            str(args.windows),
+        ]
+        for flag, value in (
+            ("--sun-method", args.sun_method),
+            ("--view-factors", args.view_factors),
+            ("--workdir", args.workdir),
+        ):
             if value:
                 cmd += [flag, value]
         cmd += ["--quick"] if args.quick else []
@@ -307,8 +363,12 @@ def main(argv=None) -> dict:
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)
             Path(args.out).write_text(json.dumps(summarize(results, args), indent=1) + "\n")
         stages = json.dumps({k: round(v, 1) for k, v in res["stages_s"].items()})
-        print(f"# {res['facets']} facets: measured {res['total_s']:.1f} s, year {res['year_s']:.0f} s, "
-              f"peak {res['peak_memory_mb']:.0f} MB, stages {stages}", file=sys.stderr, flush=True)
+        print(
+            f"# {res['facets']} facets: measured {res['total_s']:.1f} s, year {res['year_s']:.0f} s, "
+            f"peak {res['peak_memory_mb']:.0f} MB, stages {stages}",
+            file=sys.stderr,
+            flush=True,
+        )
 
     summary = summarize(results, args)
     print(json.dumps(summary))

@@ -60,17 +60,22 @@ method = "{sun_method}"
 
 def _run(tmp: Path, name: str, crater: str, end: str, spinup_days: float, sun_method: str) -> dict:
     path = tmp / f"{name}.toml"
-    path.write_text(CASE.format(name=name, crater=crater, lat=LAT, lon=LON, end=end, spinup_days=spinup_days,
-                                sun_method=sun_method))
+    path.write_text(
+        CASE.format(name=name, crater=crater, lat=LAT, lon=LON, end=end, spinup_days=spinup_days, sun_method=sun_method)
+    )
     case = config.load_case(path)
     timer = simulate.Timer()
     t = time.perf_counter()
     out = simulate.run_case(case, tmp / f"{name}.nc", progress=False, timer=timer)
     total = time.perf_counter() - t
     ds = io.open_run(out)
-    res = {"total_s": round(total, 2), "n_facets": int(ds.sizes["facet"]), "n_times": int(ds.sizes["time"]),
-           "spinup_iterations": int(ds.attrs.get("spinup_iterations", -1)),
-           "split_s": {k: round(v, 2) for k, v in timer.split.items()}}
+    res = {
+        "total_s": round(total, 2),
+        "n_facets": int(ds.sizes["facet"]),
+        "n_times": int(ds.sizes["time"]),
+        "spinup_iterations": int(ds.attrs.get("spinup_iterations", -1)),
+        "split_s": {k: round(v, 2) for k, v in timer.split.items()},
+    }
     ds.close()
     return res
 
@@ -88,17 +93,24 @@ def main() -> None:
     end = str(np.datetime64("2019-01-01T00:00:00") + np.timedelta64(int(round(args.record_days * 86400)), "s"))
     # resolution for ~facets over the 15 km disk: n ~ 7.26 (R / H)^2 (terrain's equilateral lattice)
     H = RADIUS_KM * 1e3 * math.sqrt(4.0 * math.pi / math.sqrt(3.0) / args.facets)
-    result = {"description": f"synthetic site at {LAT} deg, {LON} deg: 30 km across (radius {RADIUS_KM} km), "
-                             "100 m DEM pixels, 10 km and 4 km craters, 15 m RMS roughness",
-              "resolution_m": round(H, 1), "record_days": args.record_days, "spinup_days": args.spinup_days,
-              "sun_method": args.sun_method, "cpu_count": os.cpu_count(), "load_average_at_start": os.getloadavg()[0]}
+    result = {
+        "description": f"synthetic site at {LAT} deg, {LON} deg: 30 km across (radius {RADIUS_KM} km), "
+        "100 m DEM pixels, 10 km and 4 km craters, 15 m RMS roughness",
+        "resolution_m": round(H, 1),
+        "record_days": args.record_days,
+        "spinup_days": args.spinup_days,
+        "sun_method": args.sun_method,
+        "cpu_count": os.cpu_count(),
+        "load_average_at_start": os.getloadavg()[0],
+    }
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        z, tr, wkt = terrain.synthetic_heights(LAT, LON, 40.0, 100.0, craters=[(10.0, 0.0, 0.0), (4.0, 8.0, -6.0)],
-                                               roughness_m=15.0, seed=1)
+        z, tr, wkt = terrain.synthetic_heights(
+            LAT, LON, 40.0, 100.0, craters=[(10.0, 0.0, 0.0), (4.0, 8.0, -6.0)], roughness_m=15.0, seed=1
+        )
         dem = terrain.write_geotiff(tmp / "site.tif", z, tr, wkt)
         # warm-up: numba compilation is not what we measure
-        warm = ('kind = "dem"\ndem = "site.tif"\nradius_km = 2.0\nresolution_m = 400.0')
+        warm = 'kind = "dem"\ndem = "site.tif"\nradius_km = 2.0\nresolution_m = 400.0'
         _run(tmp, "warm", warm, "2019-01-02T00:00:00", 29.53, args.sun_method)
         t = time.perf_counter()
         mesh = terrain.site_mesh(dem, LAT, LON, RADIUS_KM, H)
@@ -113,7 +125,8 @@ def main() -> None:
             cr = _run(tmp, "crater", 'kind = "mesh"\nmesh = "crater.ply"', end, args.spinup_days, args.sun_method)
             result["crater"] = cr
             result["per_facet_ratio_site_over_crater"] = round(
-                (site["total_s"] / site["n_facets"]) / (cr["total_s"] / cr["n_facets"]), 3)
+                (site["total_s"] / site["n_facets"]) / (cr["total_s"] / cr["n_facets"]), 3
+            )
     result["peak_rss_GB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 3)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

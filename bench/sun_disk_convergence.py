@@ -45,8 +45,11 @@ def self_shadow(disk):
         g = np.linspace(-1.1 * ALPHA, 1.1 * ALPHA, 201)
         el = g - tilt
         s = np.stack([np.zeros_like(el), -np.cos(el), np.sin(el)], 1)
-        out.append(il.direct_irradiance(_Facet([0, -np.sin(tilt), np.cos(tilt)]), _Tracer(False), s,
-                                        np.full(g.size, AU), 1.0, disk)[:, 0])
+        out.append(
+            il.direct_irradiance(
+                _Facet([0, -np.sin(tilt), np.cos(tilt)]), _Tracer(False), s, np.full(g.size, AU), 1.0, disk
+            )[:, 0]
+        )
     return np.concatenate(out)
 
 
@@ -71,10 +74,18 @@ def main():
             disk = il.sun_disk(n, law)
             e = np.abs(self_shadow(disk) - ref) / np.sin(ALPHA)
             tmax, tmean = terrain(disk, law)
-            print(json.dumps({"law": law, "n_rings": n, "patches": disk.n_patches,
-                              "self_shadow_max_err_of_S_sin_alpha": round(float(e.max()), 5),
-                              "terrain_fraction_max_err": round(tmax, 5),
-                              "terrain_fraction_mean_err": round(tmean, 5)}))
+            print(
+                json.dumps(
+                    {
+                        "law": law,
+                        "n_rings": n,
+                        "patches": disk.n_patches,
+                        "self_shadow_max_err_of_S_sin_alpha": round(float(e.max()), 5),
+                        "terrain_fraction_max_err": round(tmax, 5),
+                        "terrain_fraction_mean_err": round(tmean, 5),
+                    }
+                )
+            )
 
 
 if __name__ == "__main__":

@@ -93,9 +93,17 @@ def child(method: str, n: int, tol: float, out_npz: str) -> dict:
     op @ X
     matmat16 = time.perf_counter() - t
     np.savez(out_npz, **prods)
-    res = {"method": method, "facets": mesh.n_facets, "build_s": build_s, "build_cpu_s": build_cpu_s,
-           "nbytes": int(op.nbytes), "rss_before_mb": rss0, "peak_rss_mb": peak,
-           "matvec_s": float(np.median(times)), "matmat16_s": matmat16}
+    res = {
+        "method": method,
+        "facets": mesh.n_facets,
+        "build_s": build_s,
+        "build_cpu_s": build_cpu_s,
+        "nbytes": int(op.nbytes),
+        "rss_before_mb": rss0,
+        "peak_rss_mb": peak,
+        "matvec_s": float(np.median(times)),
+        "matmat16_s": matmat16,
+    }
     if method == "exact":
         res["nnz"] = int(op.nnz)
     else:
@@ -173,8 +181,9 @@ def main(argv=None) -> dict:
         "errors": errors,
         "exponents": {
             "exact": {k: _exponent(ok_e, k) for k in ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb", "matvec_s")},
-            "compressed": {k: _exponent(ok_c, k) for k in ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb",
-                                                           "matvec_s")},
+            "compressed": {
+                k: _exponent(ok_c, k) for k in ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb", "matvec_s")
+            },
         },
         "load_average_start": load0,
         "load_average_end": os.getloadavg(),

@@ -72,8 +72,26 @@ def main(argv=None) -> dict:
         pj_ = np.empty(cap, np.int32)
         kk = np.empty(cap)
         need = np.empty(cap, np.bool_)
-        n = vf_kernels.candidate_pairs(i0, i1, C, mesh.normals, mesh.facet_size, mesh.areas, P, V, mesh.faces,
-                                       bary, vf.NEAR_DISTANCE_FACTOR, vf.COS_CUTOFF, o, d, pi_, pj_, kk, need)
+        n = vf_kernels.candidate_pairs(
+            i0,
+            i1,
+            C,
+            mesh.normals,
+            mesh.facet_size,
+            mesh.areas,
+            P,
+            V,
+            mesh.faces,
+            bary,
+            vf.NEAR_DISTANCE_FACTOR,
+            vf.COS_CUTOFF,
+            o,
+            d,
+            pi_,
+            pj_,
+            kk,
+            need,
+        )
         return o[:n].copy(), d[:n].copy(), np.ones(n, np.float32)
 
     rays = [prepare(c) for c in chunks]

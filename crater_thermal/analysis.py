@@ -87,8 +87,7 @@ def check_run(ds, required: Iterable[str] = RUN_VARIABLES) -> None:
     """Raise :class:`FluxFileError` if the run dataset lacks a required variable."""
     missing = [v for v in required if not has_variable(ds, v)]
     if missing:
-        raise FluxFileError(f"run dataset is missing variable(s) {', '.join(missing)}; "
-                            f"required: {', '.join(required)}")
+        raise FluxFileError(f"run dataset is missing variable(s) {', '.join(missing)}; required: {', '.join(required)}")
 
 
 def check_pair(run, replay) -> None:
@@ -102,20 +101,24 @@ def check_pair(run, replay) -> None:
     check_run(run)
     missing = [v for v in REPLAY_VARIABLES if not has_variable(replay, v)]
     if missing:
-        raise FluxFileError(f"replay dataset is missing variable(s) {', '.join(missing)}; "
-                            f"required: {', '.join(REPLAY_VARIABLES)}")
+        raise FluxFileError(
+            f"replay dataset is missing variable(s) {', '.join(missing)}; required: {', '.join(REPLAY_VARIABLES)}"
+        )
     h_run, h_rep = run.attrs.get("mesh_hash"), replay.attrs.get("mesh_hash")
     if h_run is None or h_rep is None:
         raise FluxFileError("mesh_hash attribute missing from run or replay dataset; cannot check they match")
     if str(h_run) != str(h_rep):
-        raise FluxFileError(f"replay mesh_hash={h_rep} does not match run mesh_hash={h_run}; "
-                            "the replay must be made from this run")
+        raise FluxFileError(
+            f"replay mesh_hash={h_rep} does not match run mesh_hash={h_run}; the replay must be made from this run"
+        )
     t_run = np.asarray(run["time"].values)
     t_rep = np.asarray(replay["time"].values)
     if t_run.shape != t_rep.shape or not np.array_equal(t_run, t_rep):
-        raise FluxFileError(f"replay time axis ({t_rep.size} samples) does not match the run's "
-                            f"({t_run.size} samples from {t_run[0] if t_run.size else '-'}); "
-                            "the replay must cover the run's times")
+        raise FluxFileError(
+            f"replay time axis ({t_rep.size} samples) does not match the run's "
+            f"({t_run.size} samples from {t_run[0] if t_run.size else '-'}); "
+            "the replay must cover the run's times"
+        )
     dims = tuple(replay["surface_temperature"].dims)
     if dims != ("profile", "time", "facet"):
         raise FluxFileError(f"replay surface_temperature has dims {dims}; expected (profile, time, facet)")
@@ -244,8 +247,9 @@ def classify_regions(centroids, meta: Mapping, lat_deg: float, wall_split: float
 
 def regions_of(ds, wall_split: float = 0.5) -> np.ndarray:
     """:func:`classify_regions` for a run/replay dataset (centroids, mesh_meta, lat_deg)."""
-    return classify_regions(ds["centroid"].values, mesh_meta(ds), float(ds.attrs.get("lat_deg", -90.0)),
-                            wall_split=wall_split)
+    return classify_regions(
+        ds["centroid"].values, mesh_meta(ds), float(ds.attrs.get("lat_deg", -90.0)), wall_split=wall_split
+    )
 
 
 # ------------------------------------------------------------------------ per-facet night, regions
@@ -302,8 +306,9 @@ def lit_mask(solar_direct, threshold_W_m2: float = LIT_THRESHOLD_W_M2) -> np.nda
     return _values(solar_direct, "solar_direct") > float(threshold_W_m2)
 
 
-def facet_night_mask(solar_direct, time, min_dark_hours: float = MIN_DARK_HOURS,
-                     threshold_W_m2: float = LIT_THRESHOLD_W_M2) -> np.ndarray:
+def facet_night_mask(
+    solar_direct, time, min_dark_hours: float = MIN_DARK_HOURS, threshold_W_m2: float = LIT_THRESHOLD_W_M2
+) -> np.ndarray:
     """Per-facet night: the facet has had no direct sunlight for at least ``min_dark_hours``.
 
     Parameters
@@ -343,8 +348,9 @@ def facet_night_mask(solar_direct, time, min_dark_hours: float = MIN_DARK_HOURS,
     return ~lit & (dark_for >= min_dark_hours * 3600.0 - 1e-6)
 
 
-def night_day_masks(run, definition: str = "facet", min_dark_hours: float = MIN_DARK_HOURS,
-                    threshold_W_m2: float = LIT_THRESHOLD_W_M2) -> Tuple[np.ndarray, np.ndarray]:
+def night_day_masks(
+    run, definition: str = "facet", min_dark_hours: float = MIN_DARK_HOURS, threshold_W_m2: float = LIT_THRESHOLD_W_M2
+) -> Tuple[np.ndarray, np.ndarray]:
     """(night, day) masks of shape (nt, nf) for a run dataset.
 
     ``definition="facet"`` (default): night = :func:`facet_night_mask`, day = the facet is directly lit
@@ -374,8 +380,9 @@ def lit_fraction(solar_direct, threshold_W_m2: float = LIT_THRESHOLD_W_M2) -> np
     return lit_mask(solar_direct, threshold_W_m2).mean(axis=0)
 
 
-def illumination_classes(solar_direct, threshold_W_m2: float = LIT_THRESHOLD_W_M2,
-                         rarely_max_fraction: float = RARELY_LIT_MAX_FRACTION) -> Dict[str, np.ndarray]:
+def illumination_classes(
+    solar_direct, threshold_W_m2: float = LIT_THRESHOLD_W_M2, rarely_max_fraction: float = RARELY_LIT_MAX_FRACTION
+) -> Dict[str, np.ndarray]:
     """Facets by how often they are directly lit over the run; works on any mesh.
 
     Returns
@@ -386,8 +393,11 @@ def illumination_classes(solar_direct, threshold_W_m2: float = LIT_THRESHOLD_W_M
     if not 0.0 < rarely_max_fraction <= 1.0:
         raise ConfigError(f"rarely_max_fraction={rarely_max_fraction} out of range (0, 1]")
     f = lit_fraction(solar_direct, threshold_W_m2)
-    return {"never_lit": f == 0.0, "rarely_lit": (f > 0.0) & (f < rarely_max_fraction),
-            "often_lit": f >= rarely_max_fraction}
+    return {
+        "never_lit": f == 0.0,
+        "rarely_lit": (f > 0.0) & (f < rarely_max_fraction),
+        "often_lit": f >= rarely_max_fraction,
+    }
 
 
 def slope_deg(normals) -> np.ndarray:
@@ -437,8 +447,7 @@ def mean_sun_azimuth(sun_direction) -> Tuple[np.ndarray, float]:
 SUN_ANGULAR_RADIUS_RAD = 4.65e-3
 
 
-def sector_axes(lat_deg: float, sun_direction=None, polar_limit_deg: float = POLAR_LIMIT_DEG
-                ) -> Dict[str, np.ndarray]:
+def sector_axes(lat_deg: float, sun_direction=None, polar_limit_deg: float = POLAR_LIMIT_DEG) -> Dict[str, np.ndarray]:
     """The four facing directions, name -> (2,) horizontal unit vector in the crater frame (x east, y north).
 
     For |lat| < ``polar_limit_deg``: ``pole_facing`` (toward the nearer pole: -y south, +y north),
@@ -454,8 +463,9 @@ def sector_axes(lat_deg: float, sun_direction=None, polar_limit_deg: float = POL
         p = pole_direction(lat_deg)
         return dict(zip(SECTORS, (p, -p, np.array([1.0, 0.0]), np.array([-1.0, 0.0]))))
     if sun_direction is None:
-        raise ConfigError(f"at |lat| >= {polar_limit_deg} deg sectors are named by the Sun's mean azimuth: "
-                          "sun_direction is needed")
+        raise ConfigError(
+            f"at |lat| >= {polar_limit_deg} deg sectors are named by the Sun's mean azimuth: sun_direction is needed"
+        )
     s, _ = mean_sun_azimuth(sun_direction)
     right = np.array([s[1], -s[0]])  # s turned 90 deg clockwise seen from above (+z)
     names = POLAR_SECTORS_SOUTH if lat_deg < 0 else POLAR_SECTORS_NORTH
@@ -469,8 +479,9 @@ def _sector_index(directions, axes: Sequence[np.ndarray]) -> np.ndarray:
     return np.argmax(d @ np.asarray(axes, float).T, axis=1)
 
 
-def facing_classes(normals, lat_deg: float, sun_direction=None,
-                   level_max_slope_deg: float = LEVEL_MAX_SLOPE_DEG) -> Dict[str, np.ndarray]:
+def facing_classes(
+    normals, lat_deg: float, sun_direction=None, level_max_slope_deg: float = LEVEL_MAX_SLOPE_DEG
+) -> Dict[str, np.ndarray]:
     """Facets by the azimuth their slope faces (the normal's horizontal part); works on any mesh.
 
     Returns
@@ -487,8 +498,9 @@ def facing_classes(normals, lat_deg: float, sun_direction=None,
     return out
 
 
-def crater_region_masks(centroids, normals, vertices, faces, meta: Mapping, lat_deg: float,
-                        sun_direction=None, wall_split: float = 0.5) -> Dict[str, np.ndarray]:
+def crater_region_masks(
+    centroids, normals, vertices, faces, meta: Mapping, lat_deg: float, sun_direction=None, wall_split: float = 0.5
+) -> Dict[str, np.ndarray]:
     """Crater regions as named facet masks (issue 10: the names say what the sets hold).
 
     Parts (by the centroid's distance r from the axis and height z; meta as in :func:`classify_regions`):
@@ -528,8 +540,10 @@ def crater_region_masks(centroids, normals, vertices, faces, meta: Mapping, lat_
         return {"surround": np.ones(nf, bool)}
     for key in ("floor_radius_m", "rim_radius_m"):
         if meta.get(key) is None:
-            raise FluxFileError(f"mesh_meta lacks {key!r}, needed for crater regions (kind={kind}); "
-                                "use illumination_classes / slope_classes / facing_classes on other meshes")
+            raise FluxFileError(
+                f"mesh_meta lacks {key!r}, needed for crater regions (kind={kind}); "
+                "use illumination_classes / slope_classes / facing_classes on other meshes"
+            )
     if not 0.0 < wall_split < 1.0:
         raise ConfigError(f"wall_split={wall_split} out of range (0, 1)")
     rf, rr = float(meta["floor_radius_m"]), float(meta["rim_radius_m"])
@@ -576,14 +590,20 @@ def crater_region_masks(centroids, normals, vertices, faces, meta: Mapping, lat_
 def region_names(lat_deg: float, polar_limit_deg: float = POLAR_LIMIT_DEG) -> Tuple[str, ...]:
     """Crater region names (plotting order) at a latitude, then the illumination classes."""
     south = float(lat_deg) < 0
-    sectors = SECTORS if abs(float(lat_deg)) < polar_limit_deg else (
-        POLAR_SECTORS_SOUTH if south else POLAR_SECTORS_NORTH)
-    return (("floor",) + tuple(f"{p}_{s}" for p in SECTORED_PARTS for s in sectors) + ("surround",)
-            + ILLUMINATION_CLASSES)
+    sectors = (
+        SECTORS if abs(float(lat_deg)) < polar_limit_deg else (POLAR_SECTORS_SOUTH if south else POLAR_SECTORS_NORTH)
+    )
+    return (
+        ("floor",) + tuple(f"{p}_{s}" for p in SECTORED_PARTS for s in sectors) + ("surround",) + ILLUMINATION_CLASSES
+    )
 
 
-def region_masks(run, wall_split: float = 0.5, threshold_W_m2: float = LIT_THRESHOLD_W_M2,
-                 rarely_max_fraction: float = RARELY_LIT_MAX_FRACTION) -> Dict[str, np.ndarray]:
+def region_masks(
+    run,
+    wall_split: float = 0.5,
+    threshold_W_m2: float = LIT_THRESHOLD_W_M2,
+    rarely_max_fraction: float = RARELY_LIT_MAX_FRACTION,
+) -> Dict[str, np.ndarray]:
     """Named facet masks of a run dataset: crater regions (when the mesh meta describes a crater or bowl),
     then the illumination classes (when the run has ``solar_direct``). On a mesh without crater meta
     (a DEM, ``kind="file"``), the slope and facing classes replace the crater regions.
@@ -598,8 +618,11 @@ def region_masks(run, wall_split: float = 0.5, threshold_W_m2: float = LIT_THRES
     out: Dict[str, np.ndarray] = {}
     crater = meta.get("kind") in ("crater", "bowl") or meta.get("rim_radius_m") is not None
     if crater:
-        out.update(crater_region_masks(c, normals, run["mesh_vertices"].values, run["mesh_faces"].values, meta,
-                                       lat, sun, wall_split))
+        out.update(
+            crater_region_masks(
+                c, normals, run["mesh_vertices"].values, run["mesh_faces"].values, meta, lat, sun, wall_split
+            )
+        )
     elif meta.get("kind") == "flat":
         out["surround"] = np.ones(len(c), bool)
     else:
@@ -621,8 +644,9 @@ def mesh_normals(vertices, faces) -> np.ndarray:
     return cr / np.linalg.norm(cr, axis=1, keepdims=True)
 
 
-def masked_statistics(dT, sample_mask, facet_masks: Mapping[str, np.ndarray],
-                      threshold_K: float = NATURAL_SCATTER_K) -> Dict[str, dict]:
+def masked_statistics(
+    dT, sample_mask, facet_masks: Mapping[str, np.ndarray], threshold_K: float = NATURAL_SCATTER_K
+) -> Dict[str, dict]:
     """Pooled statistics per named facet set over the (time, facet) samples selected by ``sample_mask``.
 
     Parameters
@@ -641,8 +665,10 @@ def masked_statistics(dT, sample_mask, facet_masks: Mapping[str, np.ndarray],
         sm = np.repeat(sm[:, None], dT.shape[1], axis=1)
     if sm.shape != dT.shape:
         raise FluxFileError(f"sample mask shape {sm.shape} does not match the field's {dT.shape}")
-    return {name: pooled_stats(dT[:, m][sm[:, m]], threshold_K) for name, m in
-            ((k, np.asarray(v, bool)) for k, v in facet_masks.items())}
+    return {
+        name: pooled_stats(dT[:, m][sm[:, m]], threshold_K)
+        for name, m in ((k, np.asarray(v, bool)) for k, v in facet_masks.items())
+    }
 
 
 def masked_median(values, sample_mask, facet_mask) -> Optional[float]:
@@ -790,12 +816,18 @@ def pooled_stats(values, threshold_K: float = NATURAL_SCATTER_K) -> Dict[str, Op
     if v.size == 0:
         return dict(median_K=None, q1_K=None, q3_K=None, frac_above_threshold=None, n=0)
     q1, med, q3 = np.percentile(v, [25, 50, 75])
-    return dict(median_K=float(med), q1_K=float(q1), q3_K=float(q3),
-                frac_above_threshold=float(np.mean(np.abs(v) > threshold_K)), n=int(v.size))
+    return dict(
+        median_K=float(med),
+        q1_K=float(q1),
+        q3_K=float(q3),
+        frac_above_threshold=float(np.mean(np.abs(v) > threshold_K)),
+        n=int(v.size),
+    )
 
 
-def region_statistics(dT, time_mask, regions, threshold_K: float = NATURAL_SCATTER_K,
-                      region_names: Sequence[str] = REGIONS) -> Dict[str, dict]:
+def region_statistics(
+    dT, time_mask, regions, threshold_K: float = NATURAL_SCATTER_K, region_names: Sequence[str] = REGIONS
+) -> Dict[str, dict]:
     """Per-region pooled statistics of a (nt, nf) field over the selected times.
 
     Parameters
@@ -866,8 +898,7 @@ def density_grid(replay, values: Mapping[str, float], nominal: Optional[str] = N
     return tops, bottoms, grid
 
 
-def density_grid_medians(replay, diffs: Mapping[str, np.ndarray], night, facet_mask,
-                         nominal: Optional[str] = None):
+def density_grid_medians(replay, diffs: Mapping[str, np.ndarray], night, facet_mask, nominal: Optional[str] = None):
     """Night-time median difference over the two-layer density grid (thesis Fig. 7.7a).
 
     Parameters
@@ -914,12 +945,22 @@ def representative_facets(run, regions) -> Dict[str, int]:
     if idx.size == 0:
         idx = np.arange(len(r))
     out["floor"] = int(idx[np.argmin(r[idx])])
-    solar_name = ("solar_incident" if has_variable(run, "solar_incident")
-                  else "solar_direct" if has_variable(run, "solar_direct") else None)
-    mean_solar = (np.asarray(run[solar_name].values, float).mean(axis=0) if solar_name
-                  else np.zeros(len(r)))
-    for cand in ("top_wall_ring_equator_facing", "top_wall_ring_sun_facing", "upper_wall_poleward",
-                 "upper_wall_equatorward", "rim_poleward", "often_lit"):
+    solar_name = (
+        "solar_incident"
+        if has_variable(run, "solar_incident")
+        else "solar_direct"
+        if has_variable(run, "solar_direct")
+        else None
+    )
+    mean_solar = np.asarray(run[solar_name].values, float).mean(axis=0) if solar_name else np.zeros(len(r))
+    for cand in (
+        "top_wall_ring_equator_facing",
+        "top_wall_ring_sun_facing",
+        "upper_wall_poleward",
+        "upper_wall_equatorward",
+        "rim_poleward",
+        "often_lit",
+    ):
         idx = np.flatnonzero(sets.get(cand, empty))
         if idx.size:
             out["upper_wall"] = int(idx[np.argmax(mean_solar[idx])])
@@ -929,9 +970,13 @@ def representative_facets(run, regions) -> Dict[str, int]:
     return out
 
 
-def latitude_statistics(pairs: Sequence[Tuple[object, object]], threshold_K: float = NATURAL_SCATTER_K,
-                        region_names: Optional[Sequence[str]] = None, night_definition: str = "facet",
-                        min_dark_hours: float = MIN_DARK_HOURS) -> Dict[float, dict]:
+def latitude_statistics(
+    pairs: Sequence[Tuple[object, object]],
+    threshold_K: float = NATURAL_SCATTER_K,
+    region_names: Optional[Sequence[str]] = None,
+    night_definition: str = "facet",
+    min_dark_hours: float = MIN_DARK_HOURS,
+) -> Dict[float, dict]:
     """Loose - nominal statistics per latitude and region over several runs (Figs. 7.7b, 7.9).
 
     Parameters
@@ -958,7 +1003,8 @@ def latitude_statistics(pairs: Sequence[Tuple[object, object]], threshold_K: flo
         if region_names is not None:
             masks = {k: masks[k] for k in region_names if k in masks}
         out[float(run.attrs.get("lat_deg", np.nan))] = dict(
-            profile=lab, night_definition=night_definition,
+            profile=lab,
+            night_definition=night_definition,
             night=masked_statistics(dT, night, masks, threshold_K),
             day=masked_statistics(dT, day, masks, threshold_K),
         )

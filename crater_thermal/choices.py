@@ -83,6 +83,9 @@ def ephemeris_span(moon_frame: str = "iau2009"):
         e.g. ``"DE421 (de421.bsp)"``.
     """
     if moon_frame == "de421":
-        return (max(EPHEMERIS_START, DE421_LIBRATION_START), min(EPHEMERIS_END, DE421_LIBRATION_END),
-                "DE421 with the moon_pa_de421_1900-2050.bpc librations")
+        return (
+            max(EPHEMERIS_START, DE421_LIBRATION_START),
+            min(EPHEMERIS_END, DE421_LIBRATION_END),
+            "DE421 with the moon_pa_de421_1900-2050.bpc librations",
+        )
     return EPHEMERIS_START, EPHEMERIS_END, "DE421 (de421.bsp)"

@@ -60,8 +60,9 @@ def mesh_crater(
     diameter_km: float = typer.Option(10.0, "--diameter-km", help="Rim diameter [km], (0, 15]."),
     facets: int = typer.Option(502, "--facets", help="Exact number of facets (thesis: 502)."),
     surround_km: float = typer.Option(0.0, "--surround-km", help="Flat plain ring beyond the rim flank [km]."),
-    wall: str = typer.Option("thesis", "--wall",
-                             help="Wall circle: 'thesis' (centre on axis) or 'tangent' (tangent to floor)."),
+    wall: str = typer.Option(
+        "thesis", "--wall", help="Wall circle: 'thesis' (centre on axis) or 'tangent' (tangent to floor)."
+    ),
     output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply, .obj, .stl)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
 ) -> None:
@@ -89,21 +90,24 @@ def mesh_bowl(
     typer.echo(f"wrote {output}: {m.n_facets} facets, hash {m.hash}")
 
 
-
 @mesh_app.command("dem")
 def mesh_dem(
     dem: Path = typer.Argument(..., help="DEM: GeoTIFF, PDS3 .LBL/.IMG (LOLA LDEM_*), any GDAL raster, lunar CRS."),
     center_lat: float = typer.Option(..., "--center-lat", help="Site centre, planetocentric latitude [deg]."),
     center_lon: float = typer.Option(..., "--center-lon", help="Site centre, east longitude [deg]."),
     radius_km: float = typer.Option(..., "--radius-km", help="Radius of the analysed (inner) region [km]."),
-    resolution_m: Optional[float] = typer.Option(None, "--resolution-m",
-                                                 help="Facet edge in the inner region [m] (default: ~10k facets)."),
-    outer_radius_km: Optional[float] = typer.Option(None, "--outer-radius-km",
-                                                    help="Coarser ring for shadows/radiation out to this radius [km]."),
-    outer_resolution_m: Optional[float] = typer.Option(None, "--outer-resolution-m",
-                                                       help="Facet edge in the outer ring [m] (default 4x inner)."),
-    height_kind: str = typer.Option("auto", "--height-kind",
-                                    help="auto | height (above the sphere) | radius (from the Moon's centre)."),
+    resolution_m: Optional[float] = typer.Option(
+        None, "--resolution-m", help="Facet edge in the inner region [m] (default: ~10k facets)."
+    ),
+    outer_radius_km: Optional[float] = typer.Option(
+        None, "--outer-radius-km", help="Coarser ring for shadows/radiation out to this radius [km]."
+    ),
+    outer_resolution_m: Optional[float] = typer.Option(
+        None, "--outer-resolution-m", help="Facet edge in the outer ring [m] (default 4x inner)."
+    ),
+    height_kind: str = typer.Option(
+        "auto", "--height-kind", help="auto | height (above the sphere) | radius (from the Moon's centre)."
+    ),
     max_facets: int = typer.Option(2_000_000, "--max-facets", help="Refuse larger sites (estimated up front)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply keeps the site metadata)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
@@ -114,12 +118,22 @@ def mesh_dem(
 
     if output.exists() and not overwrite:
         raise OutputExistsError(f"output {str(output)!r} exists; pass --overwrite to replace it")
-    m = terrain.site_mesh(dem, center_lat, center_lon, radius_km, resolution_m=resolution_m,
-                          outer_radius_km=outer_radius_km, outer_resolution_m=outer_resolution_m,
-                          height_kind=height_kind, max_facets=max_facets)
+    m = terrain.site_mesh(
+        dem,
+        center_lat,
+        center_lon,
+        radius_km,
+        resolution_m=resolution_m,
+        outer_radius_km=outer_radius_km,
+        outer_resolution_m=outer_resolution_m,
+        height_kind=height_kind,
+        max_facets=max_facets,
+    )
     geometry.save_mesh(m, output, overwrite=overwrite)
-    typer.echo(f"wrote {output}: {m.n_facets} facets ({m.meta['n_inner']} inner), "
-               f"{m.meta['resolution_m']:.4g} m, heights read as {m.meta['height_kind']!r}, hash {m.hash}")
+    typer.echo(
+        f"wrote {output}: {m.n_facets} facets ({m.meta['n_inner']} inner), "
+        f"{m.meta['resolution_m']:.4g} m, heights read as {m.meta['height_kind']!r}, hash {m.hash}"
+    )
 
 
 # ---------------------------------------------------------------- dem (synthetic sites)
@@ -134,7 +148,7 @@ def _parse_crater(text: str) -> tuple:
 
     try:
         d, _, at = text.partition("@")
-        x, y = (at.split(",") if at else ("0", "0"))
+        x, y = at.split(",") if at else ("0", "0")
         return float(d), float(x), float(y)
     except ValueError:
         raise ConfigError(f"--crater {text!r} must be D_KM or D_KM@X_KM,Y_KM (e.g. 5@2,-3)") from None
@@ -146,27 +160,34 @@ def dem_synth(
     lon_deg: float = typer.Option(0.0, "--lon-deg", help="Centre east longitude [deg]."),
     size_km: float = typer.Option(20.0, "--size-km", help="Side of the square raster [km]."),
     pixel_m: float = typer.Option(40.0, "--pixel-m", help="Pixel size [m] (polar stereographic, true at the pole)."),
-    crater: List[str] = typer.Option([], "--crater", help="D_KM[@X_KM,Y_KM]: idealized crater (Table 7.1), "
-                                     "offset from the centre in map x, y [km]. Repeatable."),
+    crater: List[str] = typer.Option(
+        [],
+        "--crater",
+        help="D_KM[@X_KM,Y_KM]: idealized crater (Table 7.1), offset from the centre in map x, y [km]. Repeatable.",
+    ),
     roughness: float = typer.Option(0.0, "--roughness", help="RMS height of the self-affine background [m]."),
     hurst: float = typer.Option(0.9, "--hurst", help="Hurst exponent of the background, [0, 1]."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
-    output: Path = typer.Option(..., "-o", "--output",
-                                help="site.tif (GeoTIFF, float32 heights) or site.lbl (PDS3 int16 .IMG + .LBL)."),
+    output: Path = typer.Option(
+        ..., "-o", "--output", help="site.tif (GeoTIFF, float32 heights) or site.lbl (PDS3 int16 .IMG + .LBL)."
+    ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
 ) -> None:
     """A synthetic polar site (rough terrain with craters) as a lunar polar-stereographic DEM."""
     from crater_thermal import terrain
 
     craters = [_parse_crater(c) for c in crater]
-    z, tr, wkt = terrain.synthetic_heights(lat_deg, lon_deg, size_km, pixel_m, craters=craters,
-                                           roughness_m=roughness, hurst=hurst, seed=seed)
+    z, tr, wkt = terrain.synthetic_heights(
+        lat_deg, lon_deg, size_km, pixel_m, craters=craters, roughness_m=roughness, hurst=hurst, seed=seed
+    )
     if output.suffix.lower() in (".lbl", ".img"):
         path = terrain.write_pds3(output, z, tr, pole="south" if lat_deg < 0 else "north", overwrite=overwrite)
     else:
         path = terrain.write_geotiff(output, z, tr, wkt, overwrite=overwrite)
-    typer.echo(f"wrote {path}: {z.shape[1]} x {z.shape[0]} pixels of {pixel_m:g} m, heights "
-               f"{float(z.min()):.0f} to {float(z.max()):.0f} m")
+    typer.echo(
+        f"wrote {path}: {z.shape[1]} x {z.shape[0]} pixels of {pixel_m:g} m, heights "
+        f"{float(z.min()):.0f} to {float(z.max()):.0f} m"
+    )
 
 
 # ---------------------------------------------------------------- steady (radiosity)
@@ -176,14 +197,16 @@ def dem_synth(
 def steady(
     mesh: Path = typer.Argument(..., help="Mesh file (.ply, .obj, .stl) in the crater frame [m]."),
     sun_elevation_deg: float = typer.Option(..., "--sun-elevation-deg", help="Sun elevation [deg], [-90, 90]."),
-    sun_azimuth_deg: float = typer.Option(180.0, "--sun-azimuth-deg",
-                                          help="Sun azimuth [deg] from north, clockwise (east)."),
+    sun_azimuth_deg: float = typer.Option(
+        180.0, "--sun-azimuth-deg", help="Sun azimuth [deg] from north, clockwise (east)."
+    ),
     albedo: float = typer.Option(0.12, "--albedo", help="Albedo, [0, 1)."),
     emissivity: float = typer.Option(0.98, "--emissivity", help="Infrared emissivity, (0, 1]."),
     solar_constant: float = typer.Option(1361.0, "--solar-constant", help="Solar irradiance at 1 au [W m-2]."),
     point_sun: bool = typer.Option(False, "--point-sun", help="Point Sun instead of the limb-darkened disk."),
-    limb_darkening: str = typer.Option("linear", "--limb-darkening",
-                                       help="uniform | linear | quadratic | neckel_labs."),
+    limb_darkening: str = typer.Option(
+        "linear", "--limb-darkening", help="uniform | linear | quadratic | neckel_labs."
+    ),
     n_rings: int = typer.Option(4, "--sun-rings", help="Rings of the sampled solar disk (1 + 3n(n-1) patches)."),
     scattering: str = typer.Option("exact", "--scattering", help="exact | bounces."),
     n_bounces: int = typer.Option(3, "--bounces", help="Reflections kept with --scattering bounces."),
@@ -196,13 +219,24 @@ def steady(
     from crater_thermal import steady as steady_mod
 
     path, res = steady_mod.steady_file(
-        mesh, output, sun_elevation_deg, sun_azimuth_deg, albedo=albedo, emissivity=emissivity,
-        solar_constant=solar_constant, point_sun=point_sun, limb_darkening=limb_darkening, n_rings=n_rings,
-        method=scattering, n_bounces=n_bounces, cache_dir=cache_dir, overwrite=overwrite, flip=flip,
+        mesh,
+        output,
+        sun_elevation_deg,
+        sun_azimuth_deg,
+        albedo=albedo,
+        emissivity=emissivity,
+        solar_constant=solar_constant,
+        point_sun=point_sun,
+        limb_darkening=limb_darkening,
+        n_rings=n_rings,
+        method=scattering,
+        n_bounces=n_bounces,
+        cache_dir=cache_dir,
+        overwrite=overwrite,
+        flip=flip,
     )
     T = res["surface_temperature"]
     typer.echo(f"wrote {path}: {T.size} facets, surface temperature {T.min():.2f} to {T.max():.2f} K")
-
 
 
 # ---------------------------------------------------------------- run / replay (simulate)
@@ -220,8 +254,9 @@ def run(
     from crater_thermal import config, simulate
     from crater_thermal.progress import reporter
 
-    path = simulate.run_case(config.load_case(case), output, resume=resume, overwrite=overwrite,
-                             progress=reporter(progress))
+    path = simulate.run_case(
+        config.load_case(case), output, resume=resume, overwrite=overwrite, progress=reporter(progress)
+    )
     typer.echo(f"wrote {path}")
 
 
@@ -229,18 +264,25 @@ def run(
 def replay(
     flux: Path = typer.Argument(..., help="Run or flux dataset (netCDF) with solar_incident and ir_incident."),
     profile: List[str] = typer.Option(
-        [], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."),
+        [], "--profile", help="Density profile: TOP/BOTTOM [kg m-3] (top 2 cm), 'rock', 'hayne2017'. Repeatable."
+    ),
     density_grid: Optional[str] = typer.Option(
-        None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."),
+        None, "--density-grid", help="All top<=bottom pairs of START:STOP:STEP [kg m-3], e.g. 800:2000:100."
+    ),
     initial_temperature: Optional[float] = typer.Option(
-        None, "--initial-temperature",
+        None,
+        "--initial-temperature",
         help="Uniform start [K], then the saved spin-up window once (thesis procedure), instead of the periodic "
-             "steady state."),
+        "steady state.",
+    ),
     fixed_spinup: bool = typer.Option(
-        False, "--fixed-spinup",
-        help="Equilibrium-estimate start, then the saved spin-up window once (as a run with spinup = 'fixed')."),
+        False,
+        "--fixed-spinup",
+        help="Equilibrium-estimate start, then the saved spin-up window once (as a run with spinup = 'fixed').",
+    ),
     property_set: Optional[str] = typer.Option(
-        None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."),
+        None, "--property-set", help="apollo (thesis) or hayne2017; default: the run's."
+    ),
     allow_inverted: bool = typer.Option(False, "--allow-inverted", help="Allow top density > bottom density."),
     output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
@@ -250,10 +292,18 @@ def replay(
     from crater_thermal import simulate
     from crater_thermal.progress import reporter
 
-    path = simulate.replay_file(flux, profile, density_grid=density_grid, initial_temperature=initial_temperature,
-                                fixed_spinup=fixed_spinup,
-                                property_set=property_set, allow_inverted=allow_inverted, output=output,
-                                overwrite=overwrite, progress=reporter(progress))
+    path = simulate.replay_file(
+        flux,
+        profile,
+        density_grid=density_grid,
+        initial_temperature=initial_temperature,
+        fixed_spinup=fixed_spinup,
+        property_set=property_set,
+        allow_inverted=allow_inverted,
+        output=output,
+        overwrite=overwrite,
+        progress=reporter(progress),
+    )
     typer.echo(f"wrote {path}")
 
 
@@ -264,7 +314,9 @@ def replay(
 def sweep(
     cases: List[Path] = typer.Argument(..., help="Case files (TOML)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder: one sub-folder per case."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786."),
+    scheduler: Optional[str] = typer.Option(
+        None, "--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786."
+    ),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local processes (default: cores)."),
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet"),
 ) -> None:
@@ -285,25 +337,35 @@ def report(
     replay: Optional[Path] = typer.Argument(None, help="Replay dataset made from RUN (omit for a sweep folder)."),
     out: Path = typer.Option(..., "-o", "--out", help="Output folder: report.html, figures/, summary.json."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing report.html."),
-    instrument: List[str] = typer.Option([], "--instrument", help="Preset channel (repeatable): diviner_ch7, "
-                                         "diviner_ch8, diviner_ch9, microbolometer. Default: all."),
+    instrument: List[str] = typer.Option(
+        [],
+        "--instrument",
+        help="Preset channel (repeatable): diviner_ch7, diviner_ch8, diviner_ch9, microbolometer. Default: all.",
+    ),
     band_um: Optional[str] = typer.Option(None, "--band-um", help="Add a user channel: LOW:HIGH band edges [um]."),
     netd_k: Optional[float] = typer.Option(None, "--netd-k", help="User channel: NETD of one integration [K]."),
     netd_at_k: float = typer.Option(300.0, "--netd-at-k", help="User channel: scene temperature of --netd-k [K]."),
     integration_s: float = typer.Option(0.128, "--integration-s", help="User channel: one integration [s]."),
     knee_s: float = typer.Option(60.0, "--knee-s", help="User channel: 1/f knee, dwell where averaging stops [s]."),
     gain_error: float = typer.Option(0.01, "--gain-error", help="User channel: relative 1-sigma gain error."),
-    footprint_fraction: float = typer.Option(1.0, "--footprint-fraction",
-                                             help="Loose fraction of the candidate footprint [0-1]."),
-    reference_footprints: int = typer.Option(1, "--reference-footprints",
-                                             help="Nominal footprints averaged as the reference."),
-    natural_scatter_k: float = typer.Option(0.94, "--natural-scatter-k",
-                                            help="Footprint-to-footprint scatter of true temperatures [K]."),
+    footprint_fraction: float = typer.Option(
+        1.0, "--footprint-fraction", help="Loose fraction of the candidate footprint [0-1]."
+    ),
+    reference_footprints: int = typer.Option(
+        1, "--reference-footprints", help="Nominal footprints averaged as the reference."
+    ),
+    natural_scatter_k: float = typer.Option(
+        0.94, "--natural-scatter-k", help="Footprint-to-footprint scatter of true temperatures [K]."
+    ),
     false_alarm: float = typer.Option(0.01, "--false-alarm", help="False-alarm rate of the one-sided test (0-1)."),
     no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
-    night: str = typer.Option("facet", "--night", help="Night: facet (no direct sunlight on the facet for "
-                              "--min-dark-hours), centre (thesis: Sun below the crater centre's horizon), "
-                              "facet_and_centre."),
+    night: str = typer.Option(
+        "facet",
+        "--night",
+        help="Night: facet (no direct sunlight on the facet for "
+        "--min-dark-hours), centre (thesis: Sun below the crater centre's horizon), "
+        "facet_and_centre.",
+    ),
     min_dark_hours: float = typer.Option(24.0, "--min-dark-hours", help="Darkness before a facet's night [h]."),
 ) -> None:
     """Figures (thesis Figs. 7.4-7.9), detection statistics, report.html and summary.json."""
@@ -319,12 +381,28 @@ def report(
             lo, hi = (float(v) for v in band_um.split(":"))
         except ValueError:
             raise ConfigError(f"--band-um={band_um!r} must be LOW:HIGH in um, e.g. 8:14") from None
-        insts.append(ins.custom_instrument(lo, hi, netd_k, netd_at_k, integration_s=integration_s, knee_s=knee_s,
-                                           gain_error=gain_error))
-    obs = ins.Observation(footprint_fraction=footprint_fraction, reference_footprints=reference_footprints,
-                          natural_scatter_K=natural_scatter_k, false_alarm=false_alarm)
-    path = make_report(run, replay, out, overwrite=overwrite, instruments=insts or None, observation=obs,
-                       snapshots=not no_snapshots, night_definition=night, min_dark_hours=min_dark_hours)
+        insts.append(
+            ins.custom_instrument(
+                lo, hi, netd_k, netd_at_k, integration_s=integration_s, knee_s=knee_s, gain_error=gain_error
+            )
+        )
+    obs = ins.Observation(
+        footprint_fraction=footprint_fraction,
+        reference_footprints=reference_footprints,
+        natural_scatter_K=natural_scatter_k,
+        false_alarm=false_alarm,
+    )
+    path = make_report(
+        run,
+        replay,
+        out,
+        overwrite=overwrite,
+        instruments=insts or None,
+        observation=obs,
+        snapshots=not no_snapshots,
+        night_definition=night,
+        min_dark_hours=min_dark_hours,
+    )
     typer.echo(str(path))
 
 
@@ -332,13 +410,15 @@ def report(
 def show(
     run: Path = typer.Argument(..., help="Run dataset."),
     time: Optional[str] = typer.Option(None, "--time", help="ISO UTC time (nearest sample); default: highest Sun."),
-    var: str = typer.Option("surface_temperature", "--var",
-                            help="surface_temperature | solar_incident | ir_incident | solar_direct."),
+    var: str = typer.Option(
+        "surface_temperature", "--var", help="surface_temperature | solar_incident | ir_incident | solar_direct."
+    ),
     profile: Optional[str] = typer.Option(None, "--profile", help="Replayed profile label: show it minus nominal [K]."),
     replay: Optional[Path] = typer.Option(None, "--replay", help="Replay dataset (with --profile)."),
     screenshot: Optional[Path] = typer.Option(None, "--screenshot", help="Write a PNG (off-screen)."),
-    animate: Optional[Path] = typer.Option(None, "--animate",
-                                           help="Write an animation over time (.gif, or .mp4 with the viz extra)."),
+    animate: Optional[Path] = typer.Option(
+        None, "--animate", help="Write an animation over time (.gif, or .mp4 with the viz extra)."
+    ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
     max_frames: int = typer.Option(120, "--max-frames", help="Most frames in an animation."),
     exaggeration: float = typer.Option(1.0, "--exaggeration", help="Vertical exaggeration of the heights (0, 100]."),
@@ -346,8 +426,18 @@ def show(
     """3-D view of the crater coloured by a variable, with the Sun direction (pyvista)."""
     from crater_thermal.viz import show as _show
 
-    res = _show(run, time=time, var=var, profile=profile, replay=replay, screenshot=screenshot,
-                animate=animate, overwrite=overwrite, max_frames=max_frames, exaggeration=exaggeration)
+    res = _show(
+        run,
+        time=time,
+        var=var,
+        profile=profile,
+        replay=replay,
+        screenshot=screenshot,
+        animate=animate,
+        overwrite=overwrite,
+        max_frames=max_frames,
+        exaggeration=exaggeration,
+    )
     for key in ("screenshot", "animation"):
         if res[key]:
             typer.echo(res[key])
@@ -383,9 +473,12 @@ def main(argv: Optional[List[str]] = None) -> None:
         if os.environ.get("CRATER_THERMAL_TRACEBACK"):
             raise
         kind = "" if isinstance(exc, InternalError) else f"{type(exc).__name__}: "
-        print(f"internal error: {kind}{_one_line(exc)} (a bug in crater_thermal, not in your input: please "
-              "report it with the command line and its input files; CRATER_THERMAL_TRACEBACK=1 shows the "
-              "traceback)", file=sys.stderr)
+        print(
+            f"internal error: {kind}{_one_line(exc)} (a bug in crater_thermal, not in your input: please "
+            "report it with the command line and its input files; CRATER_THERMAL_TRACEBACK=1 shows the "
+            "traceback)",
+            file=sys.stderr,
+        )
         sys.exit(3)
 
 

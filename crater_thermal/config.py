@@ -56,8 +56,15 @@ from typing import Any, Mapping, Optional, Tuple
 import numpy as np
 
 from crater_thermal import choices, profiles
-from crater_thermal.constants import (ALBEDO, EMISSIVITY, GEOTHERMAL_FLUX, HAYNE2017_ALBEDO_A, HAYNE2017_ALBEDO_B,
-                                      SOLAR_CONSTANT, YEAR)
+from crater_thermal.constants import (
+    ALBEDO,
+    EMISSIVITY,
+    GEOTHERMAL_FLUX,
+    HAYNE2017_ALBEDO_A,
+    HAYNE2017_ALBEDO_B,
+    SOLAR_CONSTANT,
+    YEAR,
+)
 from crater_thermal.errors import ConfigError, EphemerisRangeError, ProfileError
 
 __all__ = [
@@ -185,139 +192,468 @@ def _spinup_limits(v) -> Tuple[float, float]:
 
 
 _YR_TO_D = YEAR / 86400.0
-_DATE_SPAN = (f"{np.datetime_as_string(choices.EPHEMERIS_START, unit='D')} … "
-              f"{np.datetime_as_string(choices.EPHEMERIS_END, unit='D')} UTC")
+_DATE_SPAN = (
+    f"{np.datetime_as_string(choices.EPHEMERIS_START, unit='D')} … "
+    f"{np.datetime_as_string(choices.EPHEMERIS_END, unit='D')} UTC"
+)
 _RHO = profiles.DENSITY_LIMITS
-_PROFILE_ALLOWED = (f'`"TOP/BOTTOM"` ({_RHO[0]:g} … {_RHO[1]:g} kg m⁻³, top ≤ bottom), `"RHO"`, `"rock"`, '
-                    '`"hayne2017"`')
+_PROFILE_ALLOWED = f'`"TOP/BOTTOM"` ({_RHO[0]:g} … {_RHO[1]:g} kg m⁻³, top ≤ bottom), `"RHO"`, `"rock"`, `"hayne2017"`'
 K = Key
 
 #: Every key of a case file, in file order within each section.
 SCHEMA: Tuple[Key, ...] = (
-    K("", "name", "str", lambda v: v.default_name, "case name, labels outputs", default_doc="file stem",
-      allowed_doc="non-empty", field=False),
+    K(
+        "",
+        "name",
+        "str",
+        lambda v: v.default_name,
+        "case name, labels outputs",
+        default_doc="file stem",
+        allowed_doc="non-empty",
+        field=False,
+    ),
     K("", "description", "str", "", "free text", field=False),
     # [crater]
-    K("crater", "kind", "choice", lambda v: "mesh" if v.given("mesh") else "crater",
-      "idealized crater (thesis Table 7.1, Pike 1977) / flat horizontal surface, no crater (Fig. 7.9) / "
-      "a mesh file / a site of a DEM (`dem` and the keys after it)", choices=choices.CRATER_KINDS,
-      default_doc='`"crater"` (`"mesh"` if `mesh` is given)',
-      field_default="crater"),
-    K("crater", "diameter_km", "float", REQUIRED, "rim diameter", unit="km", lo=0.0, hi=15.0, lo_open=True,
-      only=("kind", ("crater",))),
+    K(
+        "crater",
+        "kind",
+        "choice",
+        lambda v: "mesh" if v.given("mesh") else "crater",
+        "idealized crater (thesis Table 7.1, Pike 1977) / flat horizontal surface, no crater (Fig. 7.9) / "
+        "a mesh file / a site of a DEM (`dem` and the keys after it)",
+        choices=choices.CRATER_KINDS,
+        default_doc='`"crater"` (`"mesh"` if `mesh` is given)',
+        field_default="crater",
+    ),
+    K(
+        "crater",
+        "diameter_km",
+        "float",
+        REQUIRED,
+        "rim diameter",
+        unit="km",
+        lo=0.0,
+        hi=15.0,
+        lo_open=True,
+        only=("kind", ("crater",)),
+    ),
     K("crater", "facets", "int", 502, "number of triangles", lo=20, hi=1_000_000, only=("kind", ("crater",))),
-    K("crater", "surround_km", "float", 0.0, "width of flat plain meshed around the rim", unit="km", lo=0.0,
-      hi=100.0, only=("kind", ("crater",)), field_default=0.0),
-    K("crater", "mesh", "file", REQUIRED, "`.ply`/`.obj`/`.stl` in metres, x east, y north, z up; "
-      "**relative to the case file**", only=("kind", ("mesh",))),
-    K("crater", "flip", "bool", False, "reverse every facet's winding (a mesh file whose normals point down, "
-      "which is refused otherwise)", only=("kind", ("mesh",)), field_default=False),
-    K("crater", "dem", "file", REQUIRED, "digital elevation model: GeoTIFF, PDS3 `.LBL`/`.IMG` (LOLA `LDEM_*`), any "
-      "GDAL raster with a projected lunar CRS; **relative to the case file**", only=("kind", ("dem",))),
-    K("crater", "center_lat_deg", "float", None, "site centre latitude (as `mesh dem --center-lat`); must "
-      "equal `location.lat_deg`, the frame of the Sun vectors", unit="deg", lo=-90.0, hi=90.0,
-      default_doc="`location.lat_deg`", only=("kind", ("dem",))),
-    K("crater", "center_lon_deg", "float", None, "site centre east longitude; must equal `location.lon_deg`",
-      unit="deg", lo=-360.0, hi=360.0, default_doc="`location.lon_deg`", only=("kind", ("dem",))),
-    K("crater", "radius_km", "float", REQUIRED, "radius of the analysed (inner) region about the centre",
-      unit="km", lo=0.0, hi=500.0, lo_open=True, only=("kind", ("dem",))),
-    K("crater", "resolution_m", "float", None, "facet edge in the inner region (equilateral lattice; "
-      "~7.3 (radius/edge)² facets)", unit="m", lo=0.0, hi=1e5, lo_open=True,
-      default_doc="DEM pixel or ~10,000 inner facets, the coarser", only=("kind", ("dem",))),
-    K("crater", "outer_radius_km", "float", None, "coarser ring out to this radius: shadows and radiation from "
-      "distant terrain, not analysed", unit="km", lo=0.0, hi=1000.0, lo_open=True, default_doc="no ring",
-      only=("kind", ("dem",))),
-    K("crater", "outer_resolution_m", "float", None, "facet edge in the outer ring", unit="m", lo=0.0, hi=1e5,
-      lo_open=True, default_doc="4 × `resolution_m`", only=("kind", ("dem",))),
-    K("crater", "height_kind", "choice", "auto", "DEM values are heights above the reference sphere or radii "
-      "from the Moon's centre (LOLA: radius = DN·0.5 m + 1737.4 km); auto: radius if > half the radius",
-      choices=choices.HEIGHT_KINDS, only=("kind", ("dem",))),
-    K("crater", "max_facets", "int", 2_000_000, "refuse a site estimated above this many facets",
-      lo=1, hi=100_000_000, only=("kind", ("dem",))),
+    K(
+        "crater",
+        "surround_km",
+        "float",
+        0.0,
+        "width of flat plain meshed around the rim",
+        unit="km",
+        lo=0.0,
+        hi=100.0,
+        only=("kind", ("crater",)),
+        field_default=0.0,
+    ),
+    K(
+        "crater",
+        "mesh",
+        "file",
+        REQUIRED,
+        "`.ply`/`.obj`/`.stl` in metres, x east, y north, z up; **relative to the case file**",
+        only=("kind", ("mesh",)),
+    ),
+    K(
+        "crater",
+        "flip",
+        "bool",
+        False,
+        "reverse every facet's winding (a mesh file whose normals point down, which is refused otherwise)",
+        only=("kind", ("mesh",)),
+        field_default=False,
+    ),
+    K(
+        "crater",
+        "dem",
+        "file",
+        REQUIRED,
+        "digital elevation model: GeoTIFF, PDS3 `.LBL`/`.IMG` (LOLA `LDEM_*`), any "
+        "GDAL raster with a projected lunar CRS; **relative to the case file**",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "center_lat_deg",
+        "float",
+        None,
+        "site centre latitude (as `mesh dem --center-lat`); must "
+        "equal `location.lat_deg`, the frame of the Sun vectors",
+        unit="deg",
+        lo=-90.0,
+        hi=90.0,
+        default_doc="`location.lat_deg`",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "center_lon_deg",
+        "float",
+        None,
+        "site centre east longitude; must equal `location.lon_deg`",
+        unit="deg",
+        lo=-360.0,
+        hi=360.0,
+        default_doc="`location.lon_deg`",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "radius_km",
+        "float",
+        REQUIRED,
+        "radius of the analysed (inner) region about the centre",
+        unit="km",
+        lo=0.0,
+        hi=500.0,
+        lo_open=True,
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "resolution_m",
+        "float",
+        None,
+        "facet edge in the inner region (equilateral lattice; ~7.3 (radius/edge)² facets)",
+        unit="m",
+        lo=0.0,
+        hi=1e5,
+        lo_open=True,
+        default_doc="DEM pixel or ~10,000 inner facets, the coarser",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "outer_radius_km",
+        "float",
+        None,
+        "coarser ring out to this radius: shadows and radiation from distant terrain, not analysed",
+        unit="km",
+        lo=0.0,
+        hi=1000.0,
+        lo_open=True,
+        default_doc="no ring",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "outer_resolution_m",
+        "float",
+        None,
+        "facet edge in the outer ring",
+        unit="m",
+        lo=0.0,
+        hi=1e5,
+        lo_open=True,
+        default_doc="4 × `resolution_m`",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "height_kind",
+        "choice",
+        "auto",
+        "DEM values are heights above the reference sphere or radii "
+        "from the Moon's centre (LOLA: radius = DN·0.5 m + 1737.4 km); auto: radius if > half the radius",
+        choices=choices.HEIGHT_KINDS,
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "max_facets",
+        "int",
+        2_000_000,
+        "refuse a site estimated above this many facets",
+        lo=1,
+        hi=100_000_000,
+        only=("kind", ("dem",)),
+    ),
     # [location]
-    K("location", "lat_deg", "float", REQUIRED, "planetocentric latitude of the crater centre", unit="deg",
-      lo=-90.0, hi=90.0),
+    K(
+        "location",
+        "lat_deg",
+        "float",
+        REQUIRED,
+        "planetocentric latitude of the crater centre",
+        unit="deg",
+        lo=-90.0,
+        hi=90.0,
+    ),
     K("location", "lon_deg", "float", 0.0, "east longitude", unit="deg", lo=-360.0, hi=360.0),
     # [period]
-    K("period", "start", "date", REQUIRED, 'first recorded instant (`"2019-01-01"`, `"2019-01-01T04:00:00"`; '
-      "UTC)", allowed_doc=_DATE_SPAN),
+    K(
+        "period",
+        "start",
+        "date",
+        REQUIRED,
+        'first recorded instant (`"2019-01-01"`, `"2019-01-01T04:00:00"`; UTC)',
+        allowed_doc=_DATE_SPAN,
+    ),
     K("period", "end", "date", REQUIRED, "last recorded instant", allowed_doc="> `start`, in range"),
-    K("period", "spinup", "choice", "periodic", "periodic: converge to the periodic steady state of the "
-      "forcing over the `spinup_years` before `start`; fixed: simulate that window once (thesis) from "
-      "`initial_temperature_K` or the equilibrium estimate", choices=choices.SPINUP_MODES),
-    K("period", "spinup_years", "float", lambda v: 1.0 if v["spinup"] == "periodic" else 3.0,
-      "spin-up window [years of 365.25 d]", unit="yr", lo=lambda v: _spinup_limits(v)[0],
-      hi=lambda v: _spinup_limits(v)[1], default_doc="1.0 (periodic), 3.0 (fixed)",
-      allowed_doc="periodic 29.5 d … 50 yr; fixed 0 … 300 yr; the window must start inside the ephemeris",
-      field_default=1.0),
-    K("period", "spinup_days", "float", None, "alternative to `spinup_years` (give one)", unit="d",
-      lo=lambda v: _spinup_limits(v)[0] * _YR_TO_D, hi=lambda v: _spinup_limits(v)[1] * _YR_TO_D,
-      default_doc="—", allowed_doc="same, in days", field=False),
-    K("period", "initial_temperature_K", "float", None, "uniform start (fixed) or first guess (periodic); "
-      "none = equilibrium estimate", unit="K", lo=1.0, hi=1000.0),
-    K("period", "periodic_tol_K", "float", 0.01, "periodic-state convergence tolerance", unit="K", lo=1e-6,
-      hi=10.0),
+    K(
+        "period",
+        "spinup",
+        "choice",
+        "periodic",
+        "periodic: converge to the periodic steady state of the "
+        "forcing over the `spinup_years` before `start`; fixed: simulate that window once (thesis) from "
+        "`initial_temperature_K` or the equilibrium estimate",
+        choices=choices.SPINUP_MODES,
+    ),
+    K(
+        "period",
+        "spinup_years",
+        "float",
+        lambda v: 1.0 if v["spinup"] == "periodic" else 3.0,
+        "spin-up window [years of 365.25 d]",
+        unit="yr",
+        lo=lambda v: _spinup_limits(v)[0],
+        hi=lambda v: _spinup_limits(v)[1],
+        default_doc="1.0 (periodic), 3.0 (fixed)",
+        allowed_doc="periodic 29.5 d … 50 yr; fixed 0 … 300 yr; the window must start inside the ephemeris",
+        field_default=1.0,
+    ),
+    K(
+        "period",
+        "spinup_days",
+        "float",
+        None,
+        "alternative to `spinup_years` (give one)",
+        unit="d",
+        lo=lambda v: _spinup_limits(v)[0] * _YR_TO_D,
+        hi=lambda v: _spinup_limits(v)[1] * _YR_TO_D,
+        default_doc="—",
+        allowed_doc="same, in days",
+        field=False,
+    ),
+    K(
+        "period",
+        "initial_temperature_K",
+        "float",
+        None,
+        "uniform start (fixed) or first guess (periodic); none = equilibrium estimate",
+        unit="K",
+        lo=1.0,
+        hi=1000.0,
+    ),
+    K("period", "periodic_tol_K", "float", 0.01, "periodic-state convergence tolerance", unit="K", lo=1e-6, hi=10.0),
     # [steps]
-    K("steps", "flux_step_hours", "float", 4.0, "interval between flux (boundary condition) samples "
-      "(thesis 4 h)", unit="h", lo=0.0, hi=24.0, lo_open=True),
-    K("steps", "conduction_step_s", "float", None, "largest conduction sub-step", unit="s", lo=0.0,
-      hi=lambda v: v["flux_step_hours"] * 3600.0, lo_open=True, default_doc="solver default",
-      allowed_doc="0 < dt ≤ flux step [s]"),
+    K(
+        "steps",
+        "flux_step_hours",
+        "float",
+        4.0,
+        "interval between flux (boundary condition) samples (thesis 4 h)",
+        unit="h",
+        lo=0.0,
+        hi=24.0,
+        lo_open=True,
+    ),
+    K(
+        "steps",
+        "conduction_step_s",
+        "float",
+        None,
+        "largest conduction sub-step",
+        unit="s",
+        lo=0.0,
+        hi=lambda v: v["flux_step_hours"] * 3600.0,
+        lo_open=True,
+        default_doc="solver default",
+        allowed_doc="0 < dt ≤ flux step [s]",
+    ),
     # [surface]
-    K("surface", "albedo", "float", ALBEDO, "Bond albedo; with `albedo_model = \"hayne2017\"` the normal-incidence "
-      "value A0 (also used for scattered light)", lo=0.0, hi=1.0, hi_open=True),
-    K("surface", "albedo_model", "choice", "constant", "albedo of direct sunlight: constant, or Hayne et al. (2017) "
-      "A(i) = A0 + a (i/45°)³ + b (i/90°)⁸ (illumination.direct_albedo)", choices=choices.ALBEDO_MODELS),
+    K(
+        "surface",
+        "albedo",
+        "float",
+        ALBEDO,
+        'Bond albedo; with `albedo_model = "hayne2017"` the normal-incidence value A0 (also used for scattered light)',
+        lo=0.0,
+        hi=1.0,
+        hi_open=True,
+    ),
+    K(
+        "surface",
+        "albedo_model",
+        "choice",
+        "constant",
+        "albedo of direct sunlight: constant, or Hayne et al. (2017) "
+        "A(i) = A0 + a (i/45°)³ + b (i/90°)⁸ (illumination.direct_albedo)",
+        choices=choices.ALBEDO_MODELS,
+    ),
     K("surface", "albedo_a", "float", HAYNE2017_ALBEDO_A, "coefficient a of the hayne2017 model", lo=0.0, hi=1.0),
     K("surface", "albedo_b", "float", HAYNE2017_ALBEDO_B, "coefficient b of the hayne2017 model", lo=0.0, hi=1.0),
     K("surface", "emissivity", "float", EMISSIVITY, "infrared emissivity", lo=0.0, hi=1.0, lo_open=True),
-    K("surface", "property_set", "choice", "apollo", "heat capacity / conductivity models",
-      choices=choices.PROPERTY_SETS),
-    K("surface", "geothermal_flux_W_m2", "float", GEOTHERMAL_FLUX, "heat flux into the bottom of the 2 m "
-      "column", unit="W m-2", lo=0.0, hi=1.0),
-    K("surface", "nominal_profile", "profile", "1300/1800", "density profile of the coupled run",
-      allowed_doc=_PROFILE_ALLOWED),
+    K(
+        "surface",
+        "property_set",
+        "choice",
+        "apollo",
+        "heat capacity / conductivity models",
+        choices=choices.PROPERTY_SETS,
+    ),
+    K(
+        "surface",
+        "geothermal_flux_W_m2",
+        "float",
+        GEOTHERMAL_FLUX,
+        "heat flux into the bottom of the 2 m column",
+        unit="W m-2",
+        lo=0.0,
+        hi=1.0,
+    ),
+    K(
+        "surface",
+        "nominal_profile",
+        "profile",
+        "1300/1800",
+        "density profile of the coupled run",
+        allowed_doc=_PROFILE_ALLOWED,
+    ),
     # [sun]
-    K("sun", "limb_darkening", "choice", "linear", "limb-darkening law of the disk",
-      choices=choices.LIMB_DARKENING_LAWS),
+    K(
+        "sun",
+        "limb_darkening",
+        "choice",
+        "linear",
+        "limb-darkening law of the disk",
+        choices=choices.LIMB_DARKENING_LAWS,
+    ),
     K("sun", "point_sun", "bool", False, "point Sun instead of the extended disk"),
     K("sun", "n_rings", "int", None, "rings of the disk model", lo=1, hi=100, default_doc="illumination default"),
-    K("sun", "solar_constant_W_m2", "float", SOLAR_CONSTANT, "irradiance at 1 au (scaled by (1 au / r)²)",
-      unit="W m-2", lo=1000.0, hi=2000.0),
-    K("sun", "moon_frame", "choice", "iau2009", "Moon orientation model (ephemeris/README.md)",
-      choices=choices.MOON_FRAMES),
-    K("sun", "moon_kernels", "folder", None, "holds `moon_080317.tf` and `moon_pa_de421_1900-2050.bpc`; "
-      'required for `"de421"`; relative to the case file'),
-    K("sun", "correction", "choice", "apparent", "which Sun direction (ephemeris/README.md)",
-      choices=choices.SUN_CORRECTIONS),
-    K("sun", "method", "choice", "horizon", "direct sunlight: one ray per disk patch, facet and step (the "
-      "reference) / horizon map per facet, traced once per mesh and cached (README: cost and accuracy)",
-      choices=choices.SUN_METHODS),
-    K("sun", "horizon_azimuths", "int", 720, "azimuths of the horizon map", lo=8, hi=4096,
-      only=("method", ("horizon",))),
+    K(
+        "sun",
+        "solar_constant_W_m2",
+        "float",
+        SOLAR_CONSTANT,
+        "irradiance at 1 au (scaled by (1 au / r)²)",
+        unit="W m-2",
+        lo=1000.0,
+        hi=2000.0,
+    ),
+    K(
+        "sun",
+        "moon_frame",
+        "choice",
+        "iau2009",
+        "Moon orientation model (ephemeris/README.md)",
+        choices=choices.MOON_FRAMES,
+    ),
+    K(
+        "sun",
+        "moon_kernels",
+        "folder",
+        None,
+        'holds `moon_080317.tf` and `moon_pa_de421_1900-2050.bpc`; required for `"de421"`; relative to the case file',
+    ),
+    K(
+        "sun",
+        "correction",
+        "choice",
+        "apparent",
+        "which Sun direction (ephemeris/README.md)",
+        choices=choices.SUN_CORRECTIONS,
+    ),
+    K(
+        "sun",
+        "method",
+        "choice",
+        "horizon",
+        "direct sunlight: one ray per disk patch, facet and step (the "
+        "reference) / horizon map per facet, traced once per mesh and cached (README: cost and accuracy)",
+        choices=choices.SUN_METHODS,
+    ),
+    K(
+        "sun",
+        "horizon_azimuths",
+        "int",
+        720,
+        "azimuths of the horizon map",
+        lo=8,
+        hi=4096,
+        only=("method", ("horizon",)),
+    ),
     # [scattering]
-    K("scattering", "method", "choice", "exact", "radiosity solve, or a fixed number of bounces (thesis: 3)",
-      choices=choices.SCATTERING_METHODS),
+    K(
+        "scattering",
+        "method",
+        "choice",
+        "exact",
+        "radiosity solve, or a fixed number of bounces (thesis: 3)",
+        choices=choices.SCATTERING_METHODS,
+    ),
     K("scattering", "n_bounces", "int", 3, 'bounces for `"bounces"`', lo=1, hi=100),
     # [radiation]
-    K("radiation", "view_factors", "choice", "auto", "exact sparse view-factor matrix, hierarchically compressed "
-      "operator, or by facet count (auto: compressed from 10,000 facets on)", choices=choices.VIEW_FACTOR_METHODS),
-    K("radiation", "tolerance", "float", 1e-3, "compressed operator: relative Frobenius error allowed per far "
-      "block (products come out ~50x more accurate)", lo=1e-8, hi=0.1),
+    K(
+        "radiation",
+        "view_factors",
+        "choice",
+        "auto",
+        "exact sparse view-factor matrix, hierarchically compressed "
+        "operator, or by facet count (auto: compressed from 10,000 facets on)",
+        choices=choices.VIEW_FACTOR_METHODS,
+    ),
+    K(
+        "radiation",
+        "tolerance",
+        "float",
+        1e-3,
+        "compressed operator: relative Frobenius error allowed per far block (products come out ~50x more accurate)",
+        lo=1e-8,
+        hi=0.1,
+    ),
     # [replay]
-    K("replay", "profiles", "profiles", (), "profiles replayed on the saved nominal fluxes",
-      allowed_doc="labels as for `nominal_profile`"),
-    K("replay", "density_grid", "grid", None, 'all two-layer profiles on that grid (top ≤ bottom), e.g. '
-      '`"800:2000:100"`', allowed_doc=f'`"LO:HI:STEP"`, {_RHO[0]:g} ≤ LO ≤ HI ≤ {_RHO[1]:g}, STEP > 0, at most '
-      f"{profiles.MAX_GRID_DENSITIES} densities [kg m⁻³]"),
+    K(
+        "replay",
+        "profiles",
+        "profiles",
+        (),
+        "profiles replayed on the saved nominal fluxes",
+        allowed_doc="labels as for `nominal_profile`",
+    ),
+    K(
+        "replay",
+        "density_grid",
+        "grid",
+        None,
+        'all two-layer profiles on that grid (top ≤ bottom), e.g. `"800:2000:100"`',
+        allowed_doc=f'`"LO:HI:STEP"`, {_RHO[0]:g} ≤ LO ≤ HI ≤ {_RHO[1]:g}, STEP > 0, at most '
+        f"{profiles.MAX_GRID_DENSITIES} densities [kg m⁻³]",
+    ),
     # [output]
-    K("output", "checkpoint_interval_steps", "int", 0, "checkpoint every n flux steps (0: only after the "
-      "spin-up)", lo=0, hi=10_000_000),
-    K("output", "save_spinup_fluxes", "bool", True, "also store the spin-up window's fluxes, so that replays "
-      "start exactly as the run did"),
-    K("output", "chunk_mb", "float", 256.0, "memory for the run's (time, facet) series: sunlight, temperatures "
-      "and IR are computed, kept and written in blocks of time samples that fit it, whatever the run's length "
-      "and size", unit="MB", lo=0.01, hi=1e6),
+    K(
+        "output",
+        "checkpoint_interval_steps",
+        "int",
+        0,
+        "checkpoint every n flux steps (0: only after the spin-up)",
+        lo=0,
+        hi=10_000_000,
+    ),
+    K(
+        "output",
+        "save_spinup_fluxes",
+        "bool",
+        True,
+        "also store the spin-up window's fluxes, so that replays start exactly as the run did",
+    ),
+    K(
+        "output",
+        "chunk_mb",
+        "float",
+        256.0,
+        "memory for the run's (time, facet) series: sunlight, temperatures "
+        "and IR are computed, kept and written in blocks of time samples that fit it, whatever the run's length "
+        "and size",
+        unit="MB",
+        lo=0.01,
+        hi=1e6,
+    ),
 )
 del K
 
@@ -344,9 +680,19 @@ SECTIONS: Tuple[SectionSpec, ...] = (
     SectionSpec("output"),
 )
 
-_ANNOTATIONS = {"str": "str", "choice": "str", "float": "float", "int": "int", "bool": "bool",
-                "date": "np.datetime64", "file": "Path", "folder": "Path", "profile": "str",
-                "profiles": "Tuple[str, ...]", "grid": "str"}
+_ANNOTATIONS = {
+    "str": "str",
+    "choice": "str",
+    "float": "float",
+    "int": "int",
+    "bool": "bool",
+    "date": "np.datetime64",
+    "file": "Path",
+    "folder": "Path",
+    "profile": "str",
+    "profiles": "Tuple[str, ...]",
+    "grid": "str",
+}
 _SECTION_CLASSES: dict = {}
 
 
@@ -367,10 +713,19 @@ def _section(name: str):
             if default is not REQUIRED:
                 setattr(cls, key.name, default)
         cls.__annotations__ = ann
-        lines = [f"    {k.name} : {ann[k.name]}" + (f" [{k.unit}]" if k.unit else "") + f"\n        {k.doc}"
-                 for k in _keys(name) if k.field]
-        cls.__doc__ = (cls.__doc__ or "").rstrip() + "\n\n    Fields (from :data:`SCHEMA`)\n    " \
-            + "-" * 28 + "\n" + "\n".join(lines) + "\n"
+        lines = [
+            f"    {k.name} : {ann[k.name]}" + (f" [{k.unit}]" if k.unit else "") + f"\n        {k.doc}"
+            for k in _keys(name)
+            if k.field
+        ]
+        cls.__doc__ = (
+            (cls.__doc__ or "").rstrip()
+            + "\n\n    Fields (from :data:`SCHEMA`)\n    "
+            + "-" * 28
+            + "\n"
+            + "\n".join(lines)
+            + "\n"
+        )
         cls = dataclass(frozen=True)(cls)
         _SECTION_CLASSES[name] = cls
         return cls
@@ -580,7 +935,8 @@ class Case:
         elif "name" not in raw:
             raw["name"] = self.name
         header = "# derived from case {!r} with overrides: {}\n".format(
-            self.name, ", ".join(f"{k} = {v!r}" for k, v in overrides.items()))
+            self.name, ", ".join(f"{k} = {v!r}" for k, v in overrides.items())
+        )
         text = header + dump_toml(raw)
         base = self.path.parent if self.path is not None else None
         return _build_case(raw, text, base_dir=base, path=self.path, default_name=self.name)
@@ -633,19 +989,23 @@ class _Section:
             return default
         return self.data[k]
 
-    def number(self, k, default=None, lo=None, hi=None, lo_open=False, hi_open=False, unit="",
-               required=False, integer=False):
+    def number(
+        self, k, default=None, lo=None, hi=None, lo_open=False, hi_open=False, unit="", required=False, integer=False
+    ):
         v = self.raw(k, default, required)
         if k not in self.data:
             return default
         kind = "an integer" if integer else "a number"
         if isinstance(v, bool) or not isinstance(v, (int, float)) or (integer and not isinstance(v, int)):
-            self.fail(f"{self.key(k)} = {v!r} has the wrong type ({type(v).__name__}); expected {kind}, "
-                      f"allowed: {_fmt_range(lo, hi, lo_open, hi_open, unit)}")
+            self.fail(
+                f"{self.key(k)} = {v!r} has the wrong type ({type(v).__name__}); expected {kind}, "
+                f"allowed: {_fmt_range(lo, hi, lo_open, hi_open, unit)}"
+            )
         if not math.isfinite(v):
             self.fail(f"{self.key(k)} = {v!r} is not finite; allowed: {_fmt_range(lo, hi, lo_open, hi_open, unit)}")
-        bad = ((lo is not None and (v < lo or (lo_open and v == lo)))
-               or (hi is not None and (v > hi or (hi_open and v == hi))))
+        bad = (lo is not None and (v < lo or (lo_open and v == lo))) or (
+            hi is not None and (v > hi or (hi_open and v == hi))
+        )
         if bad:
             self.fail(f"{self.key(k)} = {v!r} out of range; allowed: {_fmt_range(lo, hi, lo_open, hi_open, unit)}")
         return int(v) if integer else float(v)
@@ -679,8 +1039,10 @@ class _Section:
         elif isinstance(v, _dt.date):
             v = v.isoformat()
         if not isinstance(v, str):
-            self.fail(f"{self.key(k)} = {v!r} has the wrong type ({type(v).__name__}); "
-                      "expected an ISO 8601 date such as \"2019-01-01\" or \"2019-01-01T04:00:00\"")
+            self.fail(
+                f"{self.key(k)} = {v!r} has the wrong type ({type(v).__name__}); "
+                'expected an ISO 8601 date such as "2019-01-01" or "2019-01-01T04:00:00"'
+            )
         s = v.strip()
         if s.endswith(("Z", "z")):
             s = s[:-1]
@@ -689,16 +1051,20 @@ class _Section:
                 raise ValueError
             t = np.datetime64(s.replace(" ", "T"), "ns")
         except ValueError:
-            self.fail(f"{self.key(k)} = {v!r} is not a valid date; expected ISO 8601 such as "
-                      "\"2019-01-01\" or \"2019-01-01T04:00:00\" (UTC)")
+            self.fail(
+                f"{self.key(k)} = {v!r} is not a valid date; expected ISO 8601 such as "
+                '"2019-01-01" or "2019-01-01T04:00:00" (UTC)'
+            )
         return t
 
     def finish(self):
         unknown = [k for k in self.data if k not in self.used]
         if unknown:
             allowed = ", ".join(sorted(self.used))
-            self.fail(f"unknown key {self.key(unknown[0])} = {self.data[unknown[0]]!r}; "
-                      f"allowed keys{' in [' + self.name + ']' if self.name else ''}: {allowed}")
+            self.fail(
+                f"unknown key {self.key(unknown[0])} = {self.data[unknown[0]]!r}; "
+                f"allowed keys{' in [' + self.name + ']' if self.name else ''}: {allowed}"
+            )
 
 
 class _Values(dict):
@@ -727,8 +1093,10 @@ def _read_key(sec: _Section, key: Key, values: _Values, base_dir: Optional[Path]
             sec.used.add(k)
             if sec.has(k):
                 which = " or ".join(repr(a) for a in allowed)
-                sec.fail(f"{sec.key(k)} = {sec.data[k]!r} is not used with {other} = {values[other]!r}; "
-                         f"it applies to {other} = {which} only")
+                sec.fail(
+                    f"{sec.key(k)} = {sec.data[k]!r} is not used with {other} = {values[other]!r}; "
+                    f"it applies to {other} = {which} only"
+                )
             return key.dataclass_default
     if key.default is REQUIRED and not sec.has(k):
         when = f" ({key.only[0]} = {values[key.only[0]]!r})" if key.only is not None else ""
@@ -737,8 +1105,16 @@ def _read_key(sec: _Section, key: Key, values: _Values, base_dir: Optional[Path]
     default = None if key.default is REQUIRED else _resolve(key.default, values)
     t = key.type
     if t in ("float", "int"):
-        return sec.number(k, default, lo=_resolve(key.lo, values), hi=_resolve(key.hi, values),
-                          lo_open=key.lo_open, hi_open=key.hi_open, unit=key.unit, integer=t == "int")
+        return sec.number(
+            k,
+            default,
+            lo=_resolve(key.lo, values),
+            hi=_resolve(key.hi, values),
+            lo_open=key.lo_open,
+            hi_open=key.hi_open,
+            unit=key.unit,
+            integer=t == "int",
+        )
     if t == "bool":
         return sec.boolean(k, default)
     if t == "str":
@@ -754,8 +1130,10 @@ def _read_key(sec: _Section, key: Key, values: _Values, base_dir: Optional[Path]
     if t == "profiles":
         labels = sec.raw(k, list(default))
         if not isinstance(labels, list):
-            sec.fail(f"{sec.key(k)} = {labels!r} has the wrong type ({type(labels).__name__}); "
-                     "expected a list of labels such as [\"800/1100\", \"rock\"]")
+            sec.fail(
+                f"{sec.key(k)} = {labels!r} has the wrong type ({type(labels).__name__}); "
+                'expected a list of labels such as ["800/1100", "rock"]'
+            )
         return tuple(_profile_label(sec, k, v, i) for i, v in enumerate(labels))
     if t == "grid":
         return _density_grid(sec, k, default)
@@ -766,8 +1144,10 @@ def _profile_label(sec: _Section, k: str, v: Any, index: Optional[int] = None) -
     """A density profile label, checked by the profile parser the thermal model uses."""
     key = sec.key(k) + (f"[{index}]" if index is not None else "")
     if not isinstance(v, str):
-        sec.fail(f"{key} = {v!r} has the wrong type ({type(v).__name__}); expected a profile label "
-                 "such as \"1300/1800\", \"rock\" or \"hayne2017\"")
+        sec.fail(
+            f"{key} = {v!r} has the wrong type ({type(v).__name__}); expected a profile label "
+            'such as "1300/1800", "rock" or "hayne2017"'
+        )
     try:
         profiles.parse_profile(v)
     except ProfileError as exc:
@@ -806,15 +1186,19 @@ def _resolve_path(sec: _Section, k: str, base_dir: Optional[Path], must_be_dir=F
 # ---------------------------------------------------------------- checks across keys
 def _check_sun(v: _Values, sec: _Section) -> None:
     if v["moon_frame"] == "de421" and v["moon_kernels"] is None:
-        sec.fail("sun.moon_frame = 'de421' needs sun.moon_kernels = folder with moon_080317.tf and "
-                 "moon_pa_de421_1900-2050.bpc (not shipped); or use moon_frame = 'iau2009'")
+        sec.fail(
+            "sun.moon_frame = 'de421' needs sun.moon_kernels = folder with moon_080317.tf and "
+            "moon_pa_de421_1900-2050.bpc (not shipped); or use moon_frame = 'iau2009'"
+        )
 
 
 def _check_period(v: _Values, sec: _Section) -> None:
     start, end = v["start"], v["end"]
     if end <= start:
-        sec.fail(f"period.end = {np.datetime_as_string(end, unit='s')} must be after period.start = "
-                 f"{np.datetime_as_string(start, unit='s')}")
+        sec.fail(
+            f"period.end = {np.datetime_as_string(end, unit='s')} must be after period.start = "
+            f"{np.datetime_as_string(start, unit='s')}"
+        )
     if v.given("spinup_years") and v.given("spinup_days"):
         sec.fail("give period.spinup_years or period.spinup_days, not both")
     if v["spinup_days"] is not None:
@@ -832,33 +1216,41 @@ def _check_case(case: Case, where: str) -> None:
         for key, loc_key in (("center_lat_deg", "lat_deg"), ("center_lon_deg", "lon_deg")):
             v, loc = getattr(case.crater, key), getattr(case.location, loc_key)
             if v is not None and abs(v - loc) > 1e-9:
-                raise ConfigError(f"{where}: crater.{key} = {v:g} differs from location.{loc_key} = {loc:g}; the "
-                                  "site's frame is the location's (give one of them, or the same value)")
+                raise ConfigError(
+                    f"{where}: crater.{key} = {v:g} differs from location.{loc_key} = {loc:g}; the "
+                    "site's frame is the location's (give one of them, or the same value)"
+                )
         if case.crater.outer_resolution_m is not None and case.crater.outer_radius_km is None:
             raise ConfigError(f"{where}: crater.outer_resolution_m needs crater.outer_radius_km")
         if case.crater.outer_radius_km is not None and case.crater.outer_radius_km <= case.crater.radius_km:
-            raise ConfigError(f"{where}: crater.outer_radius_km = {case.crater.outer_radius_km:g} must exceed "
-                              f"crater.radius_km = {case.crater.radius_km:g}")
+            raise ConfigError(
+                f"{where}: crater.outer_radius_km = {case.crater.outer_radius_km:g} must exceed "
+                f"crater.radius_km = {case.crater.radius_km:g}"
+            )
     if case.period.duration_s < case.steps.flux_step_s:
-        raise ConfigError(f"{where}: period ({case.period.duration_s:g} s) is shorter than one flux step "
-                          f"steps.flux_step_hours = {case.steps.flux_step_hours:g}")
+        raise ConfigError(
+            f"{where}: period ({case.period.duration_s:g} s) is shorter than one flux step "
+            f"steps.flux_step_hours = {case.steps.flux_step_hours:g}"
+        )
     lo, hi, what = choices.ephemeris_span(case.sun.moon_frame)
-    allowed = (f"allowed: {np.datetime_as_string(lo, unit='D')} to {np.datetime_as_string(hi, unit='D')} "
-               f"(UTC, {what})")
+    allowed = f"allowed: {np.datetime_as_string(lo, unit='D')} to {np.datetime_as_string(hi, unit='D')} (UTC, {what})"
     for key, t in (("period.start", case.period.start), ("period.end", case.period.end)):
         if not lo <= t <= hi:
-            raise EphemerisRangeError(f"{where}: {key} = {np.datetime_as_string(t, unit='s')} is outside the "
-                                      f"ephemeris; {allowed}")
+            raise EphemerisRangeError(
+                f"{where}: {key} = {np.datetime_as_string(t, unit='s')} is outside the ephemeris; {allowed}"
+            )
     first = case.period.spinup_start
     if first < lo:
         raise EphemerisRangeError(
             f"{where}: period.spinup_years = {case.period.spinup_years:g} starts the spin-up at "
-            f"{np.datetime_as_string(first, unit='s')}, outside the ephemeris; {allowed}")
+            f"{np.datetime_as_string(first, unit='s')}, outside the ephemeris; {allowed}"
+        )
 
 
 # ---------------------------------------------------------------- the builder
-def _read_section(raw: dict, name: str, where: str, base_dir: Optional[Path], default_name: str = "",
-                  required: bool = False) -> _Values:
+def _read_section(
+    raw: dict, name: str, where: str, base_dir: Optional[Path], default_name: str = "", required: bool = False
+) -> _Values:
     sec = _Section(raw if name == "" else raw.get(name), name, where)
     if required and name not in raw:
         sec.fail(f"missing section [{name}]")
@@ -874,8 +1266,7 @@ def _read_section(raw: dict, name: str, where: str, base_dir: Optional[Path], de
     return values
 
 
-def _build_case(raw: dict, text: str, base_dir: Optional[Path], path: Optional[Path],
-                default_name: str) -> Case:
+def _build_case(raw: dict, text: str, base_dir: Optional[Path], path: Optional[Path], default_name: str) -> Case:
     where = str(path) if path is not None else "<case>"
     top = _read_section(raw, "", where, base_dir, default_name=default_name)
     if not top["name"] or not top["name"].strip():
@@ -885,8 +1276,7 @@ def _build_case(raw: dict, text: str, base_dir: Optional[Path], path: Optional[P
         values = _read_section(raw, spec.name, where, base_dir, required=spec.required)
         fields = {k.name: values[k.name] for k in _keys(spec.name) if k.field}
         sections[spec.name] = _SECTION_CLASSES[spec.name](**fields)
-    case = Case(name=top["name"].strip(), description=top["description"], toml_text=text, path=path,
-                **sections)
+    case = Case(name=top["name"].strip(), description=top["description"], toml_text=text, path=path, **sections)
     _check_case(case, where)
     return case
 
@@ -941,9 +1331,19 @@ def _md_allowed(key: Key) -> str:
     return f"{lo} … {hi}{unit}"
 
 
-_MD_TYPES = {"str": "string", "choice": "string", "float": "float", "int": "int", "bool": "bool",
-             "date": "ISO date string or TOML date/datetime", "file": "string", "folder": "string",
-             "profile": "string", "profiles": "list of strings", "grid": "string"}
+_MD_TYPES = {
+    "str": "string",
+    "choice": "string",
+    "float": "float",
+    "int": "int",
+    "bool": "bool",
+    "date": "ISO date string or TOML date/datetime",
+    "file": "string",
+    "folder": "string",
+    "profile": "string",
+    "profiles": "list of strings",
+    "grid": "string",
+}
 
 
 def _md_meaning(key: Key) -> str:
@@ -955,11 +1355,14 @@ def _md_meaning(key: Key) -> str:
 
 def schema_markdown() -> str:
     """The key tables of cases/README.md (Markdown), generated from :data:`SCHEMA`."""
-    out = ['Units are in the key names. "required" keys have no default. Generated from',
-           "`crater_thermal.config.SCHEMA` by `python -m crater_thermal.config --update cases/README.md`;",
-           "edit the schema, not this table."]
-    for name, title in [("", "top level")] + [(s.name, f"`[{s.name}]`" + (" (required section)" if s.required
-                                                                        else "")) for s in SECTIONS]:
+    out = [
+        'Units are in the key names. "required" keys have no default. Generated from',
+        "`crater_thermal.config.SCHEMA` by `python -m crater_thermal.config --update cases/README.md`;",
+        "edit the schema, not this table.",
+    ]
+    for name, title in [("", "top level")] + [
+        (s.name, f"`[{s.name}]`" + (" (required section)" if s.required else "")) for s in SECTIONS
+    ]:
         out += ["", f"### {title}", "| key | type | default | allowed | meaning |", "|---|---|---|---|---|"]
         for key in _keys(name):
             row = [f"`{key.name}`", _MD_TYPES[key.type], _md_default(key), _md_allowed(key), _md_meaning(key)]
@@ -982,8 +1385,7 @@ def readme_with_schema(text: str) -> str:
 
 
 # ---------------------------------------------------------------- public entry points
-def loads_case(text: str, base_dir: Optional[Path] = None, name: str = "case",
-               path: Optional[Path] = None) -> Case:
+def loads_case(text: str, base_dir: Optional[Path] = None, name: str = "case", path: Optional[Path] = None) -> Case:
     """Parse and validate case TOML text.
 
     Parameters

@@ -109,6 +109,7 @@ def _close_kernels() -> None:
         except Exception:  # pragma: no cover - best effort at shutdown
             pass
 
+
 TimeLike = Union[str, np.datetime64, _dt.datetime, Iterable]
 
 
@@ -285,8 +286,7 @@ def time_grid(start: TimeLike, end: TimeLike, step_s: float, include_end: bool =
         raise ConfigError(f"step_s={step_s!r} out of range; allowed: > 0 seconds")
     if t1 <= t0:
         raise ConfigError(
-            f"end={np.datetime_as_string(t1, unit='s')} must be after start="
-            f"{np.datetime_as_string(t0, unit='s')}"
+            f"end={np.datetime_as_string(t1, unit='s')} must be after start={np.datetime_as_string(t0, unit='s')}"
         )
     step_ns = np.timedelta64(int(round(step * 1e9)), "ns")
     if step_ns <= np.timedelta64(0, "ns"):
@@ -324,17 +324,31 @@ def _prepare_times(times: TimeLike, moon_frame: str) -> np.ndarray:
 # ------------------------------------------------------------- Moon orientation
 # IAU/WGCCRE 2009 lunar model (Archinal et al. 2011, Table 2). Angles in degrees,
 # d = days and T = Julian centuries (36525 d) of TDB from J2000.0.
-_E_CONST = np.array([125.045, 250.089, 260.008, 176.625, 357.529, 311.589, 134.963,
-                     276.617, 34.226, 15.134, 119.743, 239.961, 25.053])
-_E_RATE = np.array([-0.0529921, -0.1059842, 13.0120009, 13.3407154, 0.9856003,
-                    26.4057084, 13.0649930, 0.3287146, 1.7484877, -0.1589763,
-                    0.0036096, 0.1643573, 12.9590088])  # [deg/day]
-_RA_SIN = np.array([-3.8787, -0.1204, 0.0700, -0.0172, 0.0, 0.0072, 0.0, 0.0, 0.0,
-                    -0.0052, 0.0, 0.0, 0.0043])
-_DEC_COS = np.array([1.5419, 0.0239, -0.0278, 0.0068, 0.0, -0.0029, 0.0009, 0.0, 0.0,
-                     0.0008, 0.0, 0.0, -0.0009])
-_W_SIN = np.array([3.5610, 0.1208, -0.0642, 0.0158, 0.0252, -0.0066, -0.0047, -0.0046,
-                   0.0028, 0.0052, 0.0040, 0.0019, -0.0044])
+_E_CONST = np.array(
+    [125.045, 250.089, 260.008, 176.625, 357.529, 311.589, 134.963, 276.617, 34.226, 15.134, 119.743, 239.961, 25.053]
+)
+_E_RATE = np.array(
+    [
+        -0.0529921,
+        -0.1059842,
+        13.0120009,
+        13.3407154,
+        0.9856003,
+        26.4057084,
+        13.0649930,
+        0.3287146,
+        1.7484877,
+        -0.1589763,
+        0.0036096,
+        0.1643573,
+        12.9590088,
+    ]
+)  # [deg/day]
+_RA_SIN = np.array([-3.8787, -0.1204, 0.0700, -0.0172, 0.0, 0.0072, 0.0, 0.0, 0.0, -0.0052, 0.0, 0.0, 0.0043])
+_DEC_COS = np.array([1.5419, 0.0239, -0.0278, 0.0068, 0.0, -0.0029, 0.0009, 0.0, 0.0, 0.0008, 0.0, 0.0, -0.0009])
+_W_SIN = np.array(
+    [3.5610, 0.1208, -0.0642, 0.0158, 0.0252, -0.0066, -0.0047, -0.0046, 0.0028, 0.0052, 0.0040, 0.0019, -0.0044]
+)
 
 
 def _rot_z(a: np.ndarray) -> np.ndarray:
@@ -364,9 +378,7 @@ def _iau2009_angles(d_tdb: np.ndarray):
 
 def _iau2009_rotation_from_days(d_tdb: np.ndarray) -> np.ndarray:
     ra, dec, w = _iau2009_angles(d_tdb)
-    return (_rot_z(np.deg2rad(w % 360.0))
-            @ _rot_x(np.deg2rad(90.0 - dec))
-            @ _rot_z(np.deg2rad(90.0 + ra)))
+    return _rot_z(np.deg2rad(w % 360.0)) @ _rot_x(np.deg2rad(90.0 - dec)) @ _rot_z(np.deg2rad(90.0 + ra))
 
 
 def moon_rotation_iau2009(times: TimeLike) -> np.ndarray:
@@ -441,8 +453,9 @@ def _sun_from_moon_icrf(t: np.ndarray, correction: str) -> np.ndarray:
     return np.asarray(xyz, dtype=float).reshape(3, -1).T
 
 
-def sun_position_moon_fixed(times: TimeLike, moon_frame: str = "iau2009", *,
-                            correction: str = "apparent", moon_kernels=None) -> np.ndarray:
+def sun_position_moon_fixed(
+    times: TimeLike, moon_frame: str = "iau2009", *, correction: str = "apparent", moon_kernels=None
+) -> np.ndarray:
     """Sun position relative to the Moon's centre in the lunar body-fixed frame.
 
     Parameters
@@ -481,9 +494,7 @@ def enu_basis(lat_deg: float, lon_deg: float) -> np.ndarray:
     sp, cp, sl, cl = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
     if abs(lat_deg) == 90.0:
         cp = 0.0  # exact pole: keep the up vector exactly polar
-    return np.array([[-sl, cl, 0.0],
-                     [-sp * cl, -sp * sl, cp],
-                     [cp * cl, cp * sl, sp]])
+    return np.array([[-sl, cl, 0.0], [-sp * cl, -sp * sl, cp], [cp * cl, cp * sl, sp]])
 
 
 def _check_latlon(lat_deg, lon_deg):
@@ -498,10 +509,16 @@ def _check_latlon(lat_deg, lon_deg):
     return np.deg2rad(lat), np.deg2rad(lon)
 
 
-def sun_in_crater_frame(times: TimeLike, lat_deg: float, lon_deg: float,
-                        moon_frame: str = "iau2009", *, correction: str = "apparent",
-                        moon_kernels=None,
-                        moon_radius_m: float = MOON_RADIUS) -> Tuple[np.ndarray, np.ndarray]:
+def sun_in_crater_frame(
+    times: TimeLike,
+    lat_deg: float,
+    lon_deg: float,
+    moon_frame: str = "iau2009",
+    *,
+    correction: str = "apparent",
+    moon_kernels=None,
+    moon_radius_m: float = MOON_RADIUS,
+) -> Tuple[np.ndarray, np.ndarray]:
     """Sun direction and distance in the crater frame (x east, y north, z up).
 
     Parameters
@@ -543,8 +560,9 @@ def sun_in_crater_frame(times: TimeLike, lat_deg: float, lon_deg: float,
     return v / dist[:, None], dist
 
 
-def sun_elevation_azimuth_deg(times: TimeLike, lat_deg: float, lon_deg: float,
-                              moon_frame: str = "iau2009", **kwargs) -> Tuple[np.ndarray, np.ndarray]:
+def sun_elevation_azimuth_deg(
+    times: TimeLike, lat_deg: float, lon_deg: float, moon_frame: str = "iau2009", **kwargs
+) -> Tuple[np.ndarray, np.ndarray]:
     """Sun elevation above the local horizontal and azimuth (from north, toward east).
 
     Returns

@@ -33,5 +33,4 @@ def missing_extra(package: str, extra: str, purpose: str) -> MissingExtraError:
     purpose : str
         What needs it, plural, for the message: ``"3-D views"``, ``"MP4 animations"``.
     """
-    return MissingExtraError(f"{purpose} need {package}, which is not installed: "
-                             f"pip install 'crater_thermal[{extra}]'")
+    return MissingExtraError(f"{purpose} need {package}, which is not installed: pip install 'crater_thermal[{extra}]'")

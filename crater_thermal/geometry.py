@@ -744,8 +744,10 @@ def _validate(vertices: np.ndarray, faces: np.ndarray, source: str) -> None:
     rep = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     bad = rep | (area <= tol)
     if bad.any():
-        raise MeshError(f"{source}: {int(bad.sum())} degenerate face(s) (zero area or repeated vertex), "
-                        f"first is face {int(np.argmax(bad))}")
+        raise MeshError(
+            f"{source}: {int(bad.sum())} degenerate face(s) (zero area or repeated vertex), "
+            f"first is face {int(np.argmax(bad))}"
+        )
     # duplicate faces (same vertex set)
     key = np.sort(faces, axis=1)
     uniq = np.unique(key, axis=0)
@@ -759,8 +761,10 @@ def _validate(vertices: np.ndarray, faces: np.ndarray, source: str) -> None:
     ecode = e[:, 0].astype(np.int64) * (len(vertices) + 1) + e[:, 1]
     u, cnt = np.unique(ecode, return_counts=True)
     if (cnt > 1).any():
-        raise MeshError(f"{source}: inconsistent face winding (normals): {int((cnt > 1).sum())} directed edge(s) "
-                        "are shared by two faces with the same orientation")
+        raise MeshError(
+            f"{source}: inconsistent face winding (normals): {int((cnt > 1).sum())} directed edge(s) "
+            "are shared by two faces with the same orientation"
+        )
 
 
 def _read_meta_comment(path: Path) -> dict:
@@ -775,7 +779,7 @@ def _read_meta_comment(path: Path) -> dict:
         for prefix in ("comment " + _META_TAG + " ", "# " + _META_TAG + " "):
             if text.startswith(prefix):
                 try:
-                    meta = json.loads(text[len(prefix):])
+                    meta = json.loads(text[len(prefix) :])
                     return meta if isinstance(meta, dict) else {}
                 except ValueError:
                     return {}
@@ -798,8 +802,10 @@ def check_upward(mesh: Mesh, source: str = "mesh") -> Mesh:
     """
     nz = float(mesh.mean_normal[2])
     if nz < -DOWNWARD_LIMIT:
-        raise MeshError(f"{source}: the surface faces downward (area-weighted mean normal z = {nz:.2f}; "
-                        "up is +z): its winding is reversed; load it with --flip (flip=True)")
+        raise MeshError(
+            f"{source}: the surface faces downward (area-weighted mean normal z = {nz:.2f}; "
+            "up is +z): its winding is reversed; load it with --flip (flip=True)"
+        )
     return mesh
 
 

@@ -247,8 +247,15 @@ def _load(path: Path, mesh_hash: str, n_az: int, nf: int) -> Optional[np.ndarray
     return elev if elev.shape == (n_az, nf) else None
 
 
-def horizon_map(mesh, tracer, n_azimuths: int = DEFAULT_N_AZIMUTHS, tolerance_deg: float = DEFAULT_TOLERANCE_DEG,
-                cache_dir=None, progress: Optional[ProgressFn] = None, chunk_rays: int = CHUNK_RAYS) -> HorizonMap:
+def horizon_map(
+    mesh,
+    tracer,
+    n_azimuths: int = DEFAULT_N_AZIMUTHS,
+    tolerance_deg: float = DEFAULT_TOLERANCE_DEG,
+    cache_dir=None,
+    progress: Optional[ProgressFn] = None,
+    chunk_rays: int = CHUNK_RAYS,
+) -> HorizonMap:
     """Trace the horizon of every facet at ``n_azimuths`` azimuths.
 
     Parameters
@@ -356,8 +363,9 @@ def _trace_hierarchical(tracer, idx: np.ndarray, n_az: int, tol_deg: float, chun
     return H
 
 
-def trace_horizons(tracer, facet_idx, azimuths_rad, tolerance_deg: float = DEFAULT_TOLERANCE_DEG,
-                   chunk_rays: int = CHUNK_RAYS) -> np.ndarray:
+def trace_horizons(
+    tracer, facet_idx, azimuths_rad, tolerance_deg: float = DEFAULT_TOLERANCE_DEG, chunk_rays: int = CHUNK_RAYS
+) -> np.ndarray:
     """Horizon elevation of some facets at arbitrary azimuths (bisection on occlusion rays).
 
     Parameters
@@ -401,9 +409,15 @@ def trace_horizons(tracer, facet_idx, azimuths_rad, tolerance_deg: float = DEFAU
 # ------------------------------------------------------------------------------------------ direct flux
 
 
-def direct_irradiance_horizon(mesh, hmap: HorizonMap, sun_dirs: np.ndarray, sun_distance_m: np.ndarray,
-                              solar_constant: float = SOLAR_CONSTANT, law: LawLike | None = DEFAULT_LAW,
-                              chunk_steps: int = 256) -> np.ndarray:
+def direct_irradiance_horizon(
+    mesh,
+    hmap: HorizonMap,
+    sun_dirs: np.ndarray,
+    sun_distance_m: np.ndarray,
+    solar_constant: float = SOLAR_CONSTANT,
+    law: LawLike | None = DEFAULT_LAW,
+    chunk_steps: int = 256,
+) -> np.ndarray:
     """Direct solar irradiance on every facet at every time, from a horizon map.
 
     Parameters

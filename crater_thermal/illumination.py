@@ -152,10 +152,7 @@ def law_coefficients(law: LawLike) -> np.ndarray:
     """
     if isinstance(law, str):
         if law not in LIMB_DARKENING_COEFFS:
-            raise ConfigError(
-                f"limb_darkening = {law!r} is not a known law; allowed: "
-                f"{', '.join(LIMB_DARKENING_LAWS)}"
-            )
+            raise ConfigError(f"limb_darkening = {law!r} is not a known law; allowed: {', '.join(LIMB_DARKENING_LAWS)}")
         return np.asarray(LIMB_DARKENING_COEFFS[law], dtype=float)
     coeffs = np.asarray(law, dtype=float).ravel()
     if coeffs.size == 0 or not np.all(np.isfinite(coeffs)):
@@ -496,8 +493,9 @@ def sun_direction_from_angles(elevation_deg: float, azimuth_deg: float = 180.0) 
 # ------------------------------------------------------------------------- incidence-dependent albedo
 
 
-def albedo_hayne2017(incidence_rad, albedo0: float = ALBEDO, a: float = HAYNE2017_ALBEDO_A,
-                     b: float = HAYNE2017_ALBEDO_B) -> np.ndarray:
+def albedo_hayne2017(
+    incidence_rad, albedo0: float = ALBEDO, a: float = HAYNE2017_ALBEDO_A, b: float = HAYNE2017_ALBEDO_B
+) -> np.ndarray:
     """Directional albedo of regolith for direct sunlight, Hayne et al. (2017) / Keihm (1984).
 
     ``A(i) = A0 + a (i / 45 deg)^3 + b (i / 90 deg)^8``, with i clipped to [0, 90 deg] and A capped
@@ -524,8 +522,14 @@ def albedo_hayne2017(incidence_rad, albedo0: float = ALBEDO, a: float = HAYNE201
     return np.minimum(albedo0 + a * (i / (0.25 * np.pi)) ** 3 + b * (i / (0.5 * np.pi)) ** 8, 1.0)
 
 
-def direct_albedo(normals, sun_dirs, albedo0: float = ALBEDO, model: str = "constant",
-                  a: float = HAYNE2017_ALBEDO_A, b: float = HAYNE2017_ALBEDO_B) -> np.ndarray:
+def direct_albedo(
+    normals,
+    sun_dirs,
+    albedo0: float = ALBEDO,
+    model: str = "constant",
+    a: float = HAYNE2017_ALBEDO_A,
+    b: float = HAYNE2017_ALBEDO_B,
+) -> np.ndarray:
     """(nt, nf) albedo [-] each facet applies to direct sunlight at each time.
 
     The incidence angle is that of the Sun's centre, ``cos i = n . s``; a facet that sees only the

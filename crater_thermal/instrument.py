@@ -218,8 +218,9 @@ def band_radiance_derivative(T_K, band: Band) -> np.ndarray:
     return _C_BAND * T**3 * (4 * planck_integral(x1, x2) - xf(x2) + xf(x1))
 
 
-def band_brightness_temperature(L, band: Band, bracket_K: tuple[float, float] = (1.0, 2000.0),
-                                rtol: float = 1e-13) -> np.ndarray:
+def band_brightness_temperature(
+    L, band: Band, bracket_K: tuple[float, float] = (1.0, 2000.0), rtol: float = 1e-13
+) -> np.ndarray:
     """Invert :func:`band_radiance`: the temperature [K] whose band radiance is ``L`` [W m-2 sr-1].
 
     Safeguarded Newton on log L (bisection when a step leaves the bracket). Raises
@@ -238,8 +239,10 @@ def _invert(L, band, lo, hi, rtol):
         raise ConfigError("band radiance must be > 0 to invert to a brightness temperature")
     Llo, Lhi = band_radiance(lo, band), band_radiance(hi, band)
     if np.any(L < Llo * (1 - 1e-12)) or np.any(L > Lhi * (1 + 1e-12)):
-        raise ConfigError(f"band radiance outside the range of the bracket {float(lo.min()):g}-{float(hi.max()):g} K "
-                          f"in band {band.label()}")
+        raise ConfigError(
+            f"band radiance outside the range of the bracket {float(lo.min()):g}-{float(hi.max()):g} K "
+            f"in band {band.label()}"
+        )
     lo0, hi0 = lo.copy(), hi.copy()
     at_lo, at_hi = L <= Llo, L >= Lhi  # the answer is an end of the bracket (e.g. a fraction of 0 or 1)
     T = np.where(hi > lo, 0.5 * (lo + hi), lo)
@@ -361,18 +364,29 @@ class Instrument:
 #: accuracy 0.5-1% of a 300 K scene (Paige, UCLA ESS 265 lecture 2010): gain error 1%. 1/f knee 60 s: an
 #: assumption (no published figure found). The per-channel NETDs of Paige et al. 2010 could not be read in
 #: this work; the equal-radiance-noise assumption should be replaced by them.
-_DIVINER_NEDL_SOURCE = ("Paige et al. 2010 (Space Sci. Rev. 150:125) passbands and 0.128 s integration; NETD from "
-                        "the thesis's 2 K at 50 K for channel 9, same noise-equivalent radiance assumed for "
-                        "channels 7-8 (same thermopile arrays); gain error 1% (0.5-1% accuracy at 300 K); "
-                        "1/f knee 60 s assumed")
+_DIVINER_NEDL_SOURCE = (
+    "Paige et al. 2010 (Space Sci. Rev. 150:125) passbands and 0.128 s integration; NETD from "
+    "the thesis's 2 K at 50 K for channel 9, same noise-equivalent radiance assumed for "
+    "channels 7-8 (same thermopile arrays); gain error 1% (0.5-1% accuracy at 300 K); "
+    "1/f knee 60 s assumed"
+)
 
 
 def _diviner(ch: int, lo: float, hi: float) -> Instrument:
     ch9 = Band(100.0, 400.0)
     nedl = 2.0 * float(band_radiance_derivative(50.0, ch9))
     netd50 = nedl / float(band_radiance_derivative(50.0, Band(lo, hi)))
-    return Instrument(name=f"diviner_ch{ch}", lo_um=lo, hi_um=hi, netd_ref_K=netd50, t_ref_K=50.0,
-                      integration_s=0.128, knee_s=60.0, gain_error=0.01, source=_DIVINER_NEDL_SOURCE)
+    return Instrument(
+        name=f"diviner_ch{ch}",
+        lo_um=lo,
+        hi_um=hi,
+        netd_ref_K=netd50,
+        t_ref_K=50.0,
+        integration_s=0.128,
+        knee_s=60.0,
+        gain_error=0.01,
+        source=_DIVINER_NEDL_SOURCE,
+    )
 
 
 def _presets() -> dict[str, Instrument]:
@@ -384,10 +398,18 @@ def _presets() -> dict[str, Instrument]:
         # VOx microbolometer, 7.5-14 um, NETD < 50 mK at a 30 C scene (FLIR A615 data sheet), 50-60 Hz frames.
         # Uncooled microbolometers drift between shutter corrections: 1/f knee 10 s assumed; gain error 2%
         # (data sheet accuracy +-2 % of reading).
-        "microbolometer": Instrument(name="microbolometer", lo_um=7.5, hi_um=14.0, netd_ref_K=0.05, t_ref_K=303.15,
-                                     integration_s=1.0 / 60.0, knee_s=10.0, gain_error=0.02,
-                                     source="FLIR A615 data sheet (7.5-14 um, NETD < 50 mK at 30 C, +-2 % accuracy); "
-                                            "thesis 5.2/8.5; 1/f knee 10 s assumed"),
+        "microbolometer": Instrument(
+            name="microbolometer",
+            lo_um=7.5,
+            hi_um=14.0,
+            netd_ref_K=0.05,
+            t_ref_K=303.15,
+            integration_s=1.0 / 60.0,
+            knee_s=10.0,
+            gain_error=0.02,
+            source="FLIR A615 data sheet (7.5-14 um, NETD < 50 mK at 30 C, +-2 % accuracy); "
+            "thesis 5.2/8.5; 1/f knee 10 s assumed",
+        ),
     }
 
 
@@ -395,12 +417,28 @@ def _presets() -> dict[str, Instrument]:
 PRESETS: dict[str, Instrument] = _presets()
 
 
-def custom_instrument(lo_um: float, hi_um: float, netd_K: float, t_ref_K: float, integration_s: float = 0.128,
-                      knee_s: float = 60.0, gain_error: float = 0.01, name: str = "custom") -> Instrument:
+def custom_instrument(
+    lo_um: float,
+    hi_um: float,
+    netd_K: float,
+    t_ref_K: float,
+    integration_s: float = 0.128,
+    knee_s: float = 60.0,
+    gain_error: float = 0.01,
+    name: str = "custom",
+) -> Instrument:
     """A user-defined band/NETD (band edges [um], NETD [K] at ``t_ref_K`` [K], integration [s])."""
-    return Instrument(name=name, lo_um=lo_um, hi_um=hi_um, netd_ref_K=netd_K, t_ref_K=t_ref_K,
-                      integration_s=integration_s, knee_s=knee_s, gain_error=gain_error,
-                      source="user-defined")
+    return Instrument(
+        name=name,
+        lo_um=lo_um,
+        hi_um=hi_um,
+        netd_ref_K=netd_K,
+        t_ref_K=t_ref_K,
+        integration_s=integration_s,
+        knee_s=knee_s,
+        gain_error=gain_error,
+        source="user-defined",
+    )
 
 
 def get_instrument(name: str) -> Instrument:
@@ -481,8 +519,9 @@ def observed_difference(dT_K, T_nominal_K, instrument: Instrument, obs: Observat
     return T_cand - T_nom, T_cand
 
 
-def noise_terms(mu_K, T_cand_K, T_ref_K, dwell_s, instrument: Instrument,
-                obs: Observation = Observation()) -> dict[str, np.ndarray]:
+def noise_terms(
+    mu_K, T_cand_K, T_ref_K, dwell_s, instrument: Instrument, obs: Observation = Observation()
+) -> dict[str, np.ndarray]:
     """Variances [K^2] of the observed difference D, by term (:data:`TERMS`), at a dwell [s].
 
     ``instrument_white`` = NETD(T_cand)^2/n + NETD(T_ref)^2/(n m); ``allan_floor`` = the same with
@@ -514,8 +553,9 @@ def _pd_from_terms(mu, terms, false_alarm):
     return np.where(np.isfinite(arg), ndtr(arg), np.where(np.isinf(var0), false_alarm, 0.0))
 
 
-def detection_probability(dT_K, T_nominal_K, dwell_s, instrument: Instrument,
-                          obs: Observation = Observation()) -> np.ndarray:
+def detection_probability(
+    dT_K, T_nominal_K, dwell_s, instrument: Instrument, obs: Observation = Observation()
+) -> np.ndarray:
     """P_D [-] of the one-sided test at false-alarm rate ``obs.false_alarm``, per dwell [s].
 
     Parameters
@@ -529,8 +569,9 @@ def detection_probability(dT_K, T_nominal_K, dwell_s, instrument: Instrument,
     return _pd_from_terms(mu, terms, obs.false_alarm)
 
 
-def dwell_for_detection(dT_K: float, T_nominal_K: float, instrument: Instrument,
-                        obs: Observation = Observation(), max_dwell_s: float = 1e6) -> dict:
+def dwell_for_detection(
+    dT_K: float, T_nominal_K: float, instrument: Instrument, obs: Observation = Observation(), max_dwell_s: float = 1e6
+) -> dict:
     """Shortest dwell [s] on each footprint for P_D >= ``obs.target_pd``, or why there is none.
 
     Returns
@@ -544,10 +585,20 @@ def dwell_for_detection(dT_K: float, T_nominal_K: float, instrument: Instrument,
     mu_a, T_cand_a = observed_difference(dT_K, T_nominal_K, instrument, obs)
     mu, T_cand = float(mu_a), float(T_cand_a)
     inst = instrument
-    out = {"mu_K": mu, "T_candidate_K": T_cand, "netd_candidate_K": float(inst.netd(T_cand)),
-           "netd_reference_K": float(inst.netd(T_nominal_K)), "detectable": False, "dwell_s": None,
-           "n_samples": None, "pd_at_dwell": None, "pd_limit": None, "limiting_term": None, "sigma_terms_K": None,
-           "answer": ""}
+    out = {
+        "mu_K": mu,
+        "T_candidate_K": T_cand,
+        "netd_candidate_K": float(inst.netd(T_cand)),
+        "netd_reference_K": float(inst.netd(T_nominal_K)),
+        "detectable": False,
+        "dwell_s": None,
+        "n_samples": None,
+        "pd_at_dwell": None,
+        "pd_limit": None,
+        "limiting_term": None,
+        "sigma_terms_K": None,
+        "answer": "",
+    }
 
     def terms_at(n):
         return noise_terms(mu, T_cand, T_nominal_K, n * inst.integration_s, inst, obs)
@@ -560,11 +611,18 @@ def dwell_for_detection(dT_K: float, T_nominal_K: float, instrument: Instrument,
         lim = max(("allan_floor", "natural_scatter", "gain_error"), key=lambda k: inf_terms[k])
         why = lim.replace("_", " ")
         if lim == "allan_floor":
-            why = (f"the instrument's averaging floor (NETD {out['netd_candidate_K']:.3g} K at "
-                   f"{T_cand:.1f} K per integration)")
-        out.update(limiting_term=lim, sigma_terms_K={k: math.sqrt(v) for k, v in inf_terms.items()},
-                   answer=(f"not detectable at any dwell: P_D <= {pd_inf:.2f} < {obs.target_pd:g} at "
-                           f"{100 * obs.false_alarm:g}% false alarms; limited by {why}"))
+            why = (
+                f"the instrument's averaging floor (NETD {out['netd_candidate_K']:.3g} K at "
+                f"{T_cand:.1f} K per integration)"
+            )
+        out.update(
+            limiting_term=lim,
+            sigma_terms_K={k: math.sqrt(v) for k, v in inf_terms.items()},
+            answer=(
+                f"not detectable at any dwell: P_D <= {pd_inf:.2f} < {obs.target_pd:g} at "
+                f"{100 * obs.false_alarm:g}% false alarms; limited by {why}"
+            ),
+        )
         return out
     n_max = max(1.0, math.floor(max_dwell_s / inst.integration_s))
 
@@ -573,10 +631,15 @@ def dwell_for_detection(dT_K: float, T_nominal_K: float, instrument: Instrument,
 
     if pd(n_max) < obs.target_pd:
         t = terms_at(n_max)
-        out.update(limiting_term="instrument_white", pd_at_dwell=pd(n_max),
-                   sigma_terms_K={k: math.sqrt(float(v)) for k, v in t.items()},
-                   answer=(f"not detectable within {max_dwell_s:g} s: instrument noise NETD "
-                           f"{out['netd_candidate_K']:.3g} K per {inst.integration_s:g} s integration"))
+        out.update(
+            limiting_term="instrument_white",
+            pd_at_dwell=pd(n_max),
+            sigma_terms_K={k: math.sqrt(float(v)) for k, v in t.items()},
+            answer=(
+                f"not detectable within {max_dwell_s:g} s: instrument noise NETD "
+                f"{out['netd_candidate_K']:.3g} K per {inst.integration_s:g} s integration"
+            ),
+        )
         return out
     lo, hi = 1.0, 1.0
     if pd(1.0) < obs.target_pd:  # bisection on the integer sample count (P_D increases with n)
@@ -590,10 +653,18 @@ def dwell_for_detection(dT_K: float, T_nominal_K: float, instrument: Instrument,
     t = {k: float(v) for k, v in terms_at(n).items()}
     lim = max(t, key=t.get)
     dwell = n * inst.integration_s
-    out.update(detectable=True, dwell_s=dwell, n_samples=int(n), pd_at_dwell=pd(n), limiting_term=lim,
-               sigma_terms_K={k: math.sqrt(v) for k, v in t.items()},
-               answer=(f"P_D >= {obs.target_pd:g} at {100 * obs.false_alarm:g}% false alarms after {dwell:.3g} s "
-                       f"on each footprint; largest noise term there: {lim.replace('_', ' ')}"))
+    out.update(
+        detectable=True,
+        dwell_s=dwell,
+        n_samples=int(n),
+        pd_at_dwell=pd(n),
+        limiting_term=lim,
+        sigma_terms_K={k: math.sqrt(v) for k, v in t.items()},
+        answer=(
+            f"P_D >= {obs.target_pd:g} at {100 * obs.false_alarm:g}% false alarms after {dwell:.3g} s "
+            f"on each footprint; largest noise term there: {lim.replace('_', ' ')}"
+        ),
+    )
     return out
 
 
@@ -605,15 +676,21 @@ def dwell_grid(instrument: Instrument, max_s: float = 3600.0, n: int = 60) -> np
 def band_table(T_K: Sequence[float], instruments: Sequence[Instrument]) -> dict[str, dict]:
     """Band radiance [W m-2 sr-1], dL/dT [W m-2 sr-1 K-1] and NETD [K] per instrument at temperatures [K]."""
     T = np.asarray(T_K, float)
-    return {i.name: {"band_um": [i.lo_um, i.hi_um], "T_K": T.tolist(),
-                         "band_radiance_W_m2_sr": band_radiance(T, i.band).tolist(),
-                         "dL_dT_W_m2_sr_K": band_radiance_derivative(T, i.band).tolist(),
-                         "netd_K": i.netd(T).tolist(), "netd_ref_K": i.netd_ref_K, "t_ref_K": i.t_ref_K}
-            for i in instruments}
+    return {
+        i.name: {
+            "band_um": [i.lo_um, i.hi_um],
+            "T_K": T.tolist(),
+            "band_radiance_W_m2_sr": band_radiance(T, i.band).tolist(),
+            "dL_dT_W_m2_sr_K": band_radiance_derivative(T, i.band).tolist(),
+            "netd_K": i.netd(T).tolist(),
+            "netd_ref_K": i.netd_ref_K,
+            "t_ref_K": i.t_ref_K,
+        }
+        for i in instruments
+    }
 
 
 def sigma_null(T_cand_K, T_ref_K, dwell_s, instrument: Instrument, obs: Observation = Observation()) -> np.ndarray:
     """Standard deviation [K] of D without a difference (instrument, floor, scatter) at a dwell [s]."""
     t = noise_terms(0.0, T_cand_K, T_ref_K, dwell_s, instrument, obs)
     return np.sqrt(t["instrument_white"] + t["allan_floor"] + t["natural_scatter"])
-

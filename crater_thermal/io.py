@@ -122,8 +122,9 @@ def _remove(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False,
-                  durable: bool = True) -> Iterator[Path]:
+def atomic_output(
+    path: str | os.PathLike, overwrite: bool = False, folder: bool = False, durable: bool = True
+) -> Iterator[Path]:
     """Write an output atomically: the one writer every crater_thermal output goes through.
 
     Yields a temporary path in the same folder as ``path`` (an empty file, or with ``folder`` an empty
@@ -251,8 +252,14 @@ class _StreamWriter:
 
 
 @contextlib.contextmanager
-def stream_dataset(ds: xr.Dataset, path: str | os.PathLike, variables: Mapping[str, tuple], *,
-                   overwrite: bool = False, time_rows: int = 24) -> Iterator[_StreamWriter]:
+def stream_dataset(
+    ds: xr.Dataset,
+    path: str | os.PathLike,
+    variables: Mapping[str, tuple],
+    *,
+    overwrite: bool = False,
+    time_rows: int = 24,
+) -> Iterator[_StreamWriter]:
     """Write a dataset whose large variables arrive in pieces, never whole in memory; atomic.
 
     ``ds`` holds everything small (coordinates, mesh, attributes) and is written first; each entry
@@ -278,8 +285,14 @@ def stream_dataset(ds: xr.Dataset, path: str | os.PathLike, variables: Mapping[s
                     elif len(nc.dimensions[dim]) != size:
                         raise ValueError(f"{name}: dimension {dim} has {len(nc.dimensions[dim])}, not {size}")
                 t_axis = list(dims).index("time") if "time" in dims else 0
-                var = nc.createVariable(name, dtype, dims, fill_value=dtype.type(np.nan),
-                                        chunksizes=chunk_shape(tuple(shape), t_axis, time_rows), **_ENCODING)
+                var = nc.createVariable(
+                    name,
+                    dtype,
+                    dims,
+                    fill_value=dtype.type(np.nan),
+                    chunksizes=chunk_shape(tuple(shape), t_axis, time_rows),
+                    **_ENCODING,
+                )
                 var.setncatts(dict(attrs))
                 created[name] = var
             yield _StreamWriter(nc, created)
@@ -326,7 +339,7 @@ class SegmentStore:
         while k < end:
             b0 = k // self.block * self.block
             b1 = min(end, b0 + self.block)
-            part = rows[k - k0:b1 - k0]
+            part = rows[k - k0 : b1 - k0]
             if k > b0:
                 head = self.read(name, b0, k)
                 part = np.concatenate([head, part])
@@ -343,12 +356,14 @@ class SegmentStore:
             try:
                 arr = np.load(f, allow_pickle=False)
             except (OSError, ValueError) as exc:
-                raise FluxFileError(f"scratch store {self.folder}: block {os.path.basename(f)} unreadable "
-                                    f"({exc})") from None
+                raise FluxFileError(
+                    f"scratch store {self.folder}: block {os.path.basename(f)} unreadable ({exc})"
+                ) from None
             lo, hi = k - b * self.block, min(k1 - b * self.block, self.block)
             if arr.shape[0] < hi:
-                raise FluxFileError(f"scratch store {self.folder}: {os.path.basename(f)} has {arr.shape[0]} "
-                                    f"rows, need {hi}")
+                raise FluxFileError(
+                    f"scratch store {self.folder}: {os.path.basename(f)} has {arr.shape[0]} rows, need {hi}"
+                )
             parts.append(arr[lo:hi])
             k = b * self.block + hi
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
@@ -375,9 +390,16 @@ def mesh_variables(mesh) -> dict:
         "area": (("facet",), np.asarray(mesh.areas, float), {"units": "m2"}),
         "normal": (("facet", "xyz"), np.asarray(mesh.normals, float), {"units": "1"}),
         "centroid": (("facet", "xyz"), np.asarray(mesh.centroids, float), {"units": "m"}),
-        "inner": (("facet",), inner_flags(len(mesh.faces), getattr(mesh, "meta", None)).astype(np.int8),
-                  {"units": "1", "flag_values": np.array([0, 1], np.int8), "flag_meanings": "outer inner",
-                   "long_name": "facet of the analysed region (0: outer terrain for shadows and radiation only)"}),
+        "inner": (
+            ("facet",),
+            inner_flags(len(mesh.faces), getattr(mesh, "meta", None)).astype(np.int8),
+            {
+                "units": "1",
+                "flag_values": np.array([0, 1], np.int8),
+                "flag_meanings": "outer inner",
+                "long_name": "facet of the analysed region (0: outer terrain for shadows and radiation only)",
+            },
+        ),
     }
 
 
@@ -387,7 +409,7 @@ def inner_flags(n_facets: int, meta: Mapping[str, Any] | None) -> np.ndarray:
     mask = np.ones(int(n_facets), dtype=bool)
     n_inner = (meta or {}).get("n_inner")
     if n_inner is not None:
-        mask[int(n_inner):] = False
+        mask[int(n_inner) :] = False
     return mask
 
 
@@ -418,8 +440,9 @@ def base_attrs(mesh, **attrs: Any) -> dict:
     return out
 
 
-def write_steady(path, mesh, results: Mapping[str, np.ndarray], attrs: Mapping[str, Any],
-                 overwrite: bool = False) -> Path:
+def write_steady(
+    path, mesh, results: Mapping[str, np.ndarray], attrs: Mapping[str, Any], overwrite: bool = False
+) -> Path:
     """Write a steady-state (radiative equilibrium) result.
 
     Parameters
@@ -449,9 +472,19 @@ RUN_SERIES_ATTRS = {
 }
 
 
-def run_dataset(mesh, times, *, solar_incident=None, ir_incident=None, solar_direct=None, surface_temperature=None,
-                sun_direction, sun_distance_au, attrs: Mapping[str, Any], extra: Mapping | None = None
-                ) -> xr.Dataset:
+def run_dataset(
+    mesh,
+    times,
+    *,
+    solar_incident=None,
+    ir_incident=None,
+    solar_direct=None,
+    surface_temperature=None,
+    sun_direction,
+    sun_distance_au,
+    attrs: Mapping[str, Any],
+    extra: Mapping | None = None,
+) -> xr.Dataset:
     """Assemble the run dataset (contract schema). Arrays are ``(n_times, n_facets)`` unless noted.
 
     ``extra`` adds variables as ``name: (dims, data, attrs)``. A (time, facet) variable given as None is
@@ -460,26 +493,38 @@ def run_dataset(mesh, times, *, solar_incident=None, ir_incident=None, solar_dir
     """
     import xarray as xr
 
-    series = {"solar_incident": solar_incident, "ir_incident": ir_incident, "solar_direct": solar_direct,
-              "surface_temperature": surface_temperature}
-    data_vars = {name: (("time", "facet"), value, dict(RUN_SERIES_ATTRS[name]))
-                 for name, value in series.items() if value is not None}
-    data_vars.update({
-        "sun_direction": (("time", "xyz"), sun_direction,
-                          {"units": "1", "frame": "crater ENU (x east, y north, z up)"}),
-        "sun_distance": (("time",), sun_distance_au, {"units": "au"}),
-    })
+    series = {
+        "solar_incident": solar_incident,
+        "ir_incident": ir_incident,
+        "solar_direct": solar_direct,
+        "surface_temperature": surface_temperature,
+    }
+    data_vars = {
+        name: (("time", "facet"), value, dict(RUN_SERIES_ATTRS[name]))
+        for name, value in series.items()
+        if value is not None
+    }
+    data_vars.update(
+        {
+            "sun_direction": (
+                ("time", "xyz"),
+                sun_direction,
+                {"units": "1", "frame": "crater ENU (x east, y north, z up)"},
+            ),
+            "sun_distance": (("time",), sun_distance_au, {"units": "au"}),
+        }
+    )
     data_vars.update(mesh_variables(mesh))
     if extra:
         data_vars.update(extra)
-    ds = xr.Dataset(data_vars, coords={"time": np.asarray(times, "datetime64[ns]")},
-                    attrs=base_attrs(mesh, **attrs))
+    ds = xr.Dataset(data_vars, coords={"time": np.asarray(times, "datetime64[ns]")}, attrs=base_attrs(mesh, **attrs))
     ds.attrs["flux_interpolation"] = "linear in time between samples"
     return ds
 
 
-def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_temperature,
-                   attrs: Mapping[str, Any] | None = None) -> xr.Dataset:
+def replay_dataset(
+    run: xr.Dataset, labels, rho_top, rho_bottom, surface_temperature, attrs: Mapping[str, Any] | None = None
+) -> xr.Dataset:
     """Assemble the replay dataset: ``surface_temperature(profile, time, facet)`` [K] plus the run's mesh
     (``surface_temperature=None`` leaves it out, for :func:`stream_dataset` to add block by block)."""
     import xarray as xr
@@ -490,15 +535,15 @@ def replay_dataset(run: xr.Dataset, labels, rho_top, rho_bottom, surface_tempera
     }
     if surface_temperature is not None:
         data_vars["surface_temperature"] = (("profile", "time", "facet"), surface_temperature, {"units": "K"})
-    for name in ("mesh_vertices", "mesh_faces", "area", "normal", "centroid", "inner", "sun_direction",
-                 "sun_distance"):
+    for name in ("mesh_vertices", "mesh_faces", "area", "normal", "centroid", "inner", "sun_direction", "sun_distance"):
         if name in run:
             data_vars[name] = run[name].variable
     out_attrs = dict(run.attrs)
     out_attrs.update({k: v for k, v in (attrs or {}).items() if v is not None})
     out_attrs["software_version"] = __version__
-    return xr.Dataset(data_vars, coords={"profile": np.asarray(list(labels), dtype=str), "time": run["time"].values},
-                      attrs=out_attrs)
+    return xr.Dataset(
+        data_vars, coords={"profile": np.asarray(list(labels), dtype=str), "time": run["time"].values}, attrs=out_attrs
+    )
 
 
 # ----------------------------------------------------------------------------- reading
@@ -545,7 +590,7 @@ def _blocks(var, max_bytes: int = 64 << 20):
     row = max(1, int(np.prod(var.shape[1:])) * var.dtype.itemsize)
     step = max(1, max_bytes // row)
     for i in range(0, var.shape[0], step):
-        yield np.asarray(var[i:i + step].values)
+        yield np.asarray(var[i : i + step].values)
 
 
 def _check_time(ds, path, name: str = "time") -> None:
@@ -600,13 +645,16 @@ def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
             if any(np.any(v < 0) for v in _blocks(ds[name])):
                 raise FluxFileError(f"{path}: negative irradiance in {name}")
     if len(groups) > 1 and ds["spinup_time"].values[-1] > ds["time"].values[0]:
-        raise FluxFileError(f"{path}: 'spinup_time' must end at or before the first 'time' "
-                            f"({ds['spinup_time'].values[-1]} > {ds['time'].values[0]})")
+        raise FluxFileError(
+            f"{path}: 'spinup_time' must end at or before the first 'time' "
+            f"({ds['spinup_time'].values[-1]} > {ds['time'].values[0]})"
+        )
     for name in ("solar_absorbed", "spinup_solar_absorbed"):  # optional: incidence-dependent albedo
         if name in ds:
             if ds[name].attrs.get("units") not in FLUX_UNITS:
-                raise FluxFileError(f"{path}: '{name}' has units {ds[name].attrs.get('units')!r}, "
-                                    f"expected {FLUX_UNITS[0]!r}")
+                raise FluxFileError(
+                    f"{path}: '{name}' has units {ds[name].attrs.get('units')!r}, expected {FLUX_UNITS[0]!r}"
+                )
             v = ds[name].values
             if not np.all(np.isfinite(v)) or np.any(v < 0):
                 raise FluxFileError(f"{path}: '{name}' has NaN/inf or negative values")

@@ -58,9 +58,22 @@ from crater_thermal.errors import ProfileError
 from crater_thermal.profiles import DENSITY_LIMITS, HAYNE_RHO_D, HAYNE_RHO_S, check_density_limits
 
 __all__ = [
-    "PROPERTY_SETS", "PropertySet", "DensityExtrapolationWarning", "get_property_set", "constant_set",
-    "heat_capacity", "regolith_conductivity", "rock_conductivity", "conductivity_coefficients",
-    "enthalpy", "TABLE_7_2", "DENSITY_LIMITS", "TABLE_RANGE", "C_T_MIN", "ROCK_D0", "ROCK_D1",
+    "PROPERTY_SETS",
+    "PropertySet",
+    "DensityExtrapolationWarning",
+    "get_property_set",
+    "constant_set",
+    "heat_capacity",
+    "regolith_conductivity",
+    "rock_conductivity",
+    "conductivity_coefficients",
+    "enthalpy",
+    "TABLE_7_2",
+    "DENSITY_LIMITS",
+    "TABLE_RANGE",
+    "C_T_MIN",
+    "ROCK_D0",
+    "ROCK_D1",
 ]
 
 #: Temperature [K] below which heat-capacity polynomials are held constant (fit range starts ~90 K;
@@ -68,11 +81,13 @@ __all__ = [
 C_T_MIN = 20.0
 
 #: Thesis Table 7.2: density [kg m-3], b0 [W m-1 K-1], b3 [W m-1 K-4]
-TABLE_7_2 = np.array([
-    [1300.0, 0.922e-3, 3.19e-11],
-    [1640.0, 0.985e-3, 2.06e-11],
-    [1970.0, 1.25e-3, 1.59e-11],
-])
+TABLE_7_2 = np.array(
+    [
+        [1300.0, 0.922e-3, 3.19e-11],
+        [1640.0, 0.985e-3, 2.06e-11],
+        [1970.0, 1.25e-3, 1.59e-11],
+    ]
+)
 #: Densities [kg m-3] covered by Table 7.2 (outside: DensityExtrapolationWarning)
 TABLE_RANGE = (1300.0, 1970.0)
 
@@ -140,8 +155,7 @@ def constant_set(k: float, rho: float, c: float) -> PropertySet:
     for name, v in (("k", k), ("rho", rho), ("c", c)):
         if not (np.isfinite(v) and v > 0):
             raise ProfileError(f"constant_set: {name}={v!r} must be a positive finite number")
-    return PropertySet("constant", (float(c), 0.0, 0.0, 0.0, 0.0), 0.0, "constant",
-                       (float(k), float(rho), float(c)))
+    return PropertySet("constant", (float(c), 0.0, 0.0, 0.0, 0.0), 0.0, "constant", (float(k), float(rho), float(c)))
 
 
 def get_property_set(property_set: str | PropertySet = "apollo") -> PropertySet:
@@ -151,8 +165,7 @@ def get_property_set(property_set: str | PropertySet = "apollo") -> PropertySet:
     try:
         return PROPERTY_SETS[str(property_set)]
     except KeyError:
-        raise ProfileError(f"property_set={property_set!r} is unknown; allowed: "
-                           f"{sorted(PROPERTY_SETS)}") from None
+        raise ProfileError(f"property_set={property_set!r} is unknown; allowed: {sorted(PROPERTY_SETS)}") from None
 
 
 def heat_capacity(T, property_set: str | PropertySet = "apollo"):
@@ -190,9 +203,13 @@ def check_density(rho, name: str = "density", warn: bool = True) -> None:
     if warn:
         out = (r < TABLE_RANGE[0]) | (r > TABLE_RANGE[1])
         if np.any(out):
-            warnings.warn(f"{name}={r[out][0]:.0f} kg/m3 is outside Table 7.2 "
-                          f"({TABLE_RANGE[0]:.0f}-{TABLE_RANGE[1]:.0f} kg/m3): conductivity "
-                          "extrapolated linearly", DensityExtrapolationWarning, stacklevel=3)
+            warnings.warn(
+                f"{name}={r[out][0]:.0f} kg/m3 is outside Table 7.2 "
+                f"({TABLE_RANGE[0]:.0f}-{TABLE_RANGE[1]:.0f} kg/m3): conductivity "
+                "extrapolated linearly",
+                DensityExtrapolationWarning,
+                stacklevel=3,
+            )
 
 
 def _table72_b(rho):
@@ -210,8 +227,9 @@ def hayne_kc(rho):
     return HAYNE_KS + (HAYNE_KD - HAYNE_KS) * (rho - HAYNE_RHO_S) / (HAYNE_RHO_D - HAYNE_RHO_S)
 
 
-def conductivity_coefficients(rho, material: str = "regolith",
-                              property_set: str | PropertySet = "apollo", warn: bool = False):
+def conductivity_coefficients(
+    rho, material: str = "regolith", property_set: str | PropertySet = "apollo", warn: bool = False
+):
     """Per-cell coefficients of ``k(T) = b0 + b3 T^3 + c(T) (e0 + e1 / T)`` [SI].
 
     Parameters

@@ -36,8 +36,17 @@ from crater_thermal.constants import COLUMN_DEPTH, ROCK_DENSITY, TOP_LAYER_THICK
 from crater_thermal.errors import ProfileError
 
 __all__ = [
-    "Profile", "parse_profile", "check_profile", "check_density_limits", "density_grid_profiles",
-    "grid_densities", "DENSITY_LIMITS", "HAYNE_LABEL", "HAYNE_RHO_S", "HAYNE_RHO_D", "HAYNE_H",
+    "Profile",
+    "parse_profile",
+    "check_profile",
+    "check_density_limits",
+    "density_grid_profiles",
+    "grid_densities",
+    "DENSITY_LIMITS",
+    "HAYNE_LABEL",
+    "HAYNE_RHO_S",
+    "HAYNE_RHO_D",
+    "HAYNE_H",
     "MAX_GRID_DENSITIES",
 ]
 
@@ -122,8 +131,10 @@ def check_density_limits(rho, name: str = "density") -> None:
     r = np.atleast_1d(np.asarray(rho, dtype=float))
     bad = ~np.isfinite(r) | (r < DENSITY_LIMITS[0]) | (r > DENSITY_LIMITS[1])
     if np.any(bad):
-        raise ProfileError(f"{name}={float(r[bad][0])!r} kg/m3 is outside the allowed range "
-                           f"{DENSITY_LIMITS[0]:.0f}-{DENSITY_LIMITS[1]:.0f} kg/m3")
+        raise ProfileError(
+            f"{name}={float(r[bad][0])!r} kg/m3 is outside the allowed range "
+            f"{DENSITY_LIMITS[0]:.0f}-{DENSITY_LIMITS[1]:.0f} kg/m3"
+        )
 
 
 def check_profile(p: Profile, allow_inverted: bool = False) -> Profile:
@@ -145,14 +156,18 @@ def check_profile(p: Profile, allow_inverted: bool = False) -> Profile:
     check_density_limits(dens, name=f"profile {p.label!r} density")
     if p.exponential is None:
         if np.any(~np.isfinite(depths)) or np.any(depths <= 0) or np.any(np.diff(depths) <= 0):
-            raise ProfileError(f"profile {p.label!r}: layer bottom depths {depths.tolist()} m must be "
-                               "positive and increasing")
+            raise ProfileError(
+                f"profile {p.label!r}: layer bottom depths {depths.tolist()} m must be positive and increasing"
+            )
         if len(depths) > 1 and depths[-2] >= COLUMN_DEPTH:
-            raise ProfileError(f"profile {p.label!r}: interface depth {depths[-2]} m must be < "
-                               f"column depth {COLUMN_DEPTH} m")
+            raise ProfileError(
+                f"profile {p.label!r}: interface depth {depths[-2]} m must be < column depth {COLUMN_DEPTH} m"
+            )
     if not allow_inverted and np.any(np.diff(dens) < 0):
-        raise ProfileError(f"profile {p.label!r}: density decreases with depth ({dens.tolist()} kg/m3);"
-                           " allowed: top <= bottom (pass allow_inverted=True to accept)")
+        raise ProfileError(
+            f"profile {p.label!r}: density decreases with depth ({dens.tolist()} kg/m3);"
+            " allowed: top <= bottom (pass allow_inverted=True to accept)"
+        )
     return p
 
 
@@ -199,14 +214,15 @@ def parse_profile(spec, allow_inverted: bool = False, label: str | None = None) 
             rho = float(m1.group(1))
             p = Profile(label or f"{rho:g}", ((COLUMN_DEPTH, rho),))
         else:
-            raise ProfileError(f"profile={spec!r} is not understood; allowed: 'TOP/BOTTOM' densities in "
-                               "kg/m3 (e.g. '1300/1800'), a single density, 'rock', 'hayne2017'")
+            raise ProfileError(
+                f"profile={spec!r} is not understood; allowed: 'TOP/BOTTOM' densities in "
+                "kg/m3 (e.g. '1300/1800'), a single density, 'rock', 'hayne2017'"
+            )
         return check_profile(p, allow_inverted)
     try:
         layers = tuple((float(d), float(r)) for d, r in spec)
     except (TypeError, ValueError):
-        raise ProfileError(f"profile={spec!r} is not a label or a list of (bottom_depth_m, density) "
-                           "pairs") from None
+        raise ProfileError(f"profile={spec!r} is not a label or a list of (bottom_depth_m, density) pairs") from None
     lab = label or ",".join(f"{d:g}:{r:g}" for d, r in layers)
     return check_profile(Profile(lab, layers), allow_inverted)
 

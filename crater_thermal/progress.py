@@ -60,8 +60,14 @@ def bar(description: str, flag: Optional[bool] = None) -> Iterator[Optional[Prog
         TimeRemainingColumn,
     )
 
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-               TextColumn("eta"), TimeRemainingColumn())
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("eta"),
+        TimeRemainingColumn(),
+    )
     lock = threading.Lock()
     with Progress(*columns, console=Console(stderr=True), transient=True) as prog:
         task = prog.add_task(description, total=None)
@@ -78,4 +84,3 @@ def reporter(flag: Optional[bool] = None) -> Optional[Reporter]:
     if not enabled(flag):
         return None
     return lambda description: bar(description, True)
-

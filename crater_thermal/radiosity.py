@@ -161,8 +161,10 @@ class ScatteringSolver:
             if change <= ITERATIVE_RTOL * scale:
                 self.iterations = max(self.iterations, it)
                 return B
-        raise SolverError(f"scattered sunlight: the fixed-point solve did not converge in {ITERATIVE_MAX} "
-                          f"products (last change {change:.3g} W m-2)")
+        raise SolverError(
+            f"scattered sunlight: the fixed-point solve did not converge in {ITERATIVE_MAX} "
+            f"products (last change {change:.3g} W m-2)"
+        )
 
     def exitance(self, E_direct: np.ndarray, B0: np.ndarray | None = None) -> np.ndarray:
         """Reflected shortwave exitance ``B`` [W m-2], same shape as ``E_direct`` ((nt, nf) or (nf,)).

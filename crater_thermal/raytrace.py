@@ -134,8 +134,14 @@ class RayTracer:
                 list(ex.map(work, starts))
         return out
 
-    def run_raw(self, o32: np.ndarray, d32: np.ndarray, t32: np.ndarray | None = None, query: str = "OCCLUDED",
-                parallel: bool = True) -> np.ndarray:
+    def run_raw(
+        self,
+        o32: np.ndarray,
+        d32: np.ndarray,
+        t32: np.ndarray | None = None,
+        query: str = "OCCLUDED",
+        parallel: bool = True,
+    ) -> np.ndarray:
         """Low-level: trace C-contiguous float32 rays whose origins are already relative to ``self.centre``.
 
         ``parallel=False`` traces in the calling thread with one call (for callers that already spread

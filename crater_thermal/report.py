@@ -36,32 +36,38 @@ from crater_thermal.progress import bar
 #: Figure files written to ``figures/`` (3-D snapshots are added when rendering works).
 FIGURES = {
     "fig7_4_incident_flux.png": (
-        "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. "
-        "7.4)."),
+        "Solar (direct + scattered) vs emitted-IR incident flux on a floor and an upper-wall facet (thesis Fig. 7.4)."
+    ),
     "fig7_5_temperature.png": (
-        "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5)."),
+        "Surface temperature of nominal regolith, loose regolith and rock on the same facets (Fig. 7.5)."
+    ),
     "fig7_6_loose_minus_nominal.png": "Loose minus nominal surface temperature over the run, night shaded (Fig. 7.6).",
-    "fig7_7a_density_grid.png": "Night-time median difference to nominal on the floor over the density grid, top x bottom density; nominal outlined (Fig. 7.7a).",
+    "fig7_7a_density_grid.png": (
+        "Night-time median difference to nominal on the floor over the density grid, top x bottom density; "
+        "nominal outlined (Fig. 7.7a)."
+    ),
     "fig7_7b_regions.png": "Night-time (per facet) median loose minus nominal by crater region and illumination class "
-                           "(and latitude), bars = quartiles (Fig. 7.7b).",
+    "(and latitude), bars = quartiles (Fig. 7.7b).",
     "fig7_8_night_map.png": "Plan view: per-facet night-time median |loose minus nominal| over the crater (Fig. 7.8).",
     "fig7_9_quartiles.png": (
-        "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9)."),
+        "Quartiles of loose minus nominal at night and by day, per region or per latitude (Fig. 7.9)."
+    ),
     "detectability.png": "Probability of detecting loose vs nominal (night medians) against dwell time, per "
-                         "instrument and region, at the stated false-alarm rate (instrument.py).",
+    "instrument and region, at the stated false-alarm rate (instrument.py).",
     "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), "
-                                "at the reference dwell.",
+    "at the reference dwell.",
 }
 SNAPSHOTS = {
     "map3d_temperature.png": (
-        "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction."),
+        "3-D view: nominal surface temperature at the time of the highest Sun, with the Sun direction."
+    ),
     "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
 }
 
 #: Top-level keys of summary.json and what they hold (units in the names; regions: analysis.region_masks).
 SUMMARY_KEYS = {
     "schema_version": "int: layout version of this file (2: detection statistics replace the k-sigma "
-                      "detectability of 1).",
+    "detectability of 1).",
     "mesh_hash": "str: mesh hash shared by the run and the replay.",
     "lat_deg": "float [deg]: latitude of the crater (first run if several).",
     "lon_deg": "float [deg]: longitude of the crater.",
@@ -71,59 +77,63 @@ SUMMARY_KEYS = {
     "n_facets": "int: number of mesh facets.",
     "night_fraction": "float [-]: fraction of samples with the Sun's centre below the horizon at the crater centre.",
     "night_definition": "str: 'facet' (night = no direct sunlight on the facet for night_min_dark_hours; day = "
-                        "directly lit) or 'centre' (the thesis: Sun's centre below the crater centre's horizon).",
+    "directly lit) or 'centre' (the thesis: Sun's centre below the crater centre's horizon).",
     "night_min_dark_hours": "float [h]: darkness a facet needs before its samples count as night ('facet').",
     "night_fraction_samples": "float [-]: fraction of (time, facet) samples that are night.",
     "regions": "list[str]: region names (analysis.region_masks): floor, {lower_wall, upper_wall, top_wall_ring, rim}_"
-               "{pole,equator,east,west}_facing (by the facet normal's azimuth, +-45 deg; at |lat| >= 89.5 deg "
-               "{antisun,sun,sun_left,sun_right}_facing), surround, never_lit / rarely_lit / often_lit; may overlap.",
+    "{pole,equator,east,west}_facing (by the facet normal's azimuth, +-45 deg; at |lat| >= 89.5 deg "
+    "{antisun,sun,sun_left,sun_right}_facing), surround, never_lit / rarely_lit / often_lit; may overlap.",
     "region_facet_count": "{region: int}: facets per region.",
     "site": "dict|null: the DEM site (dem_source, crs_name, center_lat/lon_deg, radius_km, resolution_m, "
-            "outer_radius_km, outer_resolution_m, height_kind, dem_pixel_m, n_inner, n_outer); null for craters.",
+    "outer_radius_km, outer_resolution_m, height_kind, dem_pixel_m, n_inner, n_outer); null for craters.",
     "profiles": "list[str]: replayed profile labels.",
     "nominal_profile": "str: the nominal profile label (differences are profile minus this).",
     "loose_profile": "str|null: the loose profile label (800/1100 if replayed).",
     "rock_profile": "str|null: the rock profile label, if replayed.",
     "threshold_K": "float [K]: |dT| threshold for the *_frac_abs_dT_above_threshold statistics.",
     "night_median_dT_K": (
-        "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region "
-        "facets."),
+        "{profile: {region: float|null}} [K]: median of profile minus nominal over night samples and region facets."
+    ),
     "night_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, night.",
     "night_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, night.",
     "day_median_dT_K": "{profile: {region: float|null}} [K]: median, day (night_definition: facet directly lit, "
-                       "or Sun above the crater centre's horizon).",
+    "or Sun above the crater centre's horizon).",
     "day_q1_dT_K": "{profile: {region: float|null}} [K]: first quartile, day.",
     "day_q3_dT_K": "{profile: {region: float|null}} [K]: third quartile, day.",
     "night_frac_abs_dT_above_threshold": (
-        "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K."),
+        "{profile: {region: float|null}} [-]: fraction of night samples with |dT| > threshold_K."
+    ),
     "night_median_T_nominal_K": "{region: float|null} [K]: night-time median nominal surface temperature.",
     "max_abs_night_median_dT_K": "{profile: float} [K]: largest per-facet |night-time median difference|.",
     "density_grid_floor_night_median_dT_K": (
         "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night "
-        "medians (Fig. 7.7a)."),
+        "medians (Fig. 7.7a)."
+    ),
     "latitude_night_median_dT_K": (
-        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude."),
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude."
+    ),
     "latitude_day_median_dT_K": (
-        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude."),
+        "{lat_deg (str): {region: float|null}} [K]: loose minus nominal day median per run latitude."
+    ),
     "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each "
-                                  "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
+    "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
     "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: "
-                   "instrument channels (instrument.Instrument; presets instrument.PRESETS).",
+    "instrument channels (instrument.Instrument; presets instrument.PRESETS).",
     "observation": "{footprint_fraction, reference_footprints, natural_scatter_K, false_alarm, target_pd, test}: "
-                   "how the candidate is compared with nominal (instrument.Observation).",
+    "how the candidate is compared with nominal (instrument.Observation).",
     "detection_reference_dwell_s": "float [s]: dwell at which |dT|/sigma is evaluated for the best local time.",
     "detection_dwell_grid_s": "{instrument: [float]} [s]: dwell times of the P_D curves.",
     "band_signal_night_floor": "{instrument: {band_um, T_K, band_radiance_W_m2_sr, dL_dT_W_m2_sr_K, netd_K, "
-                               "netd_ref_K, t_ref_K}}: what each band receives from the night-time nominal floor "
-                               "(and at 300 K).",
+    "netd_ref_K, t_ref_K}}: what each band receives from the night-time nominal floor "
+    "(and at 300 K).",
     "detection": "{instrument: {region: {dT_median_K, dT_q1_K, dT_q3_K, T_nominal_K, mu_K (observed, band-mixed), "
-                 "netd_candidate_K, netd_reference_K, detectable, dwell_s (null = none), n_samples, pd_at_dwell, "
-                 "pd_limit (infinite dwell), limiting_term (instrument.TERMS), sigma_terms_K {term: K}, answer "
-                 "(sentence), pd_vs_dwell [-] on detection_dwell_grid_s, best_local_time_h (null = no samples), "
-                 "best_snr, best_dT_K, best_T_nominal_K, snr_by_local_time [-] (24 lunar-hour bins, |mu|/sigma_0 at "
-                 "detection_reference_dwell_s), dwell_s_scatter_half, dwell_s_scatter_double, dwell_s_no_scatter "
-                 "(the band alone: null = the instrument cannot see it)}}}: loose vs nominal "
-                 "from night-time medians (instrument.dwell_for_detection).",
+    "netd_candidate_K, netd_reference_K, detectable, dwell_s (null = none), n_samples, pd_at_dwell, "
+    "pd_limit (infinite dwell), limiting_term (instrument.TERMS), sigma_terms_K {term: K}, answer "
+    "(sentence), pd_vs_dwell [-] on detection_dwell_grid_s, best_local_time_h (null = no samples), "
+    "best_snr, best_dT_K, best_T_nominal_K, snr_by_local_time [-] (24 lunar-hour bins, |mu|/sigma_0 at "
+    "detection_reference_dwell_s), dwell_s_scatter_half, dwell_s_scatter_double, dwell_s_no_scatter "
+    "(the band alone: null = the instrument cannot see it)}}}: loose vs nominal "
+    "from night-time medians (instrument.dwell_for_detection).",
     "figures": "list[str]: files written under figures/.",
     "snapshot_note": "str|null: why 3-D snapshots are missing, if they are.",
 }
@@ -152,8 +162,15 @@ def _clean(x):
 class _Analysis:
     """Everything the figures and the summary need, computed once."""
 
-    def __init__(self, run, replay, threshold_K: float, advance: Callable[[], None] = lambda: None,
-                 night_definition: str = "facet", min_dark_hours: float = an.MIN_DARK_HOURS):
+    def __init__(
+        self,
+        run,
+        replay,
+        threshold_K: float,
+        advance: Callable[[], None] = lambda: None,
+        night_definition: str = "facet",
+        min_dark_hours: float = an.MIN_DARK_HOURS,
+    ):
         an.check_pair(run, replay)
         self.run, self.replay = run, replay
         self.times = np.asarray(run["time"].values).astype("datetime64[ns]")
@@ -195,8 +212,9 @@ class _Analysis:
         return an.profile_temperature(self.replay, label)
 
     def density_grid(self):
-        return an.density_grid(self.replay, {p: v for p, v in self.floor_night_median.items() if not an.is_rock(p)},
-                               self.nominal)
+        return an.density_grid(
+            self.replay, {p: v for p, v in self.floor_night_median.items() if not an.is_rock(p)}, self.nominal
+        )
 
 
 # ---------------------------------------------------------------------------------- detection
@@ -230,11 +248,15 @@ def _best_local_time(bins, inst: ins.Instrument, obs: ins.Observation) -> dict:
         mu, Tc = ins.observed_difference(dT[ok], Tn[ok], inst, obs)
         snr[ok] = np.abs(mu) / ins.sigma_null(Tc, Tn[ok], REFERENCE_DWELL_S, inst, obs)
     if not np.isfinite(snr).any():
-        return dict(best_local_time_h=None, best_snr=None, best_dT_K=None, best_T_nominal_K=None,
-                    snr_by_local_time=snr)
+        return dict(best_local_time_h=None, best_snr=None, best_dT_K=None, best_T_nominal_K=None, snr_by_local_time=snr)
     j = int(np.nanargmax(snr))
-    return dict(best_local_time_h=(j + 0.5) * 24.0 / _LT_BINS, best_snr=float(snr[j]), best_dT_K=float(dT[j]),
-                best_T_nominal_K=float(Tn[j]), snr_by_local_time=snr)
+    return dict(
+        best_local_time_h=(j + 0.5) * 24.0 / _LT_BINS,
+        best_snr=float(snr[j]),
+        best_dT_K=float(dT[j]),
+        best_T_nominal_K=float(Tn[j]),
+        snr_by_local_time=snr,
+    )
 
 
 def _detection(A, instruments: Sequence[ins.Instrument], obs: ins.Observation, with_time: bool = True) -> dict:
@@ -249,8 +271,9 @@ def _detection(A, instruments: Sequence[ins.Instrument], obs: ins.Observation, w
             med, Tn = st.get("median_K"), A.nom_night.get(r)
             row = dict(dT_median_K=med, dT_q1_K=st.get("q1_K"), dT_q3_K=st.get("q3_K"), T_nominal_K=Tn)
             if med is None or Tn is None or not Tn + med > 0:
-                row.update(detectable=False, dwell_s=None, answer="no night-time samples", pd_vs_dwell=None,
-                           limiting_term=None)
+                row.update(
+                    detectable=False, dwell_s=None, answer="no night-time samples", pd_vs_dwell=None, limiting_term=None
+                )
                 per[r] = row
                 continue
             row.update(ins.dwell_for_detection(med, Tn, inst, obs))
@@ -269,8 +292,14 @@ def _stat(stats, key):
     return {p: {r: s[key] for r, s in by_region.items()} for p, by_region in stats.items()}
 
 
-def _summary(A: _Analysis, others: Sequence[_Analysis], instruments: Sequence[ins.Instrument],
-             obs: ins.Observation, figures: List[str], snapshot_note: Optional[str]) -> dict:
+def _summary(
+    A: _Analysis,
+    others: Sequence[_Analysis],
+    instruments: Sequence[ins.Instrument],
+    obs: ins.Observation,
+    figures: List[str],
+    snapshot_note: Optional[str],
+) -> dict:
     nom_night = A.nom_night
     tops, bottoms, grid = A.density_grid()
     det = _detection(A, instruments, obs)
@@ -314,8 +343,9 @@ def _summary(A: _Analysis, others: Sequence[_Analysis], instruments: Sequence[in
         day_q3_dT_K=_stat(A.day_stats, "q3_K"),
         night_frac_abs_dT_above_threshold=_stat(A.night_stats, "frac_above_threshold"),
         night_median_T_nominal_K=nom_night,
-        max_abs_night_median_dT_K={p: float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else None
-                                   for p, m in A.night_map.items()},
+        max_abs_night_median_dT_K={
+            p: float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else None for p, m in A.night_map.items()
+        },
         density_grid_floor_night_median_dT_K=dict(rho_top_kg_m3=tops, rho_bottom_kg_m3=bottoms, dT_K=grid),
         latitude_night_median_dT_K=lat_night,
         latitude_day_median_dT_K=lat_day,
@@ -365,8 +395,12 @@ def _fig_fluxes(A, path):
         i = A.facets[key]
         a = ax[k, 0]
         _shade_night(a, A.days, A.night)
-        a.plot(A.days, A.run["solar_incident"].values[:, i], color="tab:orange",
-               label="solar incident (direct + scattered)")
+        a.plot(
+            A.days,
+            A.run["solar_incident"].values[:, i],
+            color="tab:orange",
+            label="solar incident (direct + scattered)",
+        )
         a.plot(A.days, A.run["ir_incident"].values[:, i], color="tab:red", label="IR emitted by the crater, incident")
         a.set_ylabel("flux [W m-2]")
         a.set_title(_facet_title(A, key), fontsize=10)
@@ -442,8 +476,14 @@ def _fig_density_grid(A, path):
 
 
 def _region_ticks(a, regions):
-    a.set_xticks(range(len(regions)), [r.replace("_facing", "-facing").replace("_", " ") for r in regions],
-                 fontsize=7, rotation=45, ha="right", rotation_mode="anchor")
+    a.set_xticks(
+        range(len(regions)),
+        [r.replace("_facing", "-facing").replace("_", " ") for r in regions],
+        fontsize=7,
+        rotation=45,
+        ha="right",
+        rotation_mode="anchor",
+    )
 
 
 def _aligned_regions(all_A) -> Tuple[List[str], List[List[Optional[str]]]]:
@@ -466,14 +506,19 @@ def _aligned_regions(all_A) -> Tuple[List[str], List[List[Optional[str]]]]:
 
 def _region_tick(base: str, others: Sequence[Optional[str]]) -> str:
     alt = sorted({o for o in others if o and o != base})
-    return " ".join([base.replace("_facing", "-facing").replace("_", " ")]
-                    + [f"({a.replace('_facing', '-facing').replace('_', ' ')})" for a in alt])
+    return " ".join(
+        [base.replace("_facing", "-facing").replace("_", " ")]
+        + [f"({a.replace('_facing', '-facing').replace('_', ' ')})" for a in alt]
+    )
 
 
 def _fig_regions(all_A, path):
     base, per = _aligned_regions(all_A)
-    keep = [j for j, r in enumerate(base) if any(p[j] and A.loose and A.night_stats[A.loose][p[j]]["n"]
-                                                  for A, p in zip(all_A, per))]
+    keep = [
+        j
+        for j, r in enumerate(base)
+        if any(p[j] and A.loose and A.night_stats[A.loose][p[j]]["n"] for A, p in zip(all_A, per))
+    ]
     fig, ax = _figure(1, 1, (max(10.0, 0.75 * len(keep) + 2), 5.0))
     a = ax[0, 0]
     n = len(all_A)
@@ -483,20 +528,37 @@ def _fig_regions(all_A, path):
         if A.loose is None:
             continue
         st = A.night_stats[A.loose]
-        q = np.array([[np.nan if names[j] is None or st[names[j]][key] is None else st[names[j]][key]
-                       for key in ("q1_K", "median_K", "q3_K")] for j in keep]).reshape(-1, 3)
+        q = np.array(
+            [
+                [
+                    np.nan if names[j] is None or st[names[j]][key] is None else st[names[j]][key]
+                    for key in ("q1_K", "median_K", "q3_K")
+                ]
+                for j in keep
+            ]
+        ).reshape(-1, 3)
         xs = x - 0.4 + w * (k + 0.5)
         a.bar(xs, q[:, 1], w, label=f"lat {A.lat:g} deg")
         a.errorbar(xs, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], fmt="none", ecolor="k", lw=1)
     a.axhline(0, color="k", lw=0.5)
-    a.set_xticks(x, [_region_tick(base[j], [p[j] for p in per]) for j in keep], fontsize=7, rotation=45,
-                 ha="right", rotation_mode="anchor")
+    a.set_xticks(
+        x,
+        [_region_tick(base[j], [p[j] for p in per]) for j in keep],
+        fontsize=7,
+        rotation=45,
+        ha="right",
+        rotation_mode="anchor",
+    )
     a.set_ylabel("night-time median loose - nominal [K]")
     a.legend(fontsize=8)
-    night = ("per facet: no direct sunlight for %g h" % all_A[0].min_dark_hours
-             if all_A[0].night_definition == "facet" else "Sun below the crater centre's horizon")
-    a.set_title("By region (error bars: quartiles). Sectors: the azimuth the slope faces, +-45 deg; "
-                f"night {night}", fontsize=9)
+    night = (
+        "per facet: no direct sunlight for %g h" % all_A[0].min_dark_hours
+        if all_A[0].night_definition == "facet"
+        else "Sun below the crater centre's horizon"
+    )
+    a.set_title(
+        f"By region (error bars: quartiles). Sectors: the azimuth the slope faces, +-45 deg; night {night}", fontsize=9
+    )
     fig.savefig(path)
 
 
@@ -542,9 +604,15 @@ def _fig_quartiles(all_A, path):
                 if r not in base:
                     continue
                 j = base.index(r)
-                q = np.array([_quart(getattr(all_A[i], f"{when}_stats")[all_A[i].loose], per[i][j])
-                              if per[i][j] else [np.nan] * 3 for i in order])
-                line, = a.plot(lats[order], q[:, 1], marker="o", label=f"{r} median")
+                q = np.array(
+                    [
+                        _quart(getattr(all_A[i], f"{when}_stats")[all_A[i].loose], per[i][j])
+                        if per[i][j]
+                        else [np.nan] * 3
+                        for i in order
+                    ]
+                )
+                (line,) = a.plot(lats[order], q[:, 1], marker="o", label=f"{r} median")
                 a.fill_between(lats[order], q[:, 0], q[:, 2], color=line.get_color(), alpha=0.2)
             a.set_xlabel("latitude [deg]")
             a.set_title(f"{when}: median, band = 1st-3rd quartile", fontsize=10)
@@ -556,8 +624,14 @@ def _fig_quartiles(all_A, path):
             a = ax[0, j]
             if A.loose:
                 q = np.array([_quart(getattr(A, f"{when}_stats")[A.loose], r) for r in A.regions])
-                a.errorbar(x, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], fmt="o", capsize=4,
-                           color="tab:blue" if when == "night" else "tab:orange")
+                a.errorbar(
+                    x,
+                    q[:, 1],
+                    yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]],
+                    fmt="o",
+                    capsize=4,
+                    color="tab:blue" if when == "night" else "tab:orange",
+                )
             a.axhline(0, color="k", lw=0.5)
             _region_ticks(a, list(A.regions))
             a.set_title(f"{when} (lat {A.lat:g} deg): median and quartiles", fontsize=10)
@@ -589,10 +663,13 @@ def _fig_detectability(summary: dict, path):
     for k in range(len(names), nrow * ncol):
         ax[k // ncol, k % ncol].set_visible(False)
     ax[0, 0].legend(fontsize=6, loc="upper left")
-    fig.suptitle(f"Lat {summary['lat_deg']:g} deg, loose vs nominal, night medians: one-sided test at "
-                 f"{100 * obs['false_alarm']:g}% false alarms "
-                 f"(dotted); dashed: P_D = {obs['target_pd']:g}; natural scatter {obs['natural_scatter_K']:g} K, "
-                 f"{obs['reference_footprints']} reference footprint(s)", fontsize=9)
+    fig.suptitle(
+        f"Lat {summary['lat_deg']:g} deg, loose vs nominal, night medians: one-sided test at "
+        f"{100 * obs['false_alarm']:g}% false alarms "
+        f"(dotted); dashed: P_D = {obs['target_pd']:g}; natural scatter {obs['natural_scatter_K']:g} K, "
+        f"{obs['reference_footprints']} reference footprint(s)",
+        fontsize=9,
+    )
     fig.savefig(path)
 
 
@@ -620,10 +697,18 @@ def _fig_local_time(summary: dict, path):
             if snr is None:
                 continue
             a.plot(centres, [np.nan if v is None else v for v in snr], marker=".", lw=1, label=r.replace("_", " "))
-        a.axhline(float(ins.ndtri(1 - obs["false_alarm"]) + ins.ndtri(obs["target_pd"])), color="k", ls="--",
-                  lw=0.8, label=f"needed for P_D {obs['target_pd']:g} (no gain error)")
-        a.set_title(f"{name}: |observed dT| / sigma at {summary['detection_reference_dwell_s']:g} s dwell, by local "
-                    f"solar time (lat {summary['lat_deg']:g} deg)", fontsize=9)
+        a.axhline(
+            float(ins.ndtri(1 - obs["false_alarm"]) + ins.ndtri(obs["target_pd"])),
+            color="k",
+            ls="--",
+            lw=0.8,
+            label=f"needed for P_D {obs['target_pd']:g} (no gain error)",
+        )
+        a.set_title(
+            f"{name}: |observed dT| / sigma at {summary['detection_reference_dwell_s']:g} s dwell, by local "
+            f"solar time (lat {summary['lat_deg']:g} deg)",
+            fontsize=9,
+        )
         a.legend(fontsize=6, ncol=2)
     a.set_xlim(0, 24)
     a.set_xticks(range(0, 25, 3))
@@ -637,8 +722,8 @@ def _fig_local_time(summary: dict, path):
 #: Figure of a DEM site (kind "dem"): maps in the DEM's own projected coordinates.
 SITE_FIGURES = {
     "site_maps.png": "Plan view in the DEM's projected coordinates (x, y [km]): per-facet night-time median nominal "
-                     "temperature, night-time median loose minus nominal, and the probability of detecting it at the "
-                     "reference dwell (best instrument); outer shadow-only terrain grey.",
+    "temperature, night-time median loose minus nominal, and the probability of detecting it at the "
+    "reference dwell (best instrument); outer shadow-only terrain grey.",
 }
 
 
@@ -688,8 +773,11 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
             ok = np.isfinite(dT) & np.isfinite(T_night) & (T_night + np.nan_to_num(dT) > 0)
             pd = np.full(len(f), np.nan)
             for k in np.flatnonzero(ok & inner):
-                pd[k] = float(np.ravel(ins.detection_probability(dT[k], T_night[k], np.array([REFERENCE_DWELL_S]),
-                                                                  inst, observation))[0])
+                pd[k] = float(
+                    np.ravel(
+                        ins.detection_probability(dT[k], T_night[k], np.array([REFERENCE_DWELL_S]), inst, observation)
+                    )[0]
+                )
             panels.append((pd, f"P(detect) in {REFERENCE_DWELL_S:g} s, {inst.name}", "viridis", (0.0, 1.0)))
     n = len(panels)
     fig, ax = _figure(1, n, (5.0 * n + 0.6, 4.9))
@@ -703,15 +791,19 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
             a.tripcolor(tri, facecolors=np.zeros(len(f)), cmap=ListedColormap(["#d9d9d9"]))
         tri_in = Triangulation(xy[:, 0], xy[:, 1], f[inner])
         lo, hi = clim if clim else (float(np.nanmin(v)), float(np.nanmax(v)))
-        pc = a.tripcolor(tri_in, facecolors=np.nan_to_num(v[inner], nan=lo), cmap=cmap, vmin=lo,
-                         vmax=max(hi, lo + 1e-3))
+        pc = a.tripcolor(
+            tri_in, facecolors=np.nan_to_num(v[inner], nan=lo), cmap=cmap, vmin=lo, vmax=max(hi, lo + 1e-3)
+        )
         fig.colorbar(pc, ax=a, shrink=0.8, label=label)
         a.set_aspect("equal")
         a.set_xlabel("x [km]")
         a.set_ylabel("y [km]")
         a.set_title(label.split(" [")[0], fontsize=9)
-    fig.suptitle(f"{A.meta.get('dem_source', 'DEM')} ({crs_name}), centre {A.lat:g} deg, "
-                 f"{float(A.run.attrs.get('lon_deg', np.nan)):g} deg", fontsize=10)
+    fig.suptitle(
+        f"{A.meta.get('dem_source', 'DEM')} ({crs_name}), centre {A.lat:g} deg, "
+        f"{float(A.run.attrs.get('lon_deg', np.nan)):g} deg",
+        fontsize=10,
+    )
     fig.savefig(path)
 
 
@@ -721,8 +813,19 @@ def site_summary(A) -> Optional[dict]:
         return None
     m = A.meta
     inner = np.asarray(A.run["inner"].values, bool) if "inner" in A.run else np.ones(A.run.sizes["facet"], bool)
-    keys = ("dem_source", "crs_name", "center_lat_deg", "center_lon_deg", "reference_radius_m", "radius_km",
-            "resolution_m", "outer_radius_km", "outer_resolution_m", "height_kind", "dem_pixel_m")
+    keys = (
+        "dem_source",
+        "crs_name",
+        "center_lat_deg",
+        "center_lon_deg",
+        "reference_radius_m",
+        "radius_km",
+        "resolution_m",
+        "outer_radius_km",
+        "outer_resolution_m",
+        "height_kind",
+        "dem_pixel_m",
+    )
     out = {k: m.get(k) for k in keys}
     out.update(n_inner=int(inner.sum()), n_outer=int((~inner).sum()))
     return out
@@ -730,16 +833,21 @@ def site_summary(A) -> Optional[dict]:
 
 def _html_site(site: dict) -> str:
     """One paragraph describing a DEM site (replaces the crater-region explanation)."""
-    ring = (f"; outer ring to {site['outer_radius_km']:g} km at {site['outer_resolution_m']:.4g} m "
-            f"({site['n_outer']} facets: shadows and radiation only, not analysed)"
-            if site.get("outer_radius_km") else "")
-    return (f"<p><b>Site</b> from the DEM <code>{html.escape(str(site['dem_source']))}</code> "
-            f"({html.escape(str(site['crs_name']))}, {site['dem_pixel_m']:.3g} m pixels, values read as "
-            f"{html.escape(str(site['height_kind']))}): centre {site['center_lat_deg']:g} deg, "
-            f"{site['center_lon_deg']:g} deg; analysed disk of {site['radius_km']:g} km at "
-            f"{site['resolution_m']:.4g} m ({site['n_inner']} facets){ring}. Vertices are true 3-D positions in the "
-            "centre's east/north/up frame (curvature included). Regions are classes by illumination over the run, "
-            "by slope and by the direction the slope faces; the maps are in the DEM's projected coordinates.</p>")
+    ring = (
+        f"; outer ring to {site['outer_radius_km']:g} km at {site['outer_resolution_m']:.4g} m "
+        f"({site['n_outer']} facets: shadows and radiation only, not analysed)"
+        if site.get("outer_radius_km")
+        else ""
+    )
+    return (
+        f"<p><b>Site</b> from the DEM <code>{html.escape(str(site['dem_source']))}</code> "
+        f"({html.escape(str(site['crs_name']))}, {site['dem_pixel_m']:.3g} m pixels, values read as "
+        f"{html.escape(str(site['height_kind']))}): centre {site['center_lat_deg']:g} deg, "
+        f"{site['center_lon_deg']:g} deg; analysed disk of {site['radius_km']:g} km at "
+        f"{site['resolution_m']:.4g} m ({site['n_inner']} facets){ring}. Vertices are true 3-D positions in the "
+        "centre's east/north/up frame (curvature included). Regions are classes by illumination over the run, "
+        "by slope and by the direction the slope faces; the maps are in the DEM's projected coordinates.</p>"
+    )
 
 
 def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
@@ -747,16 +855,32 @@ def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
 
     i = int(np.argmax(np.asarray(A.run["sun_direction"].values)[:, 2]))
     vx = viz.site_exaggeration(A.run)
-    viz.snapshot(A.run, A.T_nom[i], i, "Surface temperature [K]", f"Nominal {A.nominal}",
-                 fig_dir / "map3d_temperature.png", cmap="inferno", exaggeration=vx)
+    viz.snapshot(
+        A.run,
+        A.T_nom[i],
+        i,
+        "Surface temperature [K]",
+        f"Nominal {A.nominal}",
+        fig_dir / "map3d_temperature.png",
+        cmap="inferno",
+        exaggeration=vx,
+    )
     out = ["map3d_temperature.png"]
     if A.loose is not None:
         m = A.night_map[A.loose]
         lim = float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else 1.0
         j = int(np.flatnonzero(A.night)[0]) if A.night.any() else i
-        viz.snapshot(A.run, m, j, "night median dT [K]", f"Night-time median {A.loose} - nominal",
-                     fig_dir / "map3d_night_dT.png", cmap="RdBu_r", clim=(-max(lim, 1e-3), max(lim, 1e-3)),
-                     exaggeration=vx)
+        viz.snapshot(
+            A.run,
+            m,
+            j,
+            "night median dT [K]",
+            f"Night-time median {A.loose} - nominal",
+            fig_dir / "map3d_night_dT.png",
+            cmap="RdBu_r",
+            clim=(-max(lim, 1e-3), max(lim, 1e-3)),
+            exaggeration=vx,
+        )
         out.append("map3d_night_dT.png")
     return out
 
@@ -777,15 +901,17 @@ def _fmt(v, spec=".2f"):
 def _html_detection(summary: dict) -> str:
     """The detectability section: which bands see the difference, and per instrument and region the answer."""
     obs = summary["observation"]
-    parts = ["<h2>Can an instrument tell loose from nominal regolith?</h2>",
-             f"<p>Candidate footprint ({100 * obs['footprint_fraction']:g}% loose, mixed with nominal in band "
-             f"radiance) against {obs['reference_footprints']} nominal reference footprint(s), each observed for the "
-             f"same dwell. Noise terms: instrument NETD(T) (scaled with the band's dB/dT) averaged over the dwell down "
-             f"to a 1/f floor, in both scenes; natural scatter {obs['natural_scatter_K']:g} K per footprint (measured "
-             f"by Diviner on night-time regolith between 60 N and 60 S, about 80-120 K; uncertain by a factor ~2 at "
-             f"40-80 K); calibration gain error on the radiance difference (an offset cancels). Test: "
-             f"{html.escape(obs['test'])}, false-alarm rate {100 * obs['false_alarm']:g}%; the dwell is the shortest "
-             f"with P_D &ge; {obs['target_pd']:g}. Night-time medians of loose minus nominal.</p>"]
+    parts = [
+        "<h2>Can an instrument tell loose from nominal regolith?</h2>",
+        f"<p>Candidate footprint ({100 * obs['footprint_fraction']:g}% loose, mixed with nominal in band "
+        f"radiance) against {obs['reference_footprints']} nominal reference footprint(s), each observed for the "
+        f"same dwell. Noise terms: instrument NETD(T) (scaled with the band's dB/dT) averaged over the dwell down "
+        f"to a 1/f floor, in both scenes; natural scatter {obs['natural_scatter_K']:g} K per footprint (measured "
+        f"by Diviner on night-time regolith between 60 N and 60 S, about 80-120 K; uncertain by a factor ~2 at "
+        f"40-80 K); calibration gain error on the radiance difference (an offset cancels). Test: "
+        f"{html.escape(obs['test'])}, false-alarm rate {100 * obs['false_alarm']:g}%; the dwell is the shortest "
+        f"with P_D &ge; {obs['target_pd']:g}. Night-time medians of loose minus nominal.</p>",
+    ]
     sees, blind = [], []
     for name, per in summary["detection"].items():
         row = per.get("floor") or next((v for v in per.values() if v.get("dT_median_K") is not None), {})
@@ -795,38 +921,64 @@ def _html_detection(summary: dict) -> str:
             sees.append(f"{name} (instrument noise alone: {row['dwell_s_no_scatter']:.3g} s)")
         else:
             blind.append(f"{name} (NETD {row['netd_candidate_K']:.3g} K at {row['T_candidate_K']:.1f} K)")
-    parts.append("<p><b>Bands that can see the night-time difference on the floor</b> (ignoring natural scatter): "
-                 f"{html.escape(', '.join(sees) or 'none')}. <b>Bands that cannot</b>: "
-                 f"{html.escape(', '.join(blind) or 'none')}.</p>")
+    parts.append(
+        "<p><b>Bands that can see the night-time difference on the floor</b> (ignoring natural scatter): "
+        f"{html.escape(', '.join(sees) or 'none')}. <b>Bands that cannot</b>: "
+        f"{html.escape(', '.join(blind) or 'none')}.</p>"
+    )
     band = summary["band_signal_night_floor"]
     rows = []
     for name, b in band.items():
         for T, L, e in zip(b["T_K"], b["band_radiance_W_m2_sr"], b["netd_K"]):
             rows.append([name, f"{b['band_um'][0]:g}-{b['band_um'][1]:g}", f"{T:.1f}", f"{L:.3g}", f"{e:.3g}"])
     parts.append("<h3>What each band receives (night floor, nominal; and a 300 K scene)</h3>")
-    parts.append(_table(rows, ["instrument", "band [um]", "T [K]", "band radiance [W m-2 sr-1]",
-                               "NETD of one integration [K]"]))
+    parts.append(
+        _table(rows, ["instrument", "band [um]", "T [K]", "band radiance [W m-2 sr-1]", "NETD of one integration [K]"])
+    )
     for name, per in summary["detection"].items():
         inst = summary["instruments"][name]
         rows = []
         for r, d in per.items():
             lt = d.get("best_local_time_h")
-            rows.append([r, _fmt(d.get("dT_median_K")),
-                         f"{_fmt(d.get('dT_q1_K'))} .. {_fmt(d.get('dT_q3_K'))}", _fmt(d.get("T_nominal_K"), ".1f"),
-                         _fmt(d.get("netd_candidate_K"), ".3g"),
-                         _fmt(d.get("dwell_s"), ".3g") if d.get("detectable") else "never",
-                         _fmt(d.get("pd_limit")), str(d.get("limiting_term") or "-").replace("_", " "),
-                         "-" if lt is None else f"{lt:.1f} h (|dT|/sigma {d['best_snr']:.2g})",
-                         f"{_fmt(d.get('dwell_s_scatter_half'), '.3g')} / "
-                         f"{_fmt(d.get('dwell_s_scatter_double'), '.3g')}",
-                         d.get("answer", "")])
-        parts.append(f"<h3>{html.escape(name)}: {inst['lo_um']:g}-{inst['hi_um']:g} um, NETD "
-                     f"{inst['netd_ref_K']:.3g} K at {inst['t_ref_K']:g} K per {inst['integration_s']:.3g} s, "
-                     f"1/f knee {inst['knee_s']:g} s, gain error {100 * inst['gain_error']:g}%</h3>"
-                     f"<p><small>{html.escape(inst['source'])}</small></p>")
-        parts.append(_table(rows, ["region", "night median dT [K]", "quartiles [K]", "T nominal [K]",
-                                   "NETD at candidate [K]", "dwell for P_D [s]", "P_D at infinite dwell",
-                                   "limiting term", "best local time", "dwell with scatter x0.5 / x2 [s]", "answer"]))
+            rows.append(
+                [
+                    r,
+                    _fmt(d.get("dT_median_K")),
+                    f"{_fmt(d.get('dT_q1_K'))} .. {_fmt(d.get('dT_q3_K'))}",
+                    _fmt(d.get("T_nominal_K"), ".1f"),
+                    _fmt(d.get("netd_candidate_K"), ".3g"),
+                    _fmt(d.get("dwell_s"), ".3g") if d.get("detectable") else "never",
+                    _fmt(d.get("pd_limit")),
+                    str(d.get("limiting_term") or "-").replace("_", " "),
+                    "-" if lt is None else f"{lt:.1f} h (|dT|/sigma {d['best_snr']:.2g})",
+                    f"{_fmt(d.get('dwell_s_scatter_half'), '.3g')} / {_fmt(d.get('dwell_s_scatter_double'), '.3g')}",
+                    d.get("answer", ""),
+                ]
+            )
+        parts.append(
+            f"<h3>{html.escape(name)}: {inst['lo_um']:g}-{inst['hi_um']:g} um, NETD "
+            f"{inst['netd_ref_K']:.3g} K at {inst['t_ref_K']:g} K per {inst['integration_s']:.3g} s, "
+            f"1/f knee {inst['knee_s']:g} s, gain error {100 * inst['gain_error']:g}%</h3>"
+            f"<p><small>{html.escape(inst['source'])}</small></p>"
+        )
+        parts.append(
+            _table(
+                rows,
+                [
+                    "region",
+                    "night median dT [K]",
+                    "quartiles [K]",
+                    "T nominal [K]",
+                    "NETD at candidate [K]",
+                    "dwell for P_D [s]",
+                    "P_D at infinite dwell",
+                    "limiting term",
+                    "best local time",
+                    "dwell with scatter x0.5 / x2 [s]",
+                    "answer",
+                ],
+            )
+        )
     return "\n".join(parts)
 
 
@@ -841,18 +993,23 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
         f"{summary['n_facets']} facets (mesh {html.escape(summary['mesh_hash'])}); night fraction "
         f"{summary['night_fraction']:.2f}. Differences are replayed profile minus nominal "
         f"({html.escape(summary['nominal_profile'])}); "
-        + (f"night = no direct sunlight on the facet for at least {summary['night_min_dark_hours']:g} h, day = "
-           "the facet directly lit (a never-lit facet has no day)"
-           if summary["night_definition"] == "facet" else
-           "night = Sun's centre below the horizon at the crater centre (thesis)")
+        + (
+            f"night = no direct sunlight on the facet for at least {summary['night_min_dark_hours']:g} h, day = "
+            "the facet directly lit (a never-lit facet has no day)"
+            if summary["night_definition"] == "facet"
+            else "night = Sun's centre below the horizon at the crater centre (thesis)"
+        )
         + f" ({summary['night_fraction_samples']:.2f} of the samples are night). "
-        + ("Regions: classes by slope, by the azimuth the slope faces (+-45 deg sectors; <i>level</i> below 5 deg) "
-           "and by direct sunlight (never / rarely (&lt; 10% of samples) / often lit), over the analysed facets "
-           "only. Regions may overlap.</p>" if summary.get("site") else
-           "Regions: floor; lower/upper wall (below/above half the wall's height); top wall ring (the facets at "
-           "the crest); rim (outer flank); surround; each wall/rim part split into +-45 deg sectors by the "
-           "azimuth its slope faces (<i>equator_facing</i>: on the pole side, facing the equator and the Sun); "
-           "never / rarely (&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap.</p>"),
+        + (
+            "Regions: classes by slope, by the azimuth the slope faces (+-45 deg sectors; <i>level</i> below 5 deg) "
+            "and by direct sunlight (never / rarely (&lt; 10% of samples) / often lit), over the analysed facets "
+            "only. Regions may overlap.</p>"
+            if summary.get("site")
+            else "Regions: floor; lower/upper wall (below/above half the wall's height); top wall ring (the facets at "
+            "the crest); rim (outer flank); surround; each wall/rim part split into +-45 deg sectors by the "
+            "azimuth its slope faces (<i>equator_facing</i>: on the pole side, facing the equator and the Sun); "
+            "never / rarely (&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap.</p>"
+        ),
     ]
     if summary.get("site"):  # a DEM site: say what was meshed (no crater radii here)
         parts.append(_html_site(summary["site"]))
@@ -860,26 +1017,47 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
     if loose:
         rows = []
         for r in summary["regions"]:
-            rows.append([r, str(summary["region_facet_count"][r]),
-                         _fmt(summary["night_median_T_nominal_K"][r], ".1f"),
-                         _fmt(summary["night_median_dT_K"][loose][r]),
-                         f"{_fmt(summary['night_q1_dT_K'][loose][r])} .. {_fmt(summary['night_q3_dT_K'][loose][r])}",
-                         _fmt(summary["day_median_dT_K"][loose][r]),
-                         _fmt(summary["night_frac_abs_dT_above_threshold"][loose][r])])
+            rows.append(
+                [
+                    r,
+                    str(summary["region_facet_count"][r]),
+                    _fmt(summary["night_median_T_nominal_K"][r], ".1f"),
+                    _fmt(summary["night_median_dT_K"][loose][r]),
+                    f"{_fmt(summary['night_q1_dT_K'][loose][r])} .. {_fmt(summary['night_q3_dT_K'][loose][r])}",
+                    _fmt(summary["day_median_dT_K"][loose][r]),
+                    _fmt(summary["night_frac_abs_dT_above_threshold"][loose][r]),
+                ]
+            )
         parts.append(f"<h2>{html.escape(loose)} minus nominal by region</h2>")
-        parts.append(_table(rows, ["region", "facets", "night T nominal [K]", "night median dT [K]",
-                                   "night quartiles [K]", "day median dT [K]",
-                                   f"night frac |dT|>{summary['threshold_K']:g} K"]))
+        parts.append(
+            _table(
+                rows,
+                [
+                    "region",
+                    "facets",
+                    "night T nominal [K]",
+                    "night median dT [K]",
+                    "night quartiles [K]",
+                    "day median dT [K]",
+                    f"night frac |dT|>{summary['threshold_K']:g} K",
+                ],
+            )
+        )
         parts.append(_html_detection(summary))
     if summary["snapshot_note"]:
         parts.append(f"<p><b>Note:</b> {html.escape(summary['snapshot_note'])}</p>")
     for name in summary["figures"]:
         data = base64.b64encode((fig_dir / name).read_bytes()).decode("ascii")
-        parts.append(f"<figure><img alt='figures/{name}' src='data:image/png;base64,{data}'>"
-                     f"<figcaption><a href='figures/{name}'>figures/{name}</a>: "
-                     f"{html.escape(captions.get(name, ''))}</figcaption></figure>")
-    parts.append("<h2>summary.json keys</h2><dl>" + "".join(
-        f"<dt><code>{html.escape(k)}</code></dt><dd>{html.escape(v)}</dd>" for k, v in SUMMARY_KEYS.items()) + "</dl>")
+        parts.append(
+            f"<figure><img alt='figures/{name}' src='data:image/png;base64,{data}'>"
+            f"<figcaption><a href='figures/{name}'>figures/{name}</a>: "
+            f"{html.escape(captions.get(name, ''))}</figcaption></figure>"
+        )
+    parts.append(
+        "<h2>summary.json keys</h2><dl>"
+        + "".join(f"<dt><code>{html.escape(k)}</code></dt><dd>{html.escape(v)}</dd>" for k, v in SUMMARY_KEYS.items())
+        + "</dl>"
+    )
     parts.append("</body></html>")
     return "\n".join(parts)
 
@@ -910,19 +1088,28 @@ def sweep_pairs(folder) -> Tuple[List[Path], List[Path]]:
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise ConfigError(f"{folder} is not a folder; expected a sweep output folder with CASE/run.nc and "
-                          "CASE/replay.nc")
+        raise ConfigError(
+            f"{folder} is not a folder; expected a sweep output folder with CASE/run.nc and CASE/replay.nc"
+        )
     cases = sorted(d for d in folder.iterdir() if (d / "run.nc").is_file() and (d / "replay.nc").is_file())
     if not cases:
         raise ConfigError(f"{folder} holds no CASE/run.nc with CASE/replay.nc (a sweep's output folder)")
     return [d / "run.nc" for d in cases], [d / "replay.nc" for d in cases]
 
 
-def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: Optional[bool] = None,
-                instruments: Optional[Sequence[ins.Instrument]] = None,
-                observation: ins.Observation = ins.Observation(), threshold_K: float = an.NATURAL_SCATTER_K,
-                snapshots: bool = True, night_definition: str = "facet",
-                min_dark_hours: float = an.MIN_DARK_HOURS) -> Path:
+def make_report(
+    run_ds,
+    replay_ds,
+    out_dir,
+    overwrite: bool = False,
+    progress: Optional[bool] = None,
+    instruments: Optional[Sequence[ins.Instrument]] = None,
+    observation: ins.Observation = ins.Observation(),
+    threshold_K: float = an.NATURAL_SCATTER_K,
+    snapshots: bool = True,
+    night_definition: str = "facet",
+    min_dark_hours: float = an.MIN_DARK_HOURS,
+) -> Path:
     """Write figures, report.html and summary.json for a run and its replay.
 
     Parameters
@@ -979,8 +1166,19 @@ def make_report(run_ds, replay_ds, out_dir, overwrite: bool = False, progress: O
     try:
         runs = [_track(ctio.open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
         reps = [_track(ctio.open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
-        return _make_report(runs, reps, out_dir, overwrite, progress, instruments, threshold_K,
-                            observation, snapshots, night_definition, min_dark_hours)
+        return _make_report(
+            runs,
+            reps,
+            out_dir,
+            overwrite,
+            progress,
+            instruments,
+            threshold_K,
+            observation,
+            snapshots,
+            night_definition,
+            min_dark_hours,
+        )
     finally:
         for ds in opened:
             ds.close()
@@ -991,8 +1189,19 @@ def _track(ds, opened: list):
     return ds
 
 
-def _make_report(runs, reps, out_dir: Path, overwrite, progress, instruments, threshold_K, observation,
-                 snapshots, night_definition="facet", min_dark_hours=an.MIN_DARK_HOURS) -> Path:
+def _make_report(
+    runs,
+    reps,
+    out_dir: Path,
+    overwrite,
+    progress,
+    instruments,
+    threshold_K,
+    observation,
+    snapshots,
+    night_definition="facet",
+    min_dark_hours=an.MIN_DARK_HOURS,
+) -> Path:
     for run, rep in zip(runs, reps):
         an.check_run(run, an.RUN_VARIABLES + ("solar_incident", "ir_incident"))
         an.check_pair(run, rep)
@@ -1006,8 +1215,7 @@ def _make_report(runs, reps, out_dir: Path, overwrite, progress, instruments, th
             if report is not None:
                 report(done[0], n_steps)
 
-        all_A = [_Analysis(r, p, threshold_K, advance, night_definition, min_dark_hours)
-                 for r, p in zip(runs, reps)]
+        all_A = [_Analysis(r, p, threshold_K, advance, night_definition, min_dark_hours) for r, p in zip(runs, reps)]
         return _write_report(all_A, out_dir, overwrite, advance, instruments, observation, snapshots)
 
 

@@ -118,8 +118,15 @@ class CoupledStepper:
         T1 = self.solver.advance(a_k, self.absorbed(solar_k1, ir_k1), duration_s)
         return T1, ir_k1
 
-    def run(self, times_s: np.ndarray, solar: np.ndarray, ir0: np.ndarray | None = None,
-            record: bool = True, on_step: Callable | None = None, first_step: int = 0):
+    def run(
+        self,
+        times_s: np.ndarray,
+        solar: np.ndarray,
+        ir0: np.ndarray | None = None,
+        record: bool = True,
+        on_step: Callable | None = None,
+        first_step: int = 0,
+    ):
         """Run over all samples from the solver's current state (at ``times_s[first_step]``).
 
         Returns ``(T_surface (nt, nf), ir (nt, nf))`` when ``record``; else ``(None, ir_last)``.
@@ -167,11 +174,20 @@ def absorbed_solar_of(flux_ds, incident: str = "solar_incident", rows=slice(None
     return (1 - float(flux_ds.attrs["albedo"])) * flux_ds[incident][rows, cols].values
 
 
-def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = None,
-                  geothermal_flux: float | None = None, initial_temperature: float | None = None,
-                  fixed_spinup: bool = False, chunk_columns: int = 50_000,
-                  progress: Callable[[int, int], None] | None = None, tol_K: float = 0.01,
-                  chunk_mb: float = DEFAULT_CHUNK_MB, write: Callable | None = None):
+def replay_fluxes(
+    flux_ds,
+    profiles: Sequence,
+    *,
+    property_set: str | None = None,
+    geothermal_flux: float | None = None,
+    initial_temperature: float | None = None,
+    fixed_spinup: bool = False,
+    chunk_columns: int = 50_000,
+    progress: Callable[[int, int], None] | None = None,
+    tol_K: float = 0.01,
+    chunk_mb: float = DEFAULT_CHUNK_MB,
+    write: Callable | None = None,
+):
     """Replay saved fluxes against several density profiles (no coupling: the IR is the saved one).
 
     Columns (profile x facet) are solved in batches of at most ``chunk_columns``; each batch reads the
@@ -219,11 +235,14 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
     n_fb = max(1, min(nf, int(chunk_columns)))  # facets per batch
     per_chunk = max(1, int(chunk_columns) // n_fb)  # profiles per batch
     fixed = initial_temperature is not None or fixed_spinup
-    start = ("uniform" if initial_temperature is not None else "equilibrium") + " + fixed spin-up" if fixed \
-        else "periodic"
+    start = (
+        ("uniform" if initial_temperature is not None else "equilibrium") + " + fixed spin-up" if fixed else "periodic"
+    )
     info = {"start": start, "periodic_iterations": [], "periodic_residual_K": []}
-    names = {"spin": ("spinup_solar_incident", "spinup_ir_incident") if has_spin else None,
-             "rec": ("solar_incident", "ir_incident")}
+    names = {
+        "spin": ("spinup_solar_incident", "spinup_ir_incident") if has_spin else None,
+        "rec": ("solar_incident", "ir_incident"),
+    }
     n_batches = -(-nf // n_fb) * -(-n_prof // per_chunk)
     spin_windows = 1 if fixed else 5  # ETA: a periodic start usually takes about 4-6 windows
     work = n_batches * ((spin_windows * (len(t_spin) - 1) if (has_spin or not fixed) else 0) + nt - 1)
@@ -243,12 +262,14 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
             if n_all <= rows:  # the whole window fits the budget: read it once
                 if which not in cache:
                     sol, ir = names[which]
-                    cache[which] = (absorbed_solar_of(flux_ds, sol, slice(None), slice(f0, f1))
-                                    + eps * flux_ds[ir][:, f0:f1].values)
+                    cache[which] = (
+                        absorbed_solar_of(flux_ds, sol, slice(None), slice(f0, f1)) + eps * flux_ds[ir][:, f0:f1].values
+                    )
                 return cache[which][k0:k1]
             sol, ir = names[which]
-            return (absorbed_solar_of(flux_ds, sol, slice(k0, k1), slice(f0, f1))
-                    + eps * flux_ds[ir][k0:k1, f0:f1].values)
+            return (
+                absorbed_solar_of(flux_ds, sol, slice(k0, k1), slice(f0, f1)) + eps * flux_ds[ir][k0:k1, f0:f1].values
+            )
 
         spin_which = "spin" if has_spin else "rec"
 
@@ -265,14 +286,20 @@ def replay_fluxes(flux_ds, profiles: Sequence, *, property_set: str | None = Non
                     report(done[0], max(work, done[0]))
 
         for p0 in range(0, n_prof, per_chunk):
-            chunk = list(profiles[p0:p0 + per_chunk])
+            chunk = list(profiles[p0 : p0 + per_chunk])
             cols = [p for p in chunk for _ in range(nfb)]
             solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
             n_sp = len(t_spin)
             eq = None
             if initial_temperature is None:
-                eq = sum(solver.equilibrium_surface(absorbed(spin_which, a, min(n_sp, a + rows)))
-                         * (min(n_sp, a + rows) - a) for a in range(0, n_sp, rows)) / n_sp
+                eq = (
+                    sum(
+                        solver.equilibrium_surface(absorbed(spin_which, a, min(n_sp, a + rows)))
+                        * (min(n_sp, a + rows) - a)
+                        for a in range(0, n_sp, rows)
+                    )
+                    / n_sp
+                )
             # (nt, nfb) forcing serves every profile: column j of the solver uses forcing column j % nfb
             if fixed:
                 if initial_temperature is not None:
@@ -335,10 +362,17 @@ def case_mesh(case):
     if getattr(c, "kind", "crater") == "dem":
         from crater_thermal import terrain
 
-        return terrain.site_mesh(c.dem, case.location.lat_deg, case.location.lon_deg, c.radius_km,
-                                 resolution_m=c.resolution_m, outer_radius_km=c.outer_radius_km,
-                                 outer_resolution_m=c.outer_resolution_m, height_kind=c.height_kind,
-                                 max_facets=c.max_facets)
+        return terrain.site_mesh(
+            c.dem,
+            case.location.lat_deg,
+            case.location.lon_deg,
+            c.radius_km,
+            resolution_m=c.resolution_m,
+            outer_radius_km=c.outer_radius_km,
+            outer_resolution_m=c.outer_resolution_m,
+            height_kind=c.height_kind,
+            max_facets=c.max_facets,
+        )
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 
@@ -368,9 +402,20 @@ def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, all
     return unique
 
 
-def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_temperature=None,
-                fixed_spinup=False, property_set=None, allow_inverted=False, output, overwrite=False,
-                progress=None, chunk_mb: float = DEFAULT_CHUNK_MB):
+def replay_file(
+    flux_path,
+    labels: Sequence[str],
+    *,
+    density_grid=None,
+    initial_temperature=None,
+    fixed_spinup=False,
+    property_set=None,
+    allow_inverted=False,
+    output,
+    overwrite=False,
+    progress=None,
+    chunk_mb: float = DEFAULT_CHUNK_MB,
+):
     """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
 
     The fluxes are read and the temperatures written block by block (memory about ``chunk_mb`` [MB]
@@ -390,15 +435,25 @@ def replay_file(flux_path, labels: Sequence[str], *, density_grid=None, initial_
     variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
     with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=TIME_CHUNK) as stream:
         with _stage(progress, f"replay ({len(profiles)} profiles x {shape[2]} facets)") as report:
-            _, info = replay_fluxes(ds, profiles, property_set=property_set,
-                                    initial_temperature=initial_temperature, fixed_spinup=fixed_spinup,
-                                    progress=report, chunk_mb=chunk_mb,
-                                    write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T))
-        stream.set_attrs({"replay_start": info["start"],
-                          "periodic_iterations": info["periodic_iterations"] or None,
-                          "periodic_residual_K": info["periodic_residual_K"] or None,
-                          "initial_temperature_K": initial_temperature,
-                          "ir_assumption": "saved nominal IR (thesis 7.2)"})
+            _, info = replay_fluxes(
+                ds,
+                profiles,
+                property_set=property_set,
+                initial_temperature=initial_temperature,
+                fixed_spinup=fixed_spinup,
+                progress=report,
+                chunk_mb=chunk_mb,
+                write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T),
+            )
+        stream.set_attrs(
+            {
+                "replay_start": info["start"],
+                "periodic_iterations": info["periodic_iterations"] or None,
+                "periodic_residual_K": info["periodic_residual_K"] or None,
+                "initial_temperature_K": initial_temperature,
+                "ir_assumption": "saved nominal IR (thesis 7.2)",
+            }
+        )
     ds.close()
     return Path(output)
 
@@ -442,13 +497,14 @@ class Forcing:
         ns = self.n_spin
         if ns == 0:
             return arr[:0], arr
-        return arr[:ns], arr[ns - 1:]
+        return arr[:ns], arr[ns - 1 :]
 
     def rows(self, name: str, k0: int, k1: int) -> np.ndarray:
         """Rows ``k0 .. k1 - 1`` of ``"direct"`` or ``"solar"`` over spin-up + record [W m-2]."""
         if self.store is not None:
             return self.store.read(name, k0, k1)
         return getattr(self, name)[k0:k1]
+
 
 def view_factor_settings(case) -> tuple[str, float]:
     """(method, tolerance) of a case's view factors: ``[radiation] view_factors`` and ``tolerance``."""
@@ -473,8 +529,9 @@ def case_geometry(case, timer: Timer, progress=None):
             method, tol = view_factor_settings(case)
             kind = vfoperator.resolve_method(method, mesh.n_facets)
             with _stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
-                F = vfoperator.view_factor_operator(mesh, tracer, method=kind, tolerance=tol,
-                                                    cache_dir=_view_factor_cache_dir(), progress=report)
+                F = vfoperator.view_factor_operator(
+                    mesh, tracer, method=kind, tolerance=tol, cache_dir=_view_factor_cache_dir(), progress=report
+                )
             if F.is_zero:
                 F = None
     return mesh, tracer, F
@@ -495,8 +552,13 @@ def case_sun(case, timer: Timer):
             spin_times = times[:0]
         all_times = np.concatenate([spin_times[:-1], times]) if len(spin_times) else times
         sun_dirs, sun_dist = ephemeris.sun_in_crater_frame(
-            all_times, case.location.lat_deg, case.location.lon_deg, moon_frame=case.sun.moon_frame,
-            correction=case.sun.correction, moon_kernels=case.sun.moon_kernels)
+            all_times,
+            case.location.lat_deg,
+            case.location.lon_deg,
+            moon_frame=case.sun.moon_frame,
+            correction=case.sun.correction,
+            moon_kernels=case.sun.moon_kernels,
+        )
     return spin_times, times, sun_dirs, sun_dist
 
 
@@ -526,14 +588,24 @@ class Sunlight:
             from crater_thermal import horizons
 
             with timer("horizons"), _stage(progress, f"horizon map ({mesh.n_facets} facets)") as report:
-                self.hmap = horizons.horizon_map(mesh, tracer, n_azimuths=getattr(sun, "horizon_azimuths", None)
-                                                 or horizons.DEFAULT_N_AZIMUTHS, cache_dir=_horizon_cache_dir(),
-                                                 progress=report)
+                self.hmap = horizons.horizon_map(
+                    mesh,
+                    tracer,
+                    n_azimuths=getattr(sun, "horizon_azimuths", None) or horizons.DEFAULT_N_AZIMUTHS,
+                    cache_dir=_horizon_cache_dir(),
+                    progress=report,
+                )
         elif not sun.point_sun:
             self.disk = illumination.sun_disk(
-                **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening)
-        self.scat = None if F is None else radiosity.ScatteringSolver(
-            F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces)
+                **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening
+            )
+        self.scat = (
+            None
+            if F is None
+            else radiosity.ScatteringSolver(
+                F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces
+            )
+        )
 
     def __call__(self, sun_dirs, sun_dist_m, timer: Timer, progress=None):
         """``(direct, solar)`` (n, nf) [W m-2] for Sun directions (n, 3) and distances (n,) [m].
@@ -544,15 +616,26 @@ class Sunlight:
             if self.method == "horizon":
                 from crater_thermal import horizons
 
-                direct = horizons.direct_irradiance_horizon(self.mesh, self.hmap, sun_dirs, sun_dist_m,
-                                                            solar_constant=sun.solar_constant_W_m2,
-                                                            law=None if sun.point_sun else sun.limb_darkening)
+                direct = horizons.direct_irradiance_horizon(
+                    self.mesh,
+                    self.hmap,
+                    sun_dirs,
+                    sun_dist_m,
+                    solar_constant=sun.solar_constant_W_m2,
+                    law=None if sun.point_sun else sun.limb_darkening,
+                )
             else:
                 from crater_thermal import illumination
 
-                direct = illumination.direct_irradiance(self.mesh, self.tracer, sun_dirs, sun_dist_m,
-                                                        solar_constant=sun.solar_constant_W_m2, disk=self.disk,
-                                                        progress=progress)
+                direct = illumination.direct_irradiance(
+                    self.mesh,
+                    self.tracer,
+                    sun_dirs,
+                    sun_dist_m,
+                    solar_constant=sun.solar_constant_W_m2,
+                    disk=self.disk,
+                    progress=progress,
+                )
         with timer("radiosity"):
             solar = direct if self.scat is None else self.scat.solar_incident(direct)
         return direct, solar
@@ -592,9 +675,14 @@ def absorbed_sunlight(case, mesh, sun_dirs, direct, scat, F):
     from crater_thermal import illumination
 
     A0 = float(case.surface.albedo)
-    A_dir = illumination.direct_albedo(mesh.normals, sun_dirs, A0, case.surface.albedo_model,
-                                       getattr(case.surface, "albedo_a", illumination.HAYNE2017_ALBEDO_A),
-                                       getattr(case.surface, "albedo_b", illumination.HAYNE2017_ALBEDO_B))
+    A_dir = illumination.direct_albedo(
+        mesh.normals,
+        sun_dirs,
+        A0,
+        case.surface.albedo_model,
+        getattr(case.surface, "albedo_a", illumination.HAYNE2017_ALBEDO_A),
+        getattr(case.surface, "albedo_b", illumination.HAYNE2017_ALBEDO_B),
+    )
     if scat is None:
         scattered = np.zeros_like(direct)
     elif A0 > 0:
@@ -616,8 +704,15 @@ def _scratch_path(out_path) -> str:
     return str(out_path) + ".partial"
 
 
-def run_window(stepper: CoupledStepper, times_s: np.ndarray, solar_rows: Callable, block: int,
-               ir0: np.ndarray | None = None, on_ir: Callable | None = None, on_step: Callable | None = None):
+def run_window(
+    stepper: CoupledStepper,
+    times_s: np.ndarray,
+    solar_rows: Callable,
+    block: int,
+    ir0: np.ndarray | None = None,
+    on_ir: Callable | None = None,
+    on_step: Callable | None = None,
+):
     """Coupled steps through a window of samples from the solver's state (at sample 0), block by block.
 
     Parameters
@@ -655,8 +750,9 @@ def run_window(stepper: CoupledStepper, times_s: np.ndarray, solar_rows: Callabl
     return ir
 
 
-def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None,
-             timer: Timer | None = None):
+def run_case(
+    case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None, timer: Timer | None = None
+):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
 
     Memory stays bounded by ``[output] chunk_mb`` (default 256 MB) for the (time, facet) series, not by
@@ -679,16 +775,19 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     if getattr(case.surface, "albedo_model", "constant") != "constant":
         # absorbed_sunlight() and the replay of solar_absorbed exist; the streamed run (SegmentStore) does not
         # yet store an absorbed-sunlight series (issue 10, to be wired in)
-        raise ConfigError(f"albedo_model = {case.surface.albedo_model!r} is not yet supported by the streamed "
-                          "run; use albedo_model = \"constant\"")
+        raise ConfigError(
+            f"albedo_model = {case.surface.albedo_model!r} is not yet supported by the streamed "
+            'run; use albedo_model = "constant"'
+        )
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():
         try:
             ckpt = dict(np.load(ckpt_path, allow_pickle=False))
         except Exception as exc:
-            raise FluxFileError(f"checkpoint {ckpt_path} is unreadable ({type(exc).__name__}); "
-                                "run again without --resume") from None
+            raise FluxFileError(
+                f"checkpoint {ckpt_path} is unreadable ({type(exc).__name__}); run again without --resume"
+            ) from None
         if str(ckpt["fingerprint"]) != fingerprint:
             raise ConfigError(f"checkpoint {ckpt_path} belongs to a different case; run without --resume")
     if ckpt is None:
@@ -700,8 +799,10 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     nf = mesh.n_facets
     block = block_rows(nf, chunk_bytes(case))
     if ckpt is not None and int(ckpt.get("block", -1)) != block:
-        raise ConfigError(f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
-                          f"samples, this run uses {block}; run again without --resume")
+        raise ConfigError(
+            f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
+            f"samples, this run uses {block}; run again without --resume"
+        )
     scratch = Path(_scratch_path(out_path))
     store = io.SegmentStore(scratch, block)
     if ckpt is None:
@@ -727,8 +828,13 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
     solver_kw = {}
     if getattr(case.steps, "conduction_step_s", None):
         solver_kw["dt_max"] = float(case.steps.conduction_step_s)
-    solver = thermal.ColumnSolver([nominal] * nf, property_set=case.surface.property_set, emissivity=eps,
-                                  geothermal_flux=case.surface.geothermal_flux_W_m2, **solver_kw)
+    solver = thermal.ColumnSolver(
+        [nominal] * nf,
+        property_set=case.surface.property_set,
+        emissivity=eps,
+        geothermal_flux=case.surface.geothermal_flux_W_m2,
+        **solver_kw,
+    )
     stepper = CoupledStepper(solver, fc.F, albedo, eps)
     t0 = fc.times[0]
     spin_t = seconds_since(fc.spin_times, t0)
@@ -739,16 +845,25 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
 
     def save_ckpt(k, info):
         with timer("io"):
-            io.save_npz_atomic(ckpt_path, fingerprint=np.array(fingerprint), phase=np.array("record"),
-                               k=np.array(k), block=np.array(block), state=solver.state(),
-                               start_method=np.array(info["start_method"]),
-                               iterations=np.array(info["iterations"]),
-                               residual=np.asarray(info["residual"], float))
+            io.save_npz_atomic(
+                ckpt_path,
+                fingerprint=np.array(fingerprint),
+                phase=np.array("record"),
+                k=np.array(k),
+                block=np.array(block),
+                state=solver.state(),
+                start_method=np.array(info["start_method"]),
+                iterations=np.array(info["iterations"]),
+                residual=np.asarray(info["residual"], float),
+            )
 
     # ---- start of the record
     if ckpt is not None:
-        spin_info = {"start_method": str(ckpt["start_method"]), "iterations": int(ckpt["iterations"]),
-                     "residual": ckpt["residual"]}
+        spin_info = {
+            "start_method": str(ckpt["start_method"]),
+            "iterations": int(ckpt["iterations"]),
+            "residual": ckpt["residual"],
+        }
         k0 = int(ckpt["k"])
         solver.set_state(ckpt["state"])
         ir_k = store.read("ir", k0, k0 + 1)[0]
@@ -801,32 +916,56 @@ def run_case(case, out_path, *, resume: bool = False, overwrite: bool = False, p
 
         _, rec_dirs = fc.split(fc.sun_dirs)
         _, rec_dist = fc.split(fc.sun_dist_m)
-        extra_vars = {"start_residual": (("facet",), np.asarray(spin_info["residual"], float),
-                                         {"units": "K", "long_name": "max over the column of |T(end) - T(start)| "
-                                          "of the spin-up window's last period"})}
-        attrs = {"case_name": case.name, "case_toml": case.toml_text, "albedo": albedo, "emissivity": eps,
-                 "lat_deg": float(case.location.lat_deg), "lon_deg": float(case.location.lon_deg),
-                 "property_set": case.surface.property_set, "nominal_profile": nominal.label,
-                 "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
-                 "start_method": spin_info["start_method"], "spinup_iterations": int(spin_info["iterations"]),
-                 "spinup_years": float(case.period.spinup_years),
-                 "initial_temperature_K": case.period.initial_temperature_K, "timing_s": dict(timer.split)}
-        ds = io.run_dataset(mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs,
-                            extra=extra_vars)
+        extra_vars = {
+            "start_residual": (
+                ("facet",),
+                np.asarray(spin_info["residual"], float),
+                {
+                    "units": "K",
+                    "long_name": "max over the column of |T(end) - T(start)| of the spin-up window's last period",
+                },
+            )
+        }
+        attrs = {
+            "case_name": case.name,
+            "case_toml": case.toml_text,
+            "albedo": albedo,
+            "emissivity": eps,
+            "lat_deg": float(case.location.lat_deg),
+            "lon_deg": float(case.location.lon_deg),
+            "property_set": case.surface.property_set,
+            "nominal_profile": nominal.label,
+            "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
+            "start_method": spin_info["start_method"],
+            "spinup_iterations": int(spin_info["iterations"]),
+            "spinup_years": float(case.period.spinup_years),
+            "initial_temperature_K": case.period.initial_temperature_K,
+            "timing_s": dict(timer.split),
+        }
+        ds = io.run_dataset(
+            mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
+        )
         if ns:
             ds = ds.assign_coords(spinup_time=fc.spin_times)
         # (name, dims, rows, reader of rows k0..k1-1)
-        series = [("solar_incident", "time", nt, lambda a, b: store.read("solar", off + a, off + b)),
-                  ("ir_incident", "time", nt, lambda a, b: store.read("ir", a, b)),
-                  ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
-                  ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b))]
+        series = [
+            ("solar_incident", "time", nt, lambda a, b: store.read("solar", off + a, off + b)),
+            ("ir_incident", "time", nt, lambda a, b: store.read("ir", a, b)),
+            ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
+            ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b)),
+        ]
         if save_spin:
-            series += [("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
-                       ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b))]
-        variables = {name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}))
-                     for name, dim, n, _ in series}
-        with io.stream_dataset(ds, out_path, variables, overwrite=True if ckpt is not None else overwrite,
-                               time_rows=min(TIME_CHUNK, block)) as write:
+            series += [
+                ("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
+                ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b)),
+            ]
+        variables = {
+            name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}))
+            for name, dim, n, _ in series
+        }
+        with io.stream_dataset(
+            ds, out_path, variables, overwrite=True if ckpt is not None else overwrite, time_rows=min(TIME_CHUNK, block)
+        ) as write:
             n_blocks = sum(-(-n // block) for _, _, n, _ in series)
             with _stage(progress, f"write {out_path.name}") as report:
                 done = 0
@@ -872,17 +1011,20 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
             method = f"uniform {float(T0)} K, no spin-up"
         else:
             n_all = len(fc.sun_dirs)
-            ts = _mean_over_rows(fc, 0, n_all, block,
-                                 lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, 0.0)))
+            ts = _mean_over_rows(
+                fc, 0, n_all, block, lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, 0.0))
+            )
             solver.set_equilibrium(surface_K=ts)
             method = "equilibrium estimate, no spin-up"
         return {"start_method": method, "iterations": 0, "residual": np.full(fc.mesh.n_facets, np.nan)}, None
     # first guess of the absorbed flux: sunlight plus the IR of a radiative-equilibrium crater
-    guess_T = _mean_over_rows(fc, 0, ns, block,
-                              lambda sol: np.mean((np.maximum(stepper.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0))
+    guess_T = _mean_over_rows(
+        fc, 0, ns, block, lambda sol: np.mean((np.maximum(stepper.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0)
+    )
     guess_ir = stepper.ir(guess_T) if fc.F is not None else 0.0
-    eq_surface = _mean_over_rows(fc, 0, ns, block,
-                                 lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, guess_ir)))
+    eq_surface = _mean_over_rows(
+        fc, 0, ns, block, lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, guess_ir))
+    )
     holder: dict = {}
 
     def keep_ir(k0, rows):
@@ -898,8 +1040,14 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
         n_maps[0] += 1
         done0 = (n_maps[0] - 1) * (ns - 1)
         total = max(expected, n_maps[0]) * (ns - 1)
-        run_window(stepper, spin_t, lambda a, b: fc.rows("solar", a, b), block, on_ir=keep_ir,
-                   on_step=None if report is None else lambda k: report(done0 + k, total))
+        run_window(
+            stepper,
+            spin_t,
+            lambda a, b: fc.rows("solar", a, b),
+            block,
+            on_ir=keep_ir,
+            on_step=None if report is None else lambda k: report(done0 + k, total),
+        )
 
     if mode == "periodic":
         if T0 is not None:
@@ -908,6 +1056,7 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
             solver.set_equilibrium(surface_K=eq_surface)
         # ETA: the shooting usually converges in about 4-6 windows; the bar grows if it needs more
         with _stage(progress, "spin-up (periodic state)") as report:
+
             def period_map(x):
                 solver.set_state(x)
                 one_window(report, 5)
@@ -915,9 +1064,11 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
 
             info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
         residual = np.asarray(info["residual_K"], float)
-        return {"start_method": f"periodic steady state over {case.period.spinup_years} yr "
-                                f"(tolerance {tol_K} K)", "iterations": int(info["iterations"]),
-                "residual": residual}, holder["ir"]
+        return {
+            "start_method": f"periodic steady state over {case.period.spinup_years} yr (tolerance {tol_K} K)",
+            "iterations": int(info["iterations"]),
+            "residual": residual,
+        }, holder["ir"]
     # fixed spin-up, the thesis procedure
     if T0 is not None:
         solver.set_uniform(float(T0))

@@ -62,8 +62,7 @@ def steady_file(
     tracer = RayTracer(mesh)
     with bar(f"view factors ({mesh.n_facets} facets)", progress) as report:
         F = view_factor_matrix(mesh, tracer, cache_dir=cache_dir, progress=report)
-    res = radiosity.steady_state(mesh, F, tracer, sun, AU, albedo, emissivity, solar_constant, disk, method,
-                                 n_bounces)
+    res = radiosity.steady_state(mesh, F, tracer, sun, AU, albedo, emissivity, solar_constant, disk, method, n_bounces)
     attrs = {
         "albedo": float(albedo),
         "emissivity": float(emissivity),

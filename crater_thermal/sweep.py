@@ -49,16 +49,34 @@ def run_one(case_path: str, out_dir: str) -> dict:
     grid = case.replay.density_grid
     if (labels or grid) and not replay_nc.exists():
         fixed = case.period.spinup == "fixed"  # replay as the run started (thesis procedure)
-        simulate.replay_file(run_nc, labels, density_grid=grid, output=replay_nc, progress=False,
-                             initial_temperature=case.period.initial_temperature_K if fixed else None,
-                             fixed_spinup=fixed)
+        simulate.replay_file(
+            run_nc,
+            labels,
+            density_grid=grid,
+            output=replay_nc,
+            progress=False,
+            initial_temperature=case.period.initial_temperature_K if fixed else None,
+            fixed_spinup=fixed,
+        )
         done.append("replay")
-    return {"case": str(case_path), "run": str(run_nc), "replay": str(replay_nc) if (labels or grid) else None,
-            "done": done, "skipped": not done, "seconds": time.perf_counter() - t0}
+    return {
+        "case": str(case_path),
+        "run": str(run_nc),
+        "replay": str(replay_nc) if (labels or grid) else None,
+        "done": done,
+        "skipped": not done,
+        "seconds": time.perf_counter() - t0,
+    }
 
 
-def sweep(case_paths: Sequence[str], out_dir, *, scheduler: str | None = None, workers: int | None = None,
-          progress: bool | None = None) -> list[dict]:
+def sweep(
+    case_paths: Sequence[str],
+    out_dir,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool | None = None,
+) -> list[dict]:
     """Run every case (and its replays) into ``out_dir``.
 
     Parameters
@@ -126,5 +144,7 @@ def _connect(scheduler: str):
         return Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
     except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, timed out, malformed
         reason = " ".join(str(exc).split())[:160] or type(exc).__name__
-        raise ConfigError(f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
-                          "(dask scheduler) or leave out --scheduler to run on local processes") from None
+        raise ConfigError(
+            f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
+            "(dask scheduler) or leave out --scheduler to run on local processes"
+        ) from None

@@ -151,8 +151,9 @@ def _centre(meta: dict) -> tuple[float, float, float]:
     try:
         return float(meta["center_lat_deg"]), float(meta["center_lon_deg"]), float(meta["reference_radius_m"])
     except (KeyError, TypeError, ValueError):
-        raise DEMError("mesh metadata has no site centre (center_lat_deg, center_lon_deg, "
-                       "reference_radius_m): not a DEM site mesh") from None
+        raise DEMError(
+            "mesh metadata has no site centre (center_lat_deg, center_lon_deg, reference_radius_m): not a DEM site mesh"
+        ) from None
 
 
 def geographic_to_local(lat_deg, lon_deg, height_m, meta: dict) -> np.ndarray:
@@ -282,25 +283,41 @@ def open_dem(path) -> DEMInfo:
     if count < 1:
         raise DEMError(f"DEM {p.name!r} has no raster band")
     if crs is None or not crs.to_wkt():
-        raise DEMError(f"DEM {p.name!r} has no coordinate reference system (no CRS in the file or its label): "
-                       "cannot place it on the Moon; assign one, e.g. gdal_edit.py -a_srs IAU_2015:30135")
+        raise DEMError(
+            f"DEM {p.name!r} has no coordinate reference system (no CRS in the file or its label): "
+            "cannot place it on the Moon; assign one, e.g. gdal_edit.py -a_srs IAU_2015:30135"
+        )
     if tr.is_identity:
         raise DEMError(f"DEM {p.name!r} has no geotransform (pixel to map coordinates): cannot locate its pixels")
     pcrs = pyproj.CRS.from_wkt(crs.to_wkt())
     if pcrs.is_geographic or not pcrs.is_projected:
-        raise DEMError(f"DEM {p.name!r} has a geographic CRS ({pcrs.name}, degrees): meshing needs a projected "
-                       "CRS in metres, e.g. lunar polar stereographic IAU_2015:30135")
+        raise DEMError(
+            f"DEM {p.name!r} has a geographic CRS ({pcrs.name}, degrees): meshing needs a projected "
+            "CRS in metres, e.g. lunar polar stereographic IAU_2015:30135"
+        )
     a = float(pcrs.ellipsoid.semi_major_metre) if pcrs.ellipsoid else float("nan")
     if not (abs(a - MOON_RADIUS_M) <= _BODY_TOLERANCE * MOON_RADIUS_M):
-        raise DEMError(f"DEM {p.name!r} CRS ({pcrs.name}) is on a body of radius {a / 1e3:.1f} km, "
-                       f"not the Moon ({MOON_RADIUS_M / 1e3:.1f} km)")
+        raise DEMError(
+            f"DEM {p.name!r} CRS ({pcrs.name}) is on a body of radius {a / 1e3:.1f} km, "
+            f"not the Moon ({MOON_RADIUS_M / 1e3:.1f} km)"
+        )
     ufac = pcrs.axis_info[0].unit_conversion_factor if pcrs.axis_info else 1.0
     unit_l = unit.strip().lower()
     unit_factor = 1000.0 if unit_l in ("km", "kilometer", "kilometers", "kilometre", "kilometres") else 1.0
-    return DEMInfo(path=p.resolve(), crs_wkt=pcrs.to_wkt(), transform=tuple(tr)[:6], width=int(width),
-                   height=int(height), nodata=None if nodata is None else float(nodata), scale=scale,
-                   offset=offset, unit_factor=unit_factor, reference_radius_m=a,
-                   pixel_m=float(math.sqrt(abs(tr.a * tr.e - tr.b * tr.d))) * ufac, driver=str(driver))
+    return DEMInfo(
+        path=p.resolve(),
+        crs_wkt=pcrs.to_wkt(),
+        transform=tuple(tr)[:6],
+        width=int(width),
+        height=int(height),
+        nodata=None if nodata is None else float(nodata),
+        scale=scale,
+        offset=offset,
+        unit_factor=unit_factor,
+        reference_radius_m=a,
+        pixel_m=float(math.sqrt(abs(tr.a * tr.e - tr.b * tr.d))) * ufac,
+        driver=str(driver),
+    )
 
 
 # --------------------------------------------------------------------------------- site planning
@@ -316,8 +333,12 @@ def _number(name: str, value, lo: float, hi: float) -> float:
     return x
 
 
-def estimate_site(radius_km: float, resolution_m: float, outer_radius_km: Optional[float] = None,
-                  outer_resolution_m: Optional[float] = None) -> dict:
+def estimate_site(
+    radius_km: float,
+    resolution_m: float,
+    outer_radius_km: Optional[float] = None,
+    outer_resolution_m: Optional[float] = None,
+) -> dict:
     """Facet counts and memory of a site mesh, before building it.
 
     Returns
@@ -333,8 +354,13 @@ def estimate_site(radius_km: float, resolution_m: float, outer_radius_km: Option
     if outer_radius_km:
         n_out = _FACETS_PER_DISK * ((outer_radius_km * 1e3) ** 2 - R * R) / outer_resolution_m**2
     n = n_in + n_out
-    return {"n_inner": n_in, "n_outer": n_out, "n_facets": n, "mesh_bytes": n * MESH_BYTES_PER_FACET,
-            "view_factor_bytes": 0.12 * n * n * VIEW_FACTOR_BYTES_PER_PAIR}
+    return {
+        "n_inner": n_in,
+        "n_outer": n_out,
+        "n_facets": n,
+        "mesh_bytes": n * MESH_BYTES_PER_FACET,
+        "view_factor_bytes": 0.12 * n * n * VIEW_FACTOR_BYTES_PER_PAIR,
+    }
 
 
 def _scale_factors(crs, lat_deg: float, lon_deg: float) -> tuple[float, float]:
@@ -369,49 +395,70 @@ def _footprint_check(info: DEMInfo, crs, aeqd, radius_m: float, margin_m: float,
     inside = (col >= 0.5) & (col <= info.width - 0.5) & (row >= 0.5) & (row <= info.height - 0.5)
     inside &= np.isfinite(col) & np.isfinite(row)
     if not inside[0].all():
-        raise DEMError(f"site centre lies outside DEM {info.name!r} ({info.width} x {info.height} pixels of "
-                       f"{info.pixel_m:g} m)")
+        raise DEMError(
+            f"site centre lies outside DEM {info.name!r} ({info.width} x {info.height} pixels of {info.pixel_m:g} m)"
+        )
     if not inside.all():
         ok = np.all(inside, axis=1)
         fit = max(0.0, radii[np.argmin(ok) - 1] - margin_m)
-        raise DEMError(f"site reaches beyond the edge of DEM {info.name!r}: {what} {radius_m / 1e3:g} km, "
-                       f"at most {math.floor(fit / 100.0) / 10.0:g} km fits about this centre")
+        raise DEMError(
+            f"site reaches beyond the edge of DEM {info.name!r}: {what} {radius_m / 1e3:g} km, "
+            f"at most {math.floor(fit / 100.0) / 10.0:g} km fits about this centre"
+        )
 
 
-def _check_site(info: DEMInfo, lat: float, lon: float, R: float, H: float, R2: Optional[float],
-                H2: Optional[float], max_facets: int) -> dict:
+def _check_site(
+    info: DEMInfo, lat: float, lon: float, R: float, H: float, R2: Optional[float], H2: Optional[float], max_facets: int
+) -> dict:
     """All checks that need no pixel: distortion, resolutions, size, footprint."""
     _, pyproj = _libs()
     crs = pyproj.CRS.from_wkt(info.crs_wkt)
     h, k = _scale_factors(crs, lat, lon)
     if not (abs(h - 1.0) <= MAX_SCALE_DISTORTION and abs(k - 1.0) <= MAX_SCALE_DISTORTION):
-        raise DEMError(f"DEM {info.name!r} CRS ({crs.name}) is not a projection for a site at lat {lat:g}, "
-                       f"lon {lon:g}: its map scale there is {h:.3g} x {k:.3g} (more than "
-                       f"{MAX_SCALE_DISTORTION:.0%} off; a non-polar projection far from its centre): use a polar "
-                       "stereographic DEM")
+        raise DEMError(
+            f"DEM {info.name!r} CRS ({crs.name}) is not a projection for a site at lat {lat:g}, "
+            f"lon {lon:g}: its map scale there is {h:.3g} x {k:.3g} (more than "
+            f"{MAX_SCALE_DISTORTION:.0%} off; a non-polar projection far from its centre): use a polar "
+            "stereographic DEM"
+        )
     ground_px = info.pixel_m / math.sqrt(h * k)
     if H < ground_px / 10.0:
-        raise DEMError(f"resolution_m = {H:g} is absurd for DEM {info.name!r}: finer than a tenth of its "
-                       f"{ground_px:.3g} m pixels (the mesh would only interpolate); use >= {ground_px / 10.0:.3g} m")
+        raise DEMError(
+            f"resolution_m = {H:g} is absurd for DEM {info.name!r}: finer than a tenth of its "
+            f"{ground_px:.3g} m pixels (the mesh would only interpolate); use >= {ground_px / 10.0:.3g} m"
+        )
     if H > R / 3.0:
-        raise DEMError(f"resolution_m = {H:g} is too coarse for radius_km = {R / 1e3:g}: at most a third of the "
-                       f"radius ({R / 3.0:.4g} m)")
+        raise DEMError(
+            f"resolution_m = {H:g} is too coarse for radius_km = {R / 1e3:g}: at most a third of the "
+            f"radius ({R / 3.0:.4g} m)"
+        )
     if R2 is not None:
         if H2 < H:
             raise DEMError(f"outer_resolution_m = {H2:g} must be >= resolution_m = {H:g}")
         if H2 > (R2 - R):
-            raise DEMError(f"outer_resolution_m = {H2:g} is wider than the outer ring ({(R2 - R) / 1e3:g} km): "
-                           "enlarge outer_radius_km or refine outer_resolution_m")
+            raise DEMError(
+                f"outer_resolution_m = {H2:g} is wider than the outer ring ({(R2 - R) / 1e3:g} km): "
+                "enlarge outer_radius_km or refine outer_resolution_m"
+            )
     est = estimate_site(R / 1e3, H, None if R2 is None else R2 / 1e3, H2)
     if est["n_facets"] > max_facets:
         scale = math.sqrt(est["n_facets"] / (0.9 * max_facets))
-        raise DEMError(f"site too large: ~{est['n_facets']:.3g} facets (~{est['mesh_bytes'] / 1e9:.3g} GB to mesh, "
-                       f"~{est['view_factor_bytes'] / 1e9:.3g} GB of exact view factors), limit {max_facets:.3g} "
-                       f"facets: use resolution_m >= {H * scale:.4g}"
-                       + (f" (and outer_resolution_m >= {H2 * scale:.4g})" if H2 else "") + " or a smaller radius")
+        raise DEMError(
+            f"site too large: ~{est['n_facets']:.3g} facets (~{est['mesh_bytes'] / 1e9:.3g} GB to mesh, "
+            f"~{est['view_factor_bytes'] / 1e9:.3g} GB of exact view factors), limit {max_facets:.3g} "
+            f"facets: use resolution_m >= {H * scale:.4g}"
+            + (f" (and outer_resolution_m >= {H2 * scale:.4g})" if H2 else "")
+            + " or a smaller radius"
+        )
     aeqd = _aeqd(crs.geodetic_crs, lat, lon)
-    _footprint_check(info, crs, aeqd, R2 if R2 is not None else R, H2 if R2 is not None else H,
-                     "outer_radius_km" if R2 is not None else "radius_km")
+    _footprint_check(
+        info,
+        crs,
+        aeqd,
+        R2 if R2 is not None else R,
+        H2 if R2 is not None else H,
+        "outer_radius_km" if R2 is not None else "radius_km",
+    )
     est["ground_pixel_m"] = ground_px
     est["crs"], est["aeqd"] = crs, aeqd
     return est
@@ -420,8 +467,9 @@ def _check_site(info: DEMInfo, lat: float, lon: float, R: float, H: float, R2: O
 # ---------------------------------------------------------------------------------- resampling
 
 
-def _resample(info: DEMInfo, aeqd, x0: float, y0: float, dx: float, dy: float, nx: int, ny: int,
-              **warp_options) -> np.ndarray:
+def _resample(
+    info: DEMInfo, aeqd, x0: float, y0: float, dx: float, dy: float, nx: int, ny: int, **warp_options
+) -> np.ndarray:
     """Raw DEM values (scale/offset applied, metres) on a regular aeqd grid of pixel centres.
 
     The grid's pixel (i, j) (row i from the top) is centred at ``(x0 + j dx, y0 - i dy)``. Bilinear
@@ -434,10 +482,21 @@ def _resample(info: DEMInfo, aeqd, x0: float, y0: float, dx: float, dy: float, n
     dst = np.full((ny, nx), np.nan, dtype=np.float64)
     dst_tr = rasterio.Affine(dx, 0.0, x0 - 0.5 * dx, 0.0, -dy, y0 + 0.5 * dy)
     with rasterio.open(info.path) as src:
-        reproject(source=rasterio.band(src, 1), destination=dst, src_transform=src.transform, src_crs=src.crs,
-                  src_nodata=info.nodata, dst_transform=dst_tr, dst_crs=rasterio.crs.CRS.from_wkt(aeqd.to_wkt()),
-                  dst_nodata=np.nan, resampling=Resampling.bilinear, init_dest_nodata=True,
-                  XSCALE=1, YSCALE=1, **warp_options)
+        reproject(
+            source=rasterio.band(src, 1),
+            destination=dst,
+            src_transform=src.transform,
+            src_crs=src.crs,
+            src_nodata=info.nodata,
+            dst_transform=dst_tr,
+            dst_crs=rasterio.crs.CRS.from_wkt(aeqd.to_wkt()),
+            dst_nodata=np.nan,
+            resampling=Resampling.bilinear,
+            init_dest_nodata=True,
+            XSCALE=1,
+            YSCALE=1,
+            **warp_options,
+        )
     return (dst * info.scale + info.offset) * info.unit_factor
 
 
@@ -487,10 +546,18 @@ def _heights_at(info: DEMInfo, aeqd, H: float, R: float, lattice_idx: np.ndarray
 # ---------------------------------------------------------------------------------------- meshing
 
 
-def site_mesh(path, center_lat_deg: float, center_lon_deg: float, radius_km: float,
-              resolution_m: Optional[float] = None, outer_radius_km: Optional[float] = None,
-              outer_resolution_m: Optional[float] = None, height_kind: str = "auto",
-              max_facets: int = MAX_FACETS, progress: Optional[Callable[[str], None]] = None):
+def site_mesh(
+    path,
+    center_lat_deg: float,
+    center_lon_deg: float,
+    radius_km: float,
+    resolution_m: Optional[float] = None,
+    outer_radius_km: Optional[float] = None,
+    outer_resolution_m: Optional[float] = None,
+    height_kind: str = "auto",
+    max_facets: int = MAX_FACETS,
+    progress: Optional[Callable[[str], None]] = None,
+):
     """Mesh a site of a DEM (see the module docstring for the construction and the frame).
 
     Parameters
@@ -575,17 +642,21 @@ def site_mesh(path, center_lat_deg: float, center_lon_deg: float, radius_km: flo
         k = int(np.argmax(bad))
         where = "inner region" if k < n_inner_nodes else "outer ring"
         lon_b, lat_b = _transformer(aeqd, crs.geodetic_crs).transform(xy[k, 0], xy[k, 1])
-        raise DEMError(f"DEM {info.name!r} has nodata holes in the site: {int(bad.sum())} of {len(raw)} mesh nodes "
-                       f"({bad.mean():.1%}) fall on nodata, first in the {where} near lat {lat_b:.4f}, lon "
-                       f"{lon_b:.4f}; fill the holes or move/shrink the site")
+        raise DEMError(
+            f"DEM {info.name!r} has nodata holes in the site: {int(bad.sum())} of {len(raw)} mesh nodes "
+            f"({bad.mean():.1%}) fall on nodata, first in the {where} near lat {lat_b:.4f}, lon "
+            f"{lon_b:.4f}; fill the holes or move/shrink the site"
+        )
     kind = height_kind
     if kind == "auto":
         kind = "radius" if float(np.median(raw)) > 0.5 * info.reference_radius_m else "height"
     Rref = info.reference_radius_m
     heights = raw - Rref if kind == "radius" else raw
     if np.abs(heights).max() > 0.02 * Rref:
-        raise DEMError(f"DEM {info.name!r} heights reach {np.abs(heights).max() / 1e3:.0f} km from the reference "
-                       f"sphere (read as {kind!r}): wrong height_kind, scale or offset?")
+        raise DEMError(
+            f"DEM {info.name!r} heights reach {np.abs(heights).max() / 1e3:.0f} km from the reference "
+            f"sphere (read as {kind!r}): wrong height_kind, scale or offset?"
+        )
 
     say("triangulating")
     tri = Delaunay(xy)
@@ -679,9 +750,16 @@ def _crater_relief(diameter_km: float, r: np.ndarray) -> np.ndarray:
     return np.interp(r, prof[order, 0], prof[order, 1], right=0.0)
 
 
-def synthetic_heights(lat_deg: float, lon_deg: float, size_km: float, pixel_m: float,
-                      craters: Sequence[tuple] = (), roughness_m: float = 0.0, hurst: float = 0.9,
-                      seed: int = 0) -> tuple[np.ndarray, tuple, str]:
+def synthetic_heights(
+    lat_deg: float,
+    lon_deg: float,
+    size_km: float,
+    pixel_m: float,
+    craters: Sequence[tuple] = (),
+    roughness_m: float = 0.0,
+    hurst: float = 0.9,
+    seed: int = 0,
+) -> tuple[np.ndarray, tuple, str]:
     """A synthetic polar site: rough terrain with idealized craters, in lunar polar stereographic.
 
     Parameters
@@ -746,15 +824,24 @@ def _write_atomic(files: dict, overwrite: bool) -> list[Path]:
     return [write_bytes_atomic(p, data, overwrite=True) for p, data in files.items()]
 
 
-def write_geotiff(path, heights: np.ndarray, transform: tuple, crs_wkt: str, nodata: Optional[float] = None,
-                  overwrite: bool = False) -> Path:
+def write_geotiff(
+    path, heights: np.ndarray, transform: tuple, crs_wkt: str, nodata: Optional[float] = None, overwrite: bool = False
+) -> Path:
     """Write heights [m above the reference sphere] as a float32 GeoTIFF (atomically)."""
     rasterio, _ = _libs()
     from rasterio.io import MemoryFile
 
     z = np.asarray(heights, dtype=np.float32)
-    prof = dict(driver="GTiff", width=z.shape[1], height=z.shape[0], count=1, dtype="float32",
-                crs=rasterio.crs.CRS.from_wkt(crs_wkt), transform=rasterio.Affine(*transform), nodata=nodata)
+    prof = dict(
+        driver="GTiff",
+        width=z.shape[1],
+        height=z.shape[0],
+        count=1,
+        dtype="float32",
+        crs=rasterio.crs.CRS.from_wkt(crs_wkt),
+        transform=rasterio.Affine(*transform),
+        nodata=nodata,
+    )
     with MemoryFile() as mem:
         with mem.open(**prof) as dst:
             dst.write(z, 1)
@@ -763,8 +850,16 @@ def write_geotiff(path, heights: np.ndarray, transform: tuple, crs_wkt: str, nod
     return _write_atomic({Path(path): data}, overwrite)[0]
 
 
-def write_pds3(path, heights: np.ndarray, transform: tuple, pole: str = "south", scaling_factor: float = 0.5,
-               offset_m: float = MOON_RADIUS_M, nodata_dn: int = -32768, overwrite: bool = False) -> Path:
+def write_pds3(
+    path,
+    heights: np.ndarray,
+    transform: tuple,
+    pole: str = "south",
+    scaling_factor: float = 0.5,
+    offset_m: float = MOON_RADIUS_M,
+    nodata_dn: int = -32768,
+    overwrite: bool = False,
+) -> Path:
     """Write heights as a LOLA-style PDS3 product: little-endian int16 ``.IMG`` + detached ``.LBL``.
 
     Values are stored as in LOLA's polar LDEM products: ``radius = DN * scaling_factor + offset_m``
@@ -788,39 +883,40 @@ def write_pds3(path, heights: np.ndarray, transform: tuple, pole: str = "south",
     spo = -c / a - 0.5
     lpo = f / a - 0.5
     lat_c = -90.0 if pole == "south" else 90.0
-    label = "\r\n".join([
-        "PDS_VERSION_ID = PDS3",
-        "RECORD_TYPE = FIXED_LENGTH",
-        f"RECORD_BYTES = {2 * cols}",
-        f"FILE_RECORDS = {rows}",
-        f'^IMAGE = "{img.name}"',
-        'PRODUCT_ID = "CRATER_THERMAL_SYNTHETIC"',
-        "OBJECT = IMAGE",
-        f"  LINES = {rows}",
-        f"  LINE_SAMPLES = {cols}",
-        "  SAMPLE_TYPE = LSB_INTEGER",
-        "  SAMPLE_BITS = 16",
-        '  UNIT = "METER"',
-        f"  SCALING_FACTOR = {scaling_factor!r}",
-        f"  OFFSET = {offset_m!r}",
-        f"  MISSING_CONSTANT = {nodata_dn}",
-        "END_OBJECT = IMAGE",
-        "OBJECT = IMAGE_MAP_PROJECTION",
-        '  MAP_PROJECTION_TYPE = "POLAR STEREOGRAPHIC"',
-        f"  A_AXIS_RADIUS = {MOON_RADIUS_M / 1e3!r} <KM>",
-        f"  B_AXIS_RADIUS = {MOON_RADIUS_M / 1e3!r} <KM>",
-        f"  C_AXIS_RADIUS = {MOON_RADIUS_M / 1e3!r} <KM>",
-        '  POSITIVE_LONGITUDE_DIRECTION = "EAST"',
-        f"  CENTER_LATITUDE = {lat_c!r} <DEG>",
-        "  CENTER_LONGITUDE = 0.0 <DEG>",
-        f"  MAP_SCALE = {a / 1e3!r} <KM/PIXEL>",
-        f"  LINE_PROJECTION_OFFSET = {lpo!r}",
-        f"  SAMPLE_PROJECTION_OFFSET = {spo!r}",
-        "  MAP_PROJECTION_ROTATION = 0.0",
-        "END_OBJECT = IMAGE_MAP_PROJECTION",
-        "END",
-        "",
-    ]).encode("ascii")
+    label = "\r\n".join(
+        [
+            "PDS_VERSION_ID = PDS3",
+            "RECORD_TYPE = FIXED_LENGTH",
+            f"RECORD_BYTES = {2 * cols}",
+            f"FILE_RECORDS = {rows}",
+            f'^IMAGE = "{img.name}"',
+            'PRODUCT_ID = "CRATER_THERMAL_SYNTHETIC"',
+            "OBJECT = IMAGE",
+            f"  LINES = {rows}",
+            f"  LINE_SAMPLES = {cols}",
+            "  SAMPLE_TYPE = LSB_INTEGER",
+            "  SAMPLE_BITS = 16",
+            '  UNIT = "METER"',
+            f"  SCALING_FACTOR = {scaling_factor!r}",
+            f"  OFFSET = {offset_m!r}",
+            f"  MISSING_CONSTANT = {nodata_dn}",
+            "END_OBJECT = IMAGE",
+            "OBJECT = IMAGE_MAP_PROJECTION",
+            '  MAP_PROJECTION_TYPE = "POLAR STEREOGRAPHIC"',
+            f"  A_AXIS_RADIUS = {MOON_RADIUS_M / 1e3!r} <KM>",
+            f"  B_AXIS_RADIUS = {MOON_RADIUS_M / 1e3!r} <KM>",
+            f"  C_AXIS_RADIUS = {MOON_RADIUS_M / 1e3!r} <KM>",
+            '  POSITIVE_LONGITUDE_DIRECTION = "EAST"',
+            f"  CENTER_LATITUDE = {lat_c!r} <DEG>",
+            "  CENTER_LONGITUDE = 0.0 <DEG>",
+            f"  MAP_SCALE = {a / 1e3!r} <KM/PIXEL>",
+            f"  LINE_PROJECTION_OFFSET = {lpo!r}",
+            f"  SAMPLE_PROJECTION_OFFSET = {spo!r}",
+            "  MAP_PROJECTION_ROTATION = 0.0",
+            "END_OBJECT = IMAGE_MAP_PROJECTION",
+            "END",
+            "",
+        ]
+    ).encode("ascii")
     _write_atomic({img: dn.tobytes(), lbl: label}, overwrite)
     return lbl
-

@@ -88,8 +88,17 @@ from crater_thermal.kernels import conduction as _k
 from crater_thermal.profiles import HAYNE_LABEL, Profile
 
 __all__ = [
-    "Profile", "parse_profile", "density_grid_profiles", "Grid", "make_grid", "skin_depth",
-    "ColumnSolver", "periodic_state", "DEFAULT_DT_MAX", "DEFAULT_SKIN_FRACTION", "DEFAULT_GROWTH",
+    "Profile",
+    "parse_profile",
+    "density_grid_profiles",
+    "Grid",
+    "make_grid",
+    "skin_depth",
+    "ColumnSolver",
+    "periodic_state",
+    "DEFAULT_DT_MAX",
+    "DEFAULT_SKIN_FRACTION",
+    "DEFAULT_GROWTH",
 ]
 
 #: Default maximum conduction sub-step [s]: the thesis's 4-hour flux step (convergence study).
@@ -126,8 +135,7 @@ def _check_profile(p: Profile, allow_inverted: bool, warn: bool = True) -> Profi
     return p
 
 
-def parse_profile(spec, allow_inverted: bool = False, label: str | None = None,
-                  warn: bool = True) -> Profile:
+def parse_profile(spec, allow_inverted: bool = False, label: str | None = None, warn: bool = True) -> Profile:
     """Build a :class:`Profile` from a label or a layer list (:func:`crater_thermal.profiles.parse_profile`).
 
     Parameters
@@ -172,8 +180,7 @@ def density_grid_profiles(spec: str) -> tuple:
 # ----------------------------------------------------------------------------- grid
 
 
-def skin_depth(rho: float = 1300.0, T: float = GRID_T_REF, property_set="apollo",
-               period_s: float = LUNAR_DAY) -> float:
+def skin_depth(rho: float = 1300.0, T: float = GRID_T_REF, property_set="apollo", period_s: float = LUNAR_DAY) -> float:
     """Diurnal skin depth sqrt(kappa P / pi) [m] of regolith of density ``rho`` [kg m-3] at ``T`` [K]."""
     ps = materials.get_property_set(property_set)
     b0, b3, _, _ = materials.conductivity_coefficients(rho, "regolith", ps)
@@ -219,9 +226,14 @@ class Grid:
         return np.concatenate([[0.0], mid]), np.concatenate([mid, [self.z[-1]]])
 
 
-def make_grid(first_layer_m: float | None = None, growth: float = DEFAULT_GROWTH,
-              depth_m: float = COLUMN_DEPTH, interfaces: Sequence[float] = (TOP_LAYER_THICKNESS,),
-              skin_fraction: float = DEFAULT_SKIN_FRACTION, property_set="apollo") -> Grid:
+def make_grid(
+    first_layer_m: float | None = None,
+    growth: float = DEFAULT_GROWTH,
+    depth_m: float = COLUMN_DEPTH,
+    interfaces: Sequence[float] = (TOP_LAYER_THICKNESS,),
+    skin_fraction: float = DEFAULT_SKIN_FRACTION,
+    property_set="apollo",
+) -> Grid:
     """Geometric grid: layer thickness grows by ``growth`` with depth; a node on every interface.
 
     Parameters
@@ -323,16 +335,25 @@ class ColumnSolver:
     time_s : float [s] the solver clock (advanced by :meth:`advance` / :meth:`run_series`).
     """
 
-    def __init__(self, profiles, property_set="apollo", emissivity: float = EMISSIVITY,
-                 geothermal_flux: float = GEOTHERMAL_FLUX, grid: Grid | None = None,
-                 dt_max: float = DEFAULT_DT_MAX, scheme: str = "trbdf2",
-                 adapt_K: float = DEFAULT_ADAPT_K, column_labels: Sequence[str] | None = None):
+    def __init__(
+        self,
+        profiles,
+        property_set="apollo",
+        emissivity: float = EMISSIVITY,
+        geothermal_flux: float = GEOTHERMAL_FLUX,
+        grid: Grid | None = None,
+        dt_max: float = DEFAULT_DT_MAX,
+        scheme: str = "trbdf2",
+        adapt_K: float = DEFAULT_ADAPT_K,
+        column_labels: Sequence[str] | None = None,
+    ):
         self.profiles = _as_profiles(profiles)
         if column_labels is not None:
             column_labels = [str(c) for c in column_labels]
             if len(column_labels) != len(self.profiles):
-                raise ConfigError(f"column_labels has {len(column_labels)} entries; need one per "
-                                  f"column ({len(self.profiles)})")
+                raise ConfigError(
+                    f"column_labels has {len(column_labels)} entries; need one per column ({len(self.profiles)})"
+                )
         self.column_labels = column_labels
         self.pset = materials.get_property_set(property_set)
         if not (0.0 <= emissivity <= 1.0):
@@ -354,8 +375,9 @@ class ColumnSolver:
             ifc = {TOP_LAYER_THICKNESS}
             for p in self.profiles:
                 ifc.update(p.interfaces)
-            grid = make_grid(interfaces=sorted(ifc), property_set=self.pset
-                             if self.pset.regolith_model == "constant" else "apollo")
+            grid = make_grid(
+                interfaces=sorted(ifc), property_set=self.pset if self.pset.regolith_model == "constant" else "apollo"
+            )
         self.grid = grid
         self._build_coefficients()
         self.T = np.full((self.ncol, self.nz), 200.0)
@@ -426,10 +448,12 @@ class ColumnSolver:
     def energy_budget(self) -> dict:
         """Energies since the last :meth:`reset_accumulators` [J m-2], each (ncol,), with the
         scheme's own quadrature: ``absorbed``, ``emitted``, ``geothermal``; and ``time_s``."""
-        return {"absorbed": self.acc[:, _k.ACC_ABSORBED].copy(),
-                "emitted": self.acc[:, _k.ACC_EMITTED].copy(),
-                "geothermal": self.geothermal_flux * self.acc[:, _k.ACC_TIME],
-                "time_s": self.acc[:, _k.ACC_TIME].copy()}
+        return {
+            "absorbed": self.acc[:, _k.ACC_ABSORBED].copy(),
+            "emitted": self.acc[:, _k.ACC_EMITTED].copy(),
+            "geothermal": self.geothermal_flux * self.acc[:, _k.ACC_TIME],
+            "time_s": self.acc[:, _k.ACC_TIME].copy(),
+        }
 
     def reset_accumulators(self) -> None:
         self.acc[:] = 0.0
@@ -472,8 +496,10 @@ class ColumnSolver:
             raise SolverError(f"absorbed has {a.shape[0]} samples, times_s has {nt_expected}")
         nf = a.shape[1]
         if nf == 0 or self.ncol % nf:
-            raise SolverError(f"absorbed has {nf} columns; need ncol={self.ncol} or a divisor of it "
-                              "(forcing of column j is column j % n)")
+            raise SolverError(
+                f"absorbed has {nf} columns; need ncol={self.ncol} or a divisor of it "
+                "(forcing of column j is column j % n)"
+            )
         fidx = np.arange(self.ncol, dtype=np.int64) % nf
         return np.ascontiguousarray(a), fidx
 
@@ -506,8 +532,11 @@ class ColumnSolver:
             t1 = T[:, l].copy()
             for _ in range(4):
                 tl = 0.5 * (T[:, l] + t1)
-                k = self.b0[:, l] + self.b3[:, l] * tl**3 + \
-                    self.pset.heat_capacity(tl) * (self.e0[:, l] + self.e1[:, l] / tl)
+                k = (
+                    self.b0[:, l]
+                    + self.b3[:, l] * tl**3
+                    + self.pset.heat_capacity(tl) * (self.e0[:, l] + self.e1[:, l] / tl)
+                )
                 t1 = T[:, l] + G * self.dz[l] / k
             T[:, l + 1] = np.maximum(t1, 1.0)
         return T
@@ -526,22 +555,47 @@ class ColumnSolver:
         fail = np.full(self.ncol, -1, np.int64)
         nb = -(-self.ncol // _k.LANES)
         kern = _k.run_columns if nb >= 2 * numba.get_num_threads() else _k.run_columns_serial
-        kern(self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.ccoef,
-             float(self.pset.c_t_min), self.rdz, self.emissivity * SIGMA, self.geothermal_flux,
-             SCHEMES[self.scheme], self.dt_max, self.adapt_K, times, a, fidx, out, record,
-             self.acc, status, fail)
+        kern(
+            self.T,
+            self.m,
+            self.b0,
+            self.b3,
+            self.e0,
+            self.e1,
+            self.rock,
+            self.ccoef,
+            float(self.pset.c_t_min),
+            self.rdz,
+            self.emissivity * SIGMA,
+            self.geothermal_flux,
+            SCHEMES[self.scheme],
+            self.dt_max,
+            self.adapt_K,
+            times,
+            a,
+            fidx,
+            out,
+            record,
+            self.acc,
+            status,
+            fail,
+        )
         if np.any(status != _k.OK):
             c = int(np.flatnonzero(status != _k.OK)[0])
             k = int(fail[c])
             t0 = t_offset + times[k] if k >= 0 else t_offset
-            what = ("the Newton iteration for the surface temperature did not converge"
-                    if status[c] == _k.NEWTON_FAILED else
-                    "non-finite forcing or temperature (NaN/inf, or T outside 0-1e5 K)")
+            what = (
+                "the Newton iteration for the surface temperature did not converge"
+                if status[c] == _k.NEWTON_FAILED
+                else "non-finite forcing or temperature (NaN/inf, or T outside 0-1e5 K)"
+            )
             n_bad = int(np.count_nonzero(status != _k.OK))
             name = f", {self.column_labels[c]}" if self.column_labels is not None else ""
-            raise SolverError(f"conduction solver: {what} in column {c} (profile "
-                              f"{self.profiles[c].label!r}{name}) during the step starting at "
-                              f"t={t0:.6g} s ({n_bad} column(s) failed)")
+            raise SolverError(
+                f"conduction solver: {what} in column {c} (profile "
+                f"{self.profiles[c].label!r}{name}) during the step starting at "
+                f"t={t0:.6g} s ({n_bad} column(s) failed)"
+            )
         return out if record else None
 
     def advance(self, absorbed_start, absorbed_end, duration_s: float) -> np.ndarray:
@@ -581,17 +635,23 @@ class ColumnSolver:
         if not self._initialised:
             self.set_equilibrium(a)
         if out is not None:
-            if (not isinstance(out, np.ndarray) or out.shape != (times.size, self.ncol)
-                    or out.dtype not in (np.float32, np.float64) or not out.flags.c_contiguous):
-                raise SolverError(f"out must be a C-contiguous float32/float64 array of shape "
-                                  f"{(times.size, self.ncol)}")
+            if (
+                not isinstance(out, np.ndarray)
+                or out.shape != (times.size, self.ncol)
+                or out.dtype not in (np.float32, np.float64)
+                or not out.flags.c_contiguous
+            ):
+                raise SolverError(
+                    f"out must be a C-contiguous float32/float64 array of shape {(times.size, self.ncol)}"
+                )
             record = True
         out = self._run(times, a, fidx, record, self.time_s - times[0], out)
         self.time_s += float(times[-1] - times[0])
         return out
 
-    def periodic_start(self, times_s, absorbed, tol_K: float = 0.01, max_iter: int = 30,
-                       start: str | None = None) -> dict:
+    def periodic_start(
+        self, times_s, absorbed, tol_K: float = 0.01, max_iter: int = 30, start: str | None = None
+    ) -> dict:
         """Set the state to the periodic steady state of an uncoupled forcing period.
 
         The period is ``times_s[0] .. times_s[-1]`` (the forcing should be periodic over it).
@@ -628,8 +688,7 @@ class ColumnSolver:
         T = Tmean[cols]
         n, nz = T.shape
         tl = 0.5 * (T[:, 1:] + T[:, :-1])
-        k = self.b0[cols] + self.b3[cols] * tl**3 + \
-            self.pset.heat_capacity(tl) * (self.e0[cols] + self.e1[cols] / tl)
+        k = self.b0[cols] + self.b3[cols] * tl**3 + self.pset.heat_capacity(tl) * (self.e0[cols] + self.e1[cols] / tl)
         K = k / self.dz
         Cd = self.m[cols] * self.pset.heat_capacity(T) / dt[:, None]
         A = np.zeros((n, nz, nz))
@@ -650,8 +709,14 @@ class ColumnSolver:
 # ----------------------------------------------------------------------------- periodic state
 
 
-def periodic_state(solver: ColumnSolver, period_map: Callable, tol_K: float = 0.01,
-                   max_iter: int = 30, chunk: int = 4096, anderson: bool = True) -> dict:
+def periodic_state(
+    solver: ColumnSolver,
+    period_map: Callable,
+    tol_K: float = 0.01,
+    max_iter: int = 30,
+    chunk: int = 4096,
+    anderson: bool = True,
+) -> dict:
     """Find the periodic steady state x = period_map(x) and leave the solver in it.
 
     Quasi-Newton shooting: x <- x + (I - J)^-1 (Phi(x) - x), with J a block-diagonal approximation
@@ -742,5 +807,11 @@ def periodic_state(solver: ColumnSolver, period_map: Callable, tol_K: float = 0.
         x = np.maximum(x_new, 2.0)
     solver.set_state(y)
     solver.time_s = t_start
-    return {"iterations": it, "converged": converged, "residual_K": res, "history_K": history,
-            "step_K": step, "step_history_K": step_hist}
+    return {
+        "iterations": it,
+        "converged": converged,
+        "residual_K": res,
+        "history_K": history,
+        "step_K": step,
+        "step_history_K": step_hist,
+    }

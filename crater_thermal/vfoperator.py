@@ -144,8 +144,9 @@ class ViewFactorOperator:
     def _check(self, x) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
         if x.ndim not in (1, 2) or x.shape[0] != self.shape[1]:
-            raise ConfigError(f"view-factor product: operand has shape {x.shape}; expected ({self.shape[1]},) "
-                              f"or ({self.shape[1]}, k)")
+            raise ConfigError(
+                f"view-factor product: operand has shape {x.shape}; expected ({self.shape[1]},) or ({self.shape[1]}, k)"
+            )
         return x
 
 
@@ -228,8 +229,22 @@ class CompressedViewFactors(ViewFactorOperator):
 
     @property
     def nbytes(self) -> int:
-        arrs = [self.perm, self.areas_perm, self.indptr, self.indices, self.data, self.r0, self.r1, self.c0,
-                self.c1, self.rank, self.uoff, self.voff, self.U, self.V]
+        arrs = [
+            self.perm,
+            self.areas_perm,
+            self.indptr,
+            self.indices,
+            self.data,
+            self.r0,
+            self.r1,
+            self.c0,
+            self.c1,
+            self.rank,
+            self.uoff,
+            self.voff,
+            self.U,
+            self.V,
+        ]
         if self.scale is not None:
             arrs.append(self.scale)
         return int(sum(a.nbytes for a in arrs))
@@ -318,10 +333,10 @@ class _Tree:
         self.bmax = np.empty((m, 3))
         self.smax = np.empty(m)
         for k in range(m):
-            seg = Cp[self.lo[k]:self.hi[k]]
+            seg = Cp[self.lo[k] : self.hi[k]]
             self.bmin[k] = seg.min(axis=0)
             self.bmax[k] = seg.max(axis=0)
-            self.smax[k] = Sp[self.lo[k]:self.hi[k]].max()
+            self.smax[k] = Sp[self.lo[k] : self.hi[k]].max()
         self.diam = np.linalg.norm(self.bmax - self.bmin, axis=1)
 
     def size(self, k) -> int:
@@ -352,8 +367,11 @@ def _partition(tree: _Tree, near_factor: float, admissibility: float, max_entrie
                 stack += [(a, a), (a, b), (b, b)]
             continue
         d = tree.distance(s, t)
-        adm = (d > 0.0 and max(tree.diam[s], tree.diam[t]) <= admissibility * d
-               and d >= near_factor * max(tree.smax[s], tree.smax[t]))
+        adm = (
+            d > 0.0
+            and max(tree.diam[s], tree.diam[t]) <= admissibility * d
+            and d >= near_factor * max(tree.smax[s], tree.smax[t])
+        )
         if adm and tree.size(s) * tree.size(t) <= max_entries:
             far.append((s, t))
             continue
@@ -450,8 +468,14 @@ class _Builder:
             V = np.empty((n, rmax))
             r = kv.aca_full(M.copy(), self.tol * self.tol * fro2, rmax, U, V)
             if r >= 0:
-                lowrank.append((int(tr.lo[s]), int(tr.lo[t]), np.ascontiguousarray(U[:, :r], np.float32),
-                                np.ascontiguousarray(V[:, :r], np.float32)))
+                lowrank.append(
+                    (
+                        int(tr.lo[s]),
+                        int(tr.lo[t]),
+                        np.ascontiguousarray(U[:, :r], np.float32),
+                        np.ascontiguousarray(V[:, :r], np.float32),
+                    )
+                )
                 return
         cs, ct = tr.children(s), tr.children(t)
         if len(cs) > 1 or len(ct) > 1:
@@ -478,24 +502,50 @@ class _Builder:
         need = np.empty(cap, np.bool_)
         n = 0
         for s, t, diag in blocks:
-            n += kv.near_block_pairs(int(tr.lo[s]), int(tr.hi[s]), int(tr.lo[t]), int(tr.hi[t]), diag, self.C,
-                                     self.N, self.S, self.A, self.P, self.V, self.Fc, self.bary, self.near_factor,
-                                     self.cos_cut, o32[n:], d32[n:], pi_[n:], pj_[n:], gg[n:], need[n:],
-                                     self.near_kernel)
+            n += kv.near_block_pairs(
+                int(tr.lo[s]),
+                int(tr.hi[s]),
+                int(tr.lo[t]),
+                int(tr.hi[t]),
+                diag,
+                self.C,
+                self.N,
+                self.S,
+                self.A,
+                self.P,
+                self.V,
+                self.Fc,
+                self.bary,
+                self.near_factor,
+                self.cos_cut,
+                o32[n:],
+                d32[n:],
+                pi_[n:],
+                pj_[n:],
+                gg[n:],
+                need[n:],
+                self.near_kernel,
+            )
         if n == 0:
             return [], [], 0, 0
         blocked = np.empty(n, np.int32)
         for a in range(0, n, RAY_CHUNK):
             b = min(n, a + RAY_CHUNK)
-            blocked[a:b] = self.tracer.run_raw(o32[a:b], d32[a:b], self.ones[:b - a], "OCCLUDED")
+            blocked[a:b] = self.tracer.run_raw(o32[a:b], d32[a:b], self.ones[: b - a], "OCCLUDED")
         m = kv.keep_visible(n, blocked, need, pi_, pj_, gg)
         return [], [(pi_[:m].copy(), pj_[:m].copy(), gg[:m].copy())], n, m
 
 
-def compressed_view_factors(mesh: Mesh, tracer=None, tolerance: float = DEFAULT_TOLERANCE,
-                            progress: Callable | None = None, n_threads: int | None = None,
-                            leaf_size: int = LEAF_SIZE, admissibility: float = ADMISSIBILITY,
-                            max_block_entries: int = MAX_BLOCK_ENTRIES) -> CompressedViewFactors:
+def compressed_view_factors(
+    mesh: Mesh,
+    tracer=None,
+    tolerance: float = DEFAULT_TOLERANCE,
+    progress: Callable | None = None,
+    n_threads: int | None = None,
+    leaf_size: int = LEAF_SIZE,
+    admissibility: float = ADMISSIBILITY,
+    max_block_entries: int = MAX_BLOCK_ENTRIES,
+) -> CompressedViewFactors:
     """Build the compressed view-factor operator (module docstring) without holding the full matrix.
 
     Parameters
@@ -615,8 +665,9 @@ def compressed_view_factors(mesh: Mesh, tracer=None, tolerance: float = DEFAULT_
         "near_pairs": int(near_pairs),
         "rays": int(rays),
     }
-    op = CompressedViewFactors(tree.perm, np.asarray(mesh.areas), sparse,
-                               (r0, r1, c0, c1, rank, uoff, voff, U, V), None, tolerance, stats)
+    op = CompressedViewFactors(
+        tree.perm, np.asarray(mesh.areas), sparse, (r0, r1, c0, c1, rank, uoff, voff, U, V), None, tolerance, stats
+    )
     rs = op.row_sums()
     excess = float(rs.max() - 1.0) if nf else 0.0
     if excess > 0.0:
@@ -639,8 +690,14 @@ def resolve_method(method: str, n_facets: int) -> str:
     return method
 
 
-def view_factor_operator(mesh: Mesh, tracer=None, method: str = "auto", tolerance: float = DEFAULT_TOLERANCE,
-                         cache_dir=None, progress: Callable | None = None) -> ViewFactorOperator:
+def view_factor_operator(
+    mesh: Mesh,
+    tracer=None,
+    method: str = "auto",
+    tolerance: float = DEFAULT_TOLERANCE,
+    cache_dir=None,
+    progress: Callable | None = None,
+) -> ViewFactorOperator:
     """The view-factor operator of a mesh: exact sparse matrix or compressed (module docstring).
 
     Parameters

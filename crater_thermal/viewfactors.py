@@ -81,8 +81,10 @@ def _algorithm_key() -> str:
     """Cache key part: algorithm version plus the current tuning constants and ray offset."""
     from crater_thermal.raytrace import RAY_OFFSET_FRACTION
 
-    return (f"{ALGORITHM_VERSION}-near{NEAR_DISTANCE_FACTOR:g}x{NEAR_SUBDIVISIONS}"
-            f"-cos{COS_CUTOFF:g}-off{RAY_OFFSET_FRACTION:g}")
+    return (
+        f"{ALGORITHM_VERSION}-near{NEAR_DISTANCE_FACTOR:g}x{NEAR_SUBDIVISIONS}"
+        f"-cos{COS_CUTOFF:g}-off{RAY_OFFSET_FRACTION:g}"
+    )
 
 
 def subtriangle_barycentrics(k: int) -> np.ndarray:
@@ -142,8 +144,7 @@ def _assemble(nf: int, results: list, A: np.ndarray, pool=None):
         ok = [fill(c) for c in range(len(results))]
     else:
         ok = list(pool.map(fill, range(len(results))))
-    filled = all(ok) and np.array_equal(pos_up, up_end) and all(
-        np.array_equal(s, e) for s, e in zip(starts, ends))
+    filled = all(ok) and np.array_equal(pos_up, up_end) and all(np.array_equal(s, e) for s, e in zip(starts, ends))
     if not filled:
         raise InternalError("view factors: the filled entries differ from the counted ones")
     excess = _kern.rescale_rows(indptr, indices, data)
@@ -182,14 +183,25 @@ def _load_cached(path: Path, mesh: Mesh):
 
 
 def _save_cached(path: Path, F: sp.csr_matrix, mesh: Mesh) -> None:
-    io.save_npz_atomic(path, data=F.data, indices=F.indices, indptr=F.indptr, shape=np.array(F.shape),
-                       mesh_hash=np.array(mesh.hash), version=np.array(_algorithm_key()),
-                       rowsum_excess=np.array(getattr(F, "rowsum_excess", 0.0)))
+    io.save_npz_atomic(
+        path,
+        data=F.data,
+        indices=F.indices,
+        indptr=F.indptr,
+        shape=np.array(F.shape),
+        mesh_hash=np.array(mesh.hash),
+        version=np.array(_algorithm_key()),
+        rowsum_excess=np.array(getattr(F, "rowsum_excess", 0.0)),
+    )
 
 
-def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None,
-                       progress: Callable[[int, int], None] | None = None,
-                       chunk_pairs: int = CHUNK_PAIRS) -> sp.csr_matrix:
+def view_factor_matrix(
+    mesh: Mesh,
+    tracer=None,
+    cache_dir=None,
+    progress: Callable[[int, int], None] | None = None,
+    chunk_pairs: int = CHUNK_PAIRS,
+) -> sp.csr_matrix:
     """View-factor matrix with ray-traced visibility.
 
     Parameters
@@ -240,8 +252,13 @@ def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None,
 
     def empty():
         # fresh arrays each time: _assemble derives per-chunk slots from them
-        return (np.empty(0, np.int32), np.empty(0, np.int32), np.empty(0),
-                np.zeros(nf, np.int64), np.zeros(nf, np.int64))
+        return (
+            np.empty(0, np.int32),
+            np.empty(0, np.int32),
+            np.empty(0),
+            np.zeros(nf, np.int64),
+            np.zeros(nf, np.int64),
+        )
 
     def work(rows):
         i0, i1 = rows
@@ -254,8 +271,9 @@ def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None,
         pj_ = np.empty(cap, np.int32)
         kk = np.empty(cap, np.float64)
         need = np.empty(cap, np.bool_)
-        n = _kern.candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, NEAR_DISTANCE_FACTOR, COS_CUTOFF,
-                             o32, d32, pi_, pj_, kk, need)
+        n = _kern.candidate_pairs(
+            i0, i1, C, N, S, A, P, V, Fc, bary, NEAR_DISTANCE_FACTOR, COS_CUTOFF, o32, d32, pi_, pj_, kk, need
+        )
         if n == 0:
             return empty()
         t = ones[:n] if n <= ones.shape[0] else np.ones(n, np.float32)
@@ -269,7 +287,7 @@ def view_factor_matrix(mesh: Mesh, tracer=None, cache_dir=None,
     n_threads = max(1, tracer.n_threads)
     pool = ThreadPoolExecutor(n_threads) if n_threads > 1 and len(chunks) > 1 else None
     try:
-        for r in (map(work, chunks) if pool is None else pool.map(work, chunks)):
+        for r in map(work, chunks) if pool is None else pool.map(work, chunks):
             results.append(r)
             if progress is not None:
                 progress(len(results), len(chunks))

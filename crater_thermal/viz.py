@@ -151,8 +151,16 @@ def field(run, var: str = "surface_temperature", replay=None, profile: Optional[
 class _Scene:
     """A plotter holding the crater, a Sun arrow and a title; frames update values in place."""
 
-    def __init__(self, run, scalar_title: str, cmap: str, clim: Tuple[float, float],
-                 window_size: Tuple[int, int] = (1024, 768), off_screen: bool = True, exaggeration: float = 1.0):
+    def __init__(
+        self,
+        run,
+        scalar_title: str,
+        cmap: str,
+        clim: Tuple[float, float],
+        window_size: Tuple[int, int] = (1024, 768),
+        off_screen: bool = True,
+        exaggeration: float = 1.0,
+    ):
         pv = _pyvista()
         self.pv = pv
         self.exaggeration = _check_exaggeration(exaggeration)
@@ -162,9 +170,23 @@ class _Scene:
         self.outer = ~np.asarray(run["inner"].values).astype(bool) if "inner" in run else None
         self.p = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
         self.p.set_background("white")
-        self.p.add_mesh(self.mesh, scalars="values", cmap=cmap, clim=clim, show_edges=False, nan_color="lightgrey",
-                        scalar_bar_args=dict(title=scalar_title, color="black", vertical=True,
-                                             position_x=0.85, position_y=0.15, height=0.7, width=0.06))
+        self.p.add_mesh(
+            self.mesh,
+            scalars="values",
+            cmap=cmap,
+            clim=clim,
+            show_edges=False,
+            nan_color="lightgrey",
+            scalar_bar_args=dict(
+                title=scalar_title,
+                color="black",
+                vertical=True,
+                position_x=0.85,
+                position_y=0.15,
+                height=0.7,
+                width=0.06,
+            ),
+        )
         b = np.asarray(self.mesh.bounds, float)
         if self.outer is not None and self.outer.any() and not self.outer.all():
             # frame the analysed region, not the (much wider) outer ring
@@ -207,9 +229,19 @@ class _Scene:
         self.p.close()
 
 
-def snapshot(run, values, time_index: int, scalar_title: str, title: str, path, cmap: str = "inferno",
-             clim: Optional[Tuple[float, float]] = None, window_size: Tuple[int, int] = (900, 700),
-             exaggeration: float = 1.0, overwrite: bool = False) -> Path:
+def snapshot(
+    run,
+    values,
+    time_index: int,
+    scalar_title: str,
+    title: str,
+    path,
+    cmap: str = "inferno",
+    clim: Optional[Tuple[float, float]] = None,
+    window_size: Tuple[int, int] = (900, 700),
+    exaggeration: float = 1.0,
+    overwrite: bool = False,
+) -> Path:
     """Render one off-screen view of per-facet ``values`` (nf,) and write it to ``path`` (PNG).
 
     Used by the report. ``exaggeration``: vertical exaggeration of the heights. The PNG is written
@@ -240,10 +272,21 @@ def _frame_indices(nt: int, max_frames: int) -> np.ndarray:
     return np.unique(np.linspace(0, nt - 1, min(nt, max_frames)).round().astype(int))
 
 
-def show(run_path, time: Optional[str] = None, var: str = "surface_temperature", profile: Optional[str] = None,
-         replay=None, screenshot=None, animate=None, overwrite: bool = False,
-         window_size: Tuple[int, int] = (1024, 768), max_frames: int = 120, fps: float = 10.0,
-         progress: Optional[bool] = None, exaggeration: float = 1.0) -> dict:
+def show(
+    run_path,
+    time: Optional[str] = None,
+    var: str = "surface_temperature",
+    profile: Optional[str] = None,
+    replay=None,
+    screenshot=None,
+    animate=None,
+    overwrite: bool = False,
+    window_size: Tuple[int, int] = (1024, 768),
+    max_frames: int = 120,
+    fps: float = 10.0,
+    progress: Optional[bool] = None,
+    exaggeration: float = 1.0,
+) -> dict:
     """Show the crater coloured by a variable, or write a screenshot / animation.
 
     Parameters
@@ -286,15 +329,41 @@ def show(run_path, time: Optional[str] = None, var: str = "surface_temperature",
         if isinstance(replay, (str, os.PathLike)):
             replay = ctio.open_replay(replay)
             opened.append(replay)
-        return _show(run_path, time, var, profile, replay, screenshot, animate, overwrite, window_size,
-                     max_frames, fps, progress, exaggeration)
+        return _show(
+            run_path,
+            time,
+            var,
+            profile,
+            replay,
+            screenshot,
+            animate,
+            overwrite,
+            window_size,
+            max_frames,
+            fps,
+            progress,
+            exaggeration,
+        )
     finally:
         for ds in opened:
             ds.close()
 
 
-def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_size, max_frames, fps,
-          progress, exaggeration=1.0) -> dict:
+def _show(
+    run,
+    time,
+    var,
+    profile,
+    rep,
+    screenshot,
+    animate,
+    overwrite,
+    window_size,
+    max_frames,
+    fps,
+    progress,
+    exaggeration=1.0,
+) -> dict:
     exaggeration = _check_exaggeration(exaggeration)
     vals, scalar_title, cmap = field(run, var, rep, profile)
     times = np.asarray(run["time"].values)
@@ -305,8 +374,9 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
     if anim is not None and anim.suffix.lower() not in (".gif", ".mp4"):
         raise ConfigError(f"animate={anim} must end in .gif or .mp4")
     if shot is None and anim is None and not _has_display():
-        raise ConfigError("no display for an interactive window; give a screenshot (--screenshot PNG) "
-                          "or an animation (--animate GIF)")
+        raise ConfigError(
+            "no display for an interactive window; give a screenshot (--screenshot PNG) or an animation (--animate GIF)"
+        )
     title = VARIABLES.get(var, ("", ""))[0] if profile is None else f"Profile {profile} minus nominal"
     out = dict(time=time_label(times[i]), screenshot=None, animation=None, n_frames=0)
     if not fps > 0:
@@ -324,12 +394,36 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
         # one time: colour range of that time (more contrast than the whole run's)
         v = vals[i]
         c = (float(v.min()), float(max(v.max(), v.min() + 1e-3))) if profile is None else clim
-        snapshot(run, v, i, scalar_title, title, shot, cmap=cmap, clim=c, window_size=window_size,
-                 exaggeration=exaggeration, overwrite=overwrite)
+        snapshot(
+            run,
+            v,
+            i,
+            scalar_title,
+            title,
+            shot,
+            cmap=cmap,
+            clim=c,
+            window_size=window_size,
+            exaggeration=exaggeration,
+            overwrite=overwrite,
+        )
         out["screenshot"] = str(shot)
     if anim is not None:
-        out["n_frames"] = _animate(run, vals, scalar_title, title, cmap, clim, anim, overwrite, window_size,
-                                   _frame_indices(len(times), max_frames), fps, progress, exaggeration)
+        out["n_frames"] = _animate(
+            run,
+            vals,
+            scalar_title,
+            title,
+            cmap,
+            clim,
+            anim,
+            overwrite,
+            window_size,
+            _frame_indices(len(times), max_frames),
+            fps,
+            progress,
+            exaggeration,
+        )
         out["animation"] = str(anim)
     if shot is None and anim is None:  # pragma: no cover - needs a display
         scene = _Scene(run, scalar_title, cmap, clim, window_size, off_screen=False, exaggeration=exaggeration)
@@ -338,8 +432,21 @@ def _show(run, time, var, profile, rep, screenshot, animate, overwrite, window_s
     return out
 
 
-def _animate(run, vals, scalar_title, title, cmap, clim, path: Path, overwrite: bool, window_size, frames, fps,
-             progress, exaggeration: float = 1.0) -> int:
+def _animate(
+    run,
+    vals,
+    scalar_title,
+    title,
+    cmap,
+    clim,
+    path: Path,
+    overwrite: bool,
+    window_size,
+    frames,
+    fps,
+    progress,
+    exaggeration: float = 1.0,
+) -> int:
     from crater_thermal.progress import bar
 
     with ctio.atomic_output(path, overwrite) as tmp, bar("frames", progress) as report:
@@ -371,5 +478,6 @@ def _write_frames(scene, vals, title, tmp: Path, frames, fps, report) -> None:
         if report is not None:
             report(n, len(frames))
     if not movie:
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
-                       duration=int(round(1000 / fps)), loop=0)
+        images[0].save(
+            tmp, format="GIF", save_all=True, append_images=images[1:], duration=int(round(1000 / fps)), loop=0
+        )

@@ -16,8 +16,13 @@ import numpy as np
 from crater_thermal.geometry import Mesh
 
 
-def rough_site(n_facets: int = 2000, size_m: float = 6000.0, crater_diameter_m: float = 3000.0,
-               rms_slope_deg: float = 12.0, seed: int = 7) -> Mesh:
+def rough_site(
+    n_facets: int = 2000,
+    size_m: float = 6000.0,
+    crater_diameter_m: float = 3000.0,
+    rms_slope_deg: float = 12.0,
+    seed: int = 7,
+) -> Mesh:
     """Mesh of ``2 n^2 ~ n_facets`` facets over a ``size_m`` square centred on the origin [m]."""
     n = max(4, int(round(math.sqrt(n_facets / 2.0))))
     xs = np.linspace(-0.5 * size_m, 0.5 * size_m, n + 1)
@@ -25,7 +30,7 @@ def rough_site(n_facets: int = 2000, size_m: float = 6000.0, crater_diameter_m: 
     r = np.hypot(X, Y) / (0.5 * crater_diameter_m)
     depth = 0.2 * crater_diameter_m
     rim = 0.04 * crater_diameter_m
-    z = np.where(r < 1.0, (rim + depth) * r**2 - depth, rim * np.exp(-((r - 1.0) / 0.35) ** 2))
+    z = np.where(r < 1.0, (rim + depth) * r**2 - depth, rim * np.exp(-(((r - 1.0) / 0.35) ** 2)))
     # self-affine roughness: spectral synthesis, amplitude ~ k^-(1 + H)
     rng = np.random.default_rng(seed)
     k = np.fft.fftfreq(n + 1)

@@ -30,8 +30,9 @@ from scipy.spatial import Delaunay
 
 from crater_thermal.constants import ALBEDO, EMISSIVITY, LUNAR_DAY, SIGMA, SOLAR_CONSTANT
 
-GEOM = dict(floor_radius_m=300.0, rim_radius_m=1000.0, depth_m=400.0, rim_height_m=70.0,
-            rim_width_m=500.0, surround_m=300.0)
+GEOM = dict(
+    floor_radius_m=300.0, rim_radius_m=1000.0, depth_m=400.0, rim_height_m=70.0, rim_width_m=500.0, surround_m=300.0
+)
 
 
 def height(r, g=GEOM):
@@ -53,12 +54,16 @@ def height(r, g=GEOM):
 def crater_mesh(n_rings=14, g=GEOM):
     """Vertices (nv, 3) [m] and faces (nf, 3) of the synthetic crater."""
     r_out = g["rim_radius_m"] + g["rim_width_m"] + g["surround_m"]
-    radii = np.unique(np.concatenate([
-        np.linspace(0, g["floor_radius_m"], 4),
-        np.linspace(g["floor_radius_m"], g["rim_radius_m"], 6),
-        np.linspace(g["rim_radius_m"], g["rim_radius_m"] + g["rim_width_m"], 3),
-        [r_out],
-    ]))
+    radii = np.unique(
+        np.concatenate(
+            [
+                np.linspace(0, g["floor_radius_m"], 4),
+                np.linspace(g["floor_radius_m"], g["rim_radius_m"], 6),
+                np.linspace(g["rim_radius_m"], g["rim_radius_m"] + g["rim_width_m"], 3),
+                [r_out],
+            ]
+        )
+    )
     pts = [[0.0, 0.0]]
     for i, r in enumerate(radii[1:]):
         n = max(6, int(round(2 * np.pi * r / (r_out / n_rings))))
@@ -159,10 +164,18 @@ def make_run(lat_deg=-86.0, n_lunar_days=2.0, step_h=4.0, n_rings=14, nominal="1
             "centroid": (("facet", "xyz"), centroid, {"units": "m"}),
         },
         coords={"time": times},
-        attrs=dict(lat_deg=float(lat_deg), lon_deg=0.0, albedo=ALBEDO, emissivity=EMISSIVITY,
-                   mesh_hash=f"synthetic{n_rings:04d}abcd"[:16], nominal_profile=nominal,
-                   mesh_meta=json.dumps(meta), case_toml="# synthetic", software_version="test",
-                   property_set="apollo"),
+        attrs=dict(
+            lat_deg=float(lat_deg),
+            lon_deg=0.0,
+            albedo=ALBEDO,
+            emissivity=EMISSIVITY,
+            mesh_hash=f"synthetic{n_rings:04d}abcd"[:16],
+            nominal_profile=nominal,
+            mesh_meta=json.dumps(meta),
+            case_toml="# synthetic",
+            software_version="test",
+            property_set="apollo",
+        ),
     )
     return ds
 
@@ -195,13 +208,16 @@ def make_replay(run, grid=True):
     temps[0] = run["surface_temperature"].values.copy()
     rt = [a for a, _ in profs] + [3070.0]
     rb = [b for _, b in profs] + [3070.0]
-    keep = [k for k in run.data_vars if k not in ("surface_temperature", "solar_incident", "ir_incident",
-                                                   "solar_direct")]
+    keep = [
+        k for k in run.data_vars if k not in ("surface_temperature", "solar_incident", "ir_incident", "solar_direct")
+    ]
     ds = run[keep].copy()
     ds["surface_temperature"] = (("profile", "time", "facet"), np.stack(temps), {"units": "K"})
-    ds = ds.assign_coords(profile=np.array(labels, dtype=object),
-                          rho_top=("profile", np.array(rt), {"units": "kg m-3"}),
-                          rho_bottom=("profile", np.array(rb), {"units": "kg m-3"}))
+    ds = ds.assign_coords(
+        profile=np.array(labels, dtype=object),
+        rho_top=("profile", np.array(rt), {"units": "kg m-3"}),
+        rho_bottom=("profile", np.array(rb), {"units": "kg m-3"}),
+    )
     ds.attrs = dict(run.attrs)
     return ds
 

@@ -48,18 +48,27 @@ META = dict(kind="crater", floor_radius_m=100.0, rim_radius_m=400.0, rim_width_m
 
 
 def test_region_classes_hand_computed_south():
-    c = np.array([
-        [0.0, 0.0, -50.0],     # axis -> floor
-        [0.0, -200.0, 0.0],    # r=200 < mid 250, on the south (pole) side -> lower wall poleward
-        [0.0, 300.0, 0.0],     # r=300 in (250, 400], north side -> upper wall equatorward
-        [0.0, -390.0, 0.0],    # upper wall, pole side
-        [450.0, -10.0, 0.0],   # r~450 in (400, 500] -> rim, pole side
-        [-10.0, 450.0, 0.0],   # rim, equator side
-        [0.0, 600.0, 0.0],     # beyond 500 -> surround
-    ])
+    c = np.array(
+        [
+            [0.0, 0.0, -50.0],  # axis -> floor
+            [0.0, -200.0, 0.0],  # r=200 < mid 250, on the south (pole) side -> lower wall poleward
+            [0.0, 300.0, 0.0],  # r=300 in (250, 400], north side -> upper wall equatorward
+            [0.0, -390.0, 0.0],  # upper wall, pole side
+            [450.0, -10.0, 0.0],  # r~450 in (400, 500] -> rim, pole side
+            [-10.0, 450.0, 0.0],  # rim, equator side
+            [0.0, 600.0, 0.0],  # beyond 500 -> surround
+        ]
+    )
     got = an.classify_regions(c, META, lat_deg=-86.0).tolist()
-    assert got == ["floor", "lower_wall_poleward", "upper_wall_equatorward", "upper_wall_poleward",
-                   "rim_poleward", "rim_equatorward", "surround"]
+    assert got == [
+        "floor",
+        "lower_wall_poleward",
+        "upper_wall_equatorward",
+        "upper_wall_poleward",
+        "rim_poleward",
+        "rim_equatorward",
+        "surround",
+    ]
 
 
 def test_region_classes_north_flips_sides():
@@ -126,8 +135,8 @@ def test_region_statistics_hand_computed():
     st = an.region_statistics(dT, tm, reg, threshold_K=2.5, region_names=("floor", "surround", "rim_poleward"))
     # floor samples at selected times: 1, 2, 3, -3, -3, 5 -> sorted -3 -3 1 2 3 5, median 1.5
     assert st["floor"]["median_K"] == pytest.approx(1.5)
-    assert st["floor"]["q1_K"] == pytest.approx(-2.0)   # numpy linear: -3 + 0.25*(1 - -3)
-    assert st["floor"]["q3_K"] == pytest.approx(2.75)   # 2 + 0.75*(3-2)
+    assert st["floor"]["q1_K"] == pytest.approx(-2.0)  # numpy linear: -3 + 0.25*(1 - -3)
+    assert st["floor"]["q3_K"] == pytest.approx(2.75)  # 2 + 0.75*(3-2)
     assert st["floor"]["frac_above_threshold"] == pytest.approx(4 / 6)  # |.|>2.5: -3,-3,3,5
     assert st["surround"]["median_K"] == pytest.approx(20.0)
     assert st["rim_poleward"]["n"] == 0 and st["rim_poleward"]["median_K"] is None

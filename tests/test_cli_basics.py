@@ -32,8 +32,23 @@ def test_replay_into_an_existing_folder_exit_2(tmp_path):
     make_run(lat_deg=-86.0, n_lunar_days=0.5, n_rings=4).to_netcdf(flux)
     (tmp_path / "results").mkdir()
     for extra in ([], ["--overwrite"]):
-        r = subprocess.run([sys.executable, "-m", "crater_thermal", "replay", str(flux), "--profile", "rock",
-                            "-o", str(tmp_path / "results"), *extra], capture_output=True, text=True, env=ENV)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "crater_thermal",
+                "replay",
+                str(flux),
+                "--profile",
+                "rock",
+                "-o",
+                str(tmp_path / "results"),
+                *extra,
+            ],
+            capture_output=True,
+            text=True,
+            env=ENV,
+        )
         _one_line_error(r, 2)
         assert "is a folder" in r.stderr
     assert list((tmp_path / "results").iterdir()) == []
@@ -57,8 +72,15 @@ def test_internal_error_exit_3_asks_for_a_bug_report(monkeypatch, capsys, tmp_pa
 def test_user_errors_are_not_internal_errors():
     from crater_thermal import errors
 
-    for cls in (errors.ConfigError, errors.MeshError, errors.FluxFileError, errors.ProfileError,
-                errors.EphemerisRangeError, errors.OutputExistsError, errors.MissingExtraError):
+    for cls in (
+        errors.ConfigError,
+        errors.MeshError,
+        errors.FluxFileError,
+        errors.ProfileError,
+        errors.EphemerisRangeError,
+        errors.OutputExistsError,
+        errors.MissingExtraError,
+    ):
         assert issubclass(cls, errors.CraterThermalError) and not issubclass(cls, errors.InternalError)
     assert issubclass(errors.SolverError, errors.InternalError)
     assert not issubclass(errors.SolverError, errors.CraterThermalError)

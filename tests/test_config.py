@@ -139,7 +139,8 @@ def test_flat_and_mesh_kinds(tmp_path):
 
 def test_toml_dates_and_times():
     text = MINIMAL.replace('start = "2019-01-01"', "start = 2019-01-01T04:00:00Z").replace(
-        'end = "2019-03-01"', "end = 2019-03-01")
+        'end = "2019-03-01"', "end = 2019-03-01"
+    )
     c = loads_case(text)
     assert c.period.start == np.datetime64("2019-01-01T04:00") and c.period.end == np.datetime64("2019-03-01")
 
@@ -257,14 +258,20 @@ def test_readme_key_table_is_generated_from_the_schema():
     """cases/README.md's key tables are what `python -m crater_thermal.config --update` writes."""
     text = (REPO / "cases" / "README.md").read_text(encoding="utf-8")
     assert config.readme_with_schema(text) == text, (
-        "cases/README.md is stale: run `python -m crater_thermal.config --update cases/README.md`")
+        "cases/README.md is stale: run `python -m crater_thermal.config --update cases/README.md`"
+    )
     for key in config.SCHEMA:
         assert f"| `{key.name}` |" in text
 
 
 def test_markdown_command_prints_the_table():
-    out = subprocess.run([sys.executable, "-m", "crater_thermal.config", "--markdown"], check=True,
-                         capture_output=True, text=True, cwd=REPO).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "crater_thermal.config", "--markdown"],
+        check=True,
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    ).stdout
     assert out == config.schema_markdown() and "### `[surface]`" in out
 
 
@@ -285,11 +292,18 @@ def test_schema_and_dataclasses_agree():
 
 def test_config_imports_no_physics_module():
     """config is in the base layer: loading a case imports neither the physics modules nor skyfield/numba."""
-    code = ("import sys; from crater_thermal import config; config.load_case(sys.argv[1]); "
-            "print(' '.join(sorted(m for m in sys.modules if m.split('.')[0] in ('skyfield', 'numba', 'embreex')"
-            " or m in ('crater_thermal.ephemeris', 'crater_thermal.thermal', 'crater_thermal.materials'))))")
-    out = subprocess.run([sys.executable, "-c", code, str(REPO / "cases" / "default.toml")], check=True,
-                         capture_output=True, text=True, cwd=REPO).stdout
+    code = (
+        "import sys; from crater_thermal import config; config.load_case(sys.argv[1]); "
+        "print(' '.join(sorted(m for m in sys.modules if m.split('.')[0] in ('skyfield', 'numba', 'embreex')"
+        " or m in ('crater_thermal.ephemeris', 'crater_thermal.thermal', 'crater_thermal.materials'))))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(REPO / "cases" / "default.toml")],
+        check=True,
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    ).stdout
     assert out.strip() == ""
 
 

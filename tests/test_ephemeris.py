@@ -33,8 +33,11 @@ REFERENCE = DATA / "sun_moon_me_de421.npz"
 def _find_kernels() -> Path:
     """The shared lunar kernels: $CRATER_THERMAL_MOON_KERNELS, ../shared/ephemeris of the
     checkout, or ../../shared/ephemeris (a git worktree under wt/)."""
-    candidates = [os.environ.get("CRATER_THERMAL_MOON_KERNELS"), SHARED_EPHEMERIS,
-                  REPO.parent.parent / "shared" / "ephemeris"]
+    candidates = [
+        os.environ.get("CRATER_THERMAL_MOON_KERNELS"),
+        SHARED_EPHEMERIS,
+        REPO.parent.parent / "shared" / "ephemeris",
+    ]
     for c in candidates:
         if c and all((Path(c) / n).is_file() for n in eph.DE421_KERNEL_FILES):
             return Path(c)
@@ -170,8 +173,13 @@ def test_rotation_matrices_are_rotations():
     assert np.allclose(np.linalg.det(R), 1.0, atol=1e-12)
     # the lunar pole is within 2 deg of (alpha, delta) = (270, 66.5) deg
     pole = R[:, 2, :]
-    ref = np.array([np.cos(np.radians(66.54)) * np.cos(np.radians(270.0)),
-                    np.cos(np.radians(66.54)) * np.sin(np.radians(270.0)), np.sin(np.radians(66.54))])
+    ref = np.array(
+        [
+            np.cos(np.radians(66.54)) * np.cos(np.radians(270.0)),
+            np.cos(np.radians(66.54)) * np.sin(np.radians(270.0)),
+            np.sin(np.radians(66.54)),
+        ]
+    )
     assert _angle_deg(pole, ref).max() < 4.5  # 3.9 deg libration amplitude in alpha0 cos(delta0)
 
 

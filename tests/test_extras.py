@@ -39,8 +39,10 @@ def test_show_without_pyvista_names_the_extra(files, tmp_path, monkeypatch):
 
 
 def test_cli_show_without_pyvista_one_line_exit_2(files, tmp_path):
-    code = ("import sys; sys.modules['pyvista'] = None; from crater_thermal.cli import main; "
-            f"main(['show', {str(files / 'run.nc')!r}, '--screenshot', {str(tmp_path / 'x.png')!r}])")
+    code = (
+        "import sys; sys.modules['pyvista'] = None; from crater_thermal.cli import main; "
+        f"main(['show', {str(files / 'run.nc')!r}, '--screenshot', {str(tmp_path / 'x.png')!r}])"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
     assert r.returncode == 2 and r.stderr.startswith("error:") and r.stderr.count("\n") == 1, r.stderr
     assert "crater_thermal[viz]" in r.stderr

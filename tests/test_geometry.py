@@ -275,8 +275,9 @@ def test_load_rejects_missing_and_garbage(tmp_path):
 
 def _cli(*args):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "crater_thermal", *args], capture_output=True, text=True, env=env,
-                          cwd=REPO)
+    return subprocess.run(
+        [sys.executable, "-m", "crater_thermal", *args], capture_output=True, text=True, env=env, cwd=REPO
+    )
 
 
 def test_cli_mesh_crater_and_bowl(tmp_path):
@@ -296,12 +297,15 @@ def test_cli_mesh_crater_and_bowl(tmp_path):
     assert load_mesh(b).meta["diameter_m"] == 50.0
 
 
-@pytest.mark.parametrize("args, word", [
-    (("mesh", "crater", "--diameter-km", "20"), "diameter_km"),
-    (("mesh", "crater", "--diameter-km", "-1"), "diameter_km"),
-    (("mesh", "crater", "--facets", "3"), "n_facets"),
-    (("mesh", "bowl", "--depth-to-diameter", "0.9"), "depth_to_diameter"),
-])
+@pytest.mark.parametrize(
+    "args, word",
+    [
+        (("mesh", "crater", "--diameter-km", "20"), "diameter_km"),
+        (("mesh", "crater", "--diameter-km", "-1"), "diameter_km"),
+        (("mesh", "crater", "--facets", "3"), "n_facets"),
+        (("mesh", "bowl", "--depth-to-diameter", "0.9"), "depth_to_diameter"),
+    ],
+)
 def test_cli_bad_input_exit_2_one_line(tmp_path, args, word):
     r = _cli(*args, "-o", str(tmp_path / "x.ply"))
     assert r.returncode == 2

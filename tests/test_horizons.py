@@ -60,8 +60,18 @@ def test_segment_table_matches_direct_integration(law):
 
     total = 2.0 * math.pi * sum(c / (k + 2) for k, c in enumerate(coeffs))
     for h in (0.45,):
-        ref = integrate.dblquad(inten, h, 1.0, lambda y: -math.sqrt(1.0 - y * y), lambda y: math.sqrt(1.0 - y * y),
-                                epsabs=1e-11, epsrel=1e-11)[0] / total
+        ref = (
+            integrate.dblquad(
+                inten,
+                h,
+                1.0,
+                lambda y: -math.sqrt(1.0 - y * y),
+                lambda y: math.sqrt(1.0 - y * y),
+                epsabs=1e-11,
+                epsrel=1e-11,
+            )[0]
+            / total
+        )
         assert horizons.disk_segment(h, law)[0] == pytest.approx(ref, abs=1e-6)
 
 
@@ -74,8 +84,9 @@ def test_segment_table_limits():
     assert f0 == pytest.approx(0.5, abs=1e-12)
     # uniform disk: segment area (t - sin t cos t) / pi above y = cos t
     t = 1.1
-    assert horizons.disk_segment(math.cos(t), "uniform")[0] == pytest.approx((t - math.sin(t) * math.cos(t)) / math.pi,
-                                                                              abs=1e-7)
+    assert horizons.disk_segment(math.cos(t), "uniform")[0] == pytest.approx(
+        (t - math.sin(t) * math.cos(t)) / math.pi, abs=1e-7
+    )
     with pytest.raises(ConfigError):
         horizons.segment_tables("purple")
 

@@ -102,8 +102,10 @@ def test_flat_facet_with_sun_centre_on_horizon(law):
     E = il.direct_irradiance(_Facets([0, 0, 1]), _NoOcclusion(), s, [AU], 1.0, il.sun_disk(law=law))[0, 0]
     assert abs(E - exact) < 0.007 * np.sin(ALPHA)
     # and finer disks converge on it
-    errs = [abs(il.direct_irradiance(_Facets([0, 0, 1]), _NoOcclusion(), s, [AU], 1.0, il.sun_disk(n, law))[0, 0]
-                - exact) for n in (2, 4, 8)]
+    errs = [
+        abs(il.direct_irradiance(_Facets([0, 0, 1]), _NoOcclusion(), s, [AU], 1.0, il.sun_disk(n, law))[0, 0] - exact)
+        for n in (2, 4, 8)
+    ]
     assert errs[2] < errs[0]
     assert errs[2] < 0.002 * np.sin(ALPHA)
 

@@ -22,8 +22,7 @@ def planck(lam_m, T):
 
 def quad_band(f, band, T):
     """Independent band integral by adaptive quadrature over wavelength [um grid, per m]."""
-    return quad(lambda l_um: f(l_um * 1e-6, T) * 1e-6, band.lo_um, band.hi_um, epsabs=0, epsrel=1e-12,
-                limit=200)[0]
+    return quad(lambda l_um: f(l_um * 1e-6, T) * 1e-6, band.lo_um, band.hi_um, epsabs=0, epsrel=1e-12, limit=200)[0]
 
 
 def test_bolometric_band_radiance_is_sigma_T4_over_pi():
@@ -38,7 +37,8 @@ def test_band_radiance_and_derivative_match_quadrature(band, T):
     # the series are exact; quad's own relative error is ~1e-12, so 1e-9 leaves margin
     assert float(ins.band_radiance(T, band)) == pytest.approx(quad_band(planck, band, T), rel=1e-9)
     assert float(ins.band_radiance_derivative(T, band)) == pytest.approx(
-        quad_band(lambda lam, t: float(ins.planck_dB_dT(lam, t)), band, T), rel=1e-9)
+        quad_band(lambda lam, t: float(ins.planck_dB_dT(lam, t)), band, T), rel=1e-9
+    )
 
 
 @pytest.mark.parametrize("name", list(ins.PRESETS))
@@ -119,11 +119,14 @@ def _monte_carlo(dT, T_nom, dwell, inst, obs, n_draws=100_000, seed=12345):
     return float(np.mean(s * noise0 > thr)), float(np.mean(s * d1 > thr))
 
 
-@pytest.mark.parametrize("case", [
-    {"dT": -2.77, "T": 58.1, "dwell": 0.6, "inst": "diviner_ch9", "m": 1, "scatter": 0.5, "gain": 0.01},
-    {"dT": -2.0, "T": 45.0, "dwell": 2.0, "inst": "diviner_ch8", "m": 3, "scatter": 0.3, "gain": 0.2},
-    {"dT": 1.2, "T": 80.0, "dwell": 0.13, "inst": "diviner_ch7", "m": 2, "scatter": 0.94, "gain": 0.1},
-])
+@pytest.mark.parametrize(
+    "case",
+    [
+        {"dT": -2.77, "T": 58.1, "dwell": 0.6, "inst": "diviner_ch9", "m": 1, "scatter": 0.5, "gain": 0.01},
+        {"dT": -2.0, "T": 45.0, "dwell": 2.0, "inst": "diviner_ch8", "m": 3, "scatter": 0.3, "gain": 0.2},
+        {"dT": 1.2, "T": 80.0, "dwell": 0.13, "inst": "diviner_ch7", "m": 2, "scatter": 0.94, "gain": 0.1},
+    ],
+)
 def test_detection_probability_matches_monte_carlo(case):
     inst = ins.PRESETS[case["inst"]]
     inst = ins.Instrument(**{**inst.as_dict(), "gain_error": case["gain"]})

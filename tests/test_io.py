@@ -15,17 +15,28 @@ from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 def _mesh():
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
     f = np.array([[0, 1, 2], [1, 3, 2]])
-    return SimpleNamespace(vertices=v, faces=f, areas=np.array([0.5, 0.5]),
-                           normals=np.tile([0.0, 0.0, 1.0], (2, 1)), centroids=v[f].mean(axis=1),
-                           hash="abc123", meta={"kind": "flat"})
+    return SimpleNamespace(
+        vertices=v,
+        faces=f,
+        areas=np.array([0.5, 0.5]),
+        normals=np.tile([0.0, 0.0, 1.0], (2, 1)),
+        centroids=v[f].mean(axis=1),
+        hash="abc123",
+        meta={"kind": "flat"},
+    )
 
 
 def _flux(nt=5, **over):
     t = np.datetime64("2019-01-01") + np.arange(nt) * np.timedelta64(4, "h")
     s = np.full((nt, 2), 100.0)
-    ds = xr.Dataset({"solar_incident": (("time", "facet"), s, {"units": "W m-2"}),
-                     "ir_incident": (("time", "facet"), s / 10, {"units": "W m-2"})},
-                    coords={"time": t}, attrs={"albedo": 0.12, "emissivity": 0.98})
+    ds = xr.Dataset(
+        {
+            "solar_incident": (("time", "facet"), s, {"units": "W m-2"}),
+            "ir_incident": (("time", "facet"), s / 10, {"units": "W m-2"}),
+        },
+        coords={"time": t},
+        attrs={"albedo": 0.12, "emissivity": 0.98},
+    )
     for k, v in over.items():
         ds[k] = v
     return ds
@@ -57,14 +68,17 @@ def test_failed_write_leaves_old_file(tmp_path):
     assert p.read_bytes() == before
 
 
-@pytest.mark.parametrize("mutate, message", [
-    (lambda ds: ds.drop_vars("ir_incident"), "missing variable 'ir_incident'"),
-    (lambda ds: ds.assign(solar_incident=ds.solar_incident.assign_attrs(units="erg")), "units 'erg'"),
-    (lambda ds: ds.assign(solar_incident=ds.solar_incident.where(ds.facet < 1)), "NaN"),
-    (lambda ds: ds.assign_coords(time=ds.time.values[[0, 2, 1, 3, 4]]), "not strictly increasing"),
-    (lambda ds: ds.assign_attrs(albedo=1.5), "albedo"),
-    (lambda ds: ds.assign(ir_incident=-ds.ir_incident), "negative"),
-])
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda ds: ds.drop_vars("ir_incident"), "missing variable 'ir_incident'"),
+        (lambda ds: ds.assign(solar_incident=ds.solar_incident.assign_attrs(units="erg")), "units 'erg'"),
+        (lambda ds: ds.assign(solar_incident=ds.solar_incident.where(ds.facet < 1)), "NaN"),
+        (lambda ds: ds.assign_coords(time=ds.time.values[[0, 2, 1, 3, 4]]), "not strictly increasing"),
+        (lambda ds: ds.assign_attrs(albedo=1.5), "albedo"),
+        (lambda ds: ds.assign(ir_incident=-ds.ir_incident), "negative"),
+    ],
+)
 def test_bad_flux_files(tmp_path, mutate, message):
     p = tmp_path / "bad.nc"
     mutate(_flux()).to_netcdf(p)
@@ -83,8 +97,12 @@ def test_corrupt_and_missing_file(tmp_path):
 
 def test_write_steady(tmp_path):
     m = _mesh()
-    res = {"surface_temperature": np.array([200.0, 210.0]), "solar_direct": np.ones(2),
-           "solar_incident": np.ones(2), "ir_incident": np.zeros(2)}
+    res = {
+        "surface_temperature": np.array([200.0, 210.0]),
+        "solar_direct": np.ones(2),
+        "solar_incident": np.ones(2),
+        "ir_incident": np.zeros(2),
+    }
     p = io.write_steady(tmp_path / "s.nc", m, res, {"albedo": 0.12, "sun_elevation_deg": 10.0})
     ds = xr.open_dataset(p)
     assert ds["surface_temperature"].attrs["units"] == "K"
@@ -159,6 +177,7 @@ def test_atomic_output_permissions_follow_the_umask(tmp_path, umask):
 def test_spinup_fluxes_are_validated_like_the_record(tmp_path):
     """A flux file's spin-up window reaches the conduction solver too: bad values must be a FluxFileError
     naming the variable, never a solver failure."""
+
     def with_spinup(values, end_offset_h=0):
         ds = _flux()
         ts = ds["time"].values[0] + np.timedelta64(end_offset_h, "h") - np.arange(3, -1, -1) * np.timedelta64(4, "h")
@@ -170,9 +189,11 @@ def test_spinup_fluxes_are_validated_like_the_record(tmp_path):
     good = [[10.0, 10.0]] * 4
     io.write_dataset_atomic(with_spinup(good), tmp_path / "ok.nc")
     assert "spinup_solar_incident" in io.read_flux_dataset(tmp_path / "ok.nc")
-    for values, offset, message in ((good[:3] + [[np.nan, 1.0]], 0, "spinup_solar_incident.*NaN"),
-                                    (good[:3] + [[-1.0, 1.0]], 0, "negative irradiance in spinup_solar"),
-                                    (good, 4, "must end at or before")):
+    for values, offset, message in (
+        (good[:3] + [[np.nan, 1.0]], 0, "spinup_solar_incident.*NaN"),
+        (good[:3] + [[-1.0, 1.0]], 0, "negative irradiance in spinup_solar"),
+        (good, 4, "must end at or before"),
+    ):
         p = tmp_path / "bad.nc"
         io.write_dataset_atomic(with_spinup(values, offset), p, overwrite=True)
         with pytest.raises(FluxFileError, match=message):

@@ -32,12 +32,20 @@ def test_bar_and_reporter():
 def test_replay_reports_profiles_done():
     t = np.datetime64("2019-01-01") + np.arange(6) * np.timedelta64(4, "h")
     s = np.full((6, 2), 50.0)
-    ds = xr.Dataset({"solar_incident": (("time", "facet"), s), "ir_incident": (("time", "facet"), s / 10)},
-                    coords={"time": t}, attrs={"albedo": 0.12, "emissivity": 0.98})
+    ds = xr.Dataset(
+        {"solar_incident": (("time", "facet"), s), "ir_incident": (("time", "facet"), s / 10)},
+        coords={"time": t},
+        attrs={"albedo": 0.12, "emissivity": 0.98},
+    )
     profiles = [thermal.parse_profile(x) for x in ("1300/1800", "1500/1800", "rock")]
     calls = []
-    simulate.replay_fluxes(ds, profiles, initial_temperature=100.0, chunk_columns=2,
-                           progress=lambda done, total: calls.append((done, total)))
+    simulate.replay_fluxes(
+        ds,
+        profiles,
+        initial_temperature=100.0,
+        chunk_columns=2,
+        progress=lambda done, total: calls.append((done, total)),
+    )
     # one profile per chunk of 2 columns (2 facets); progress in time steps of the chunks: 3 x 5 steps
     assert calls == [(5, 15), (10, 15), (15, 15)]
 
@@ -46,8 +54,13 @@ def test_only_the_progress_module_imports_rich():
     importers = []
     for path in sorted(PACKAGE.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else []
+            )
             if any(n == "rich" or n.startswith("rich.") for n in names):
                 importers.append(path.name)
     assert set(importers) == {"progress.py"}

@@ -27,9 +27,17 @@ def crater86():
     sun, dist = ephemeris.sun_in_crater_frame(times, -86.0, 0.0)
     direct = illumination.direct_irradiance(mesh, tracer, sun, dist, disk=illumination.sun_disk())
     zeros = np.zeros_like(direct)
-    return io.run_dataset(mesh, times, solar_incident=direct, ir_incident=zeros, solar_direct=direct,
-                          surface_temperature=zeros + 50.0, sun_direction=sun, sun_distance_au=dist / 1.495978707e11,
-                          attrs={"lat_deg": -86.0, "albedo": 0.12, "emissivity": 0.98})
+    return io.run_dataset(
+        mesh,
+        times,
+        solar_incident=direct,
+        ir_incident=zeros,
+        solar_direct=direct,
+        surface_temperature=zeros + 50.0,
+        sun_direction=sun,
+        sun_distance_au=dist / 1.495978707e11,
+        attrs={"lat_deg": -86.0, "albedo": 0.12, "emissivity": 0.98},
+    )
 
 
 # ----------------------------------------------------------------------------------- per-facet night
@@ -292,8 +300,13 @@ def test_replay_uses_saved_absorbed_sunlight():
 
     t = np.array(["2019-01-01T00", "2019-01-01T04"], "datetime64[ns]")
     inc = np.full((2, 1), 100.0)
-    ds = xr.Dataset({"solar_incident": (("time", "facet"), inc, {"units": "W m-2"}),
-                     "solar_absorbed": (("time", "facet"), inc * 0.5, {"units": "W m-2"})},
-                    coords={"time": t}, attrs={"albedo": 0.12})
+    ds = xr.Dataset(
+        {
+            "solar_incident": (("time", "facet"), inc, {"units": "W m-2"}),
+            "solar_absorbed": (("time", "facet"), inc * 0.5, {"units": "W m-2"}),
+        },
+        coords={"time": t},
+        attrs={"albedo": 0.12},
+    )
     assert np.allclose(simulate.absorbed_solar_of(ds), 50.0)
     assert np.allclose(simulate.absorbed_solar_of(ds.drop_vars("solar_absorbed")), 88.0)

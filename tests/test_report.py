@@ -15,13 +15,17 @@ from crater_thermal.errors import FluxFileError, OutputExistsError
 
 from synthetic import make_replay, make_run
 
-ENV = {**os.environ, "PYTHONPATH": str(rp.Path(rp.__file__).resolve().parents[1]),
-       "VTK_DEFAULT_OPENGL_WINDOW": os.environ.get("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")}
+ENV = {
+    **os.environ,
+    "PYTHONPATH": str(rp.Path(rp.__file__).resolve().parents[1]),
+    "VTK_DEFAULT_OPENGL_WINDOW": os.environ.get("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow"),
+}
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "crater_thermal", *map(str, args)], capture_output=True,
-                          text=True, env=ENV, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "crater_thermal", *map(str, args)], capture_output=True, text=True, env=ENV, timeout=120
+    )
 
 
 @pytest.fixture(scope="module")
@@ -55,8 +59,9 @@ def test_summary_has_exactly_the_documented_keys(report_dir):
     assert set(s) == set(rp.SUMMARY_KEYS)
     assert all(isinstance(v, str) and v for v in rp.SUMMARY_KEYS.values())
     assert s["loose_profile"] == "800/1100" and s["rock_profile"] == "rock"
-    assert set(s["detection"]) == set(s["instruments"]) == {"diviner_ch7", "diviner_ch8", "diviner_ch9",
-                                                            "microbolometer"}
+    assert (
+        set(s["detection"]) == set(s["instruments"]) == {"diviner_ch7", "diviner_ch8", "diviner_ch9", "microbolometer"}
+    )
     assert all(set(per) == set(s["regions"]) for per in s["detection"].values())
     assert s["schema_version"] == 2
 
@@ -169,8 +174,21 @@ def test_cli_report_takes_a_sweep_folder_and_a_user_band(files, tmp_path):
         r.to_netcdf(sweep / name / "run.nc")
         (rep if r is run else make_replay(r)).to_netcdf(sweep / name / "replay.nc")
     (sweep / "unfinished").mkdir()  # a case without outputs is skipped
-    out = cli("report", sweep, "-o", tmp_path / "r", "--no-snapshots", "--instrument", "diviner_ch9",
-              "--band-um", "8:14", "--netd-k", "0.05", "--reference-footprints", "4")
+    out = cli(
+        "report",
+        sweep,
+        "-o",
+        tmp_path / "r",
+        "--no-snapshots",
+        "--instrument",
+        "diviner_ch9",
+        "--band-um",
+        "8:14",
+        "--netd-k",
+        "0.05",
+        "--reference-footprints",
+        "4",
+    )
     assert out.returncode == 0, out.stderr
     s = _strict_json(tmp_path / "r" / "summary.json")
     assert set(s["latitude_night_median_dT_K"]) == {"-86", "-80"}
@@ -187,12 +205,15 @@ def test_cli_report_quiet_when_not_a_terminal(files, tmp_path):
     assert (tmp_path / "r" / "report.html").is_file()
 
 
-@pytest.mark.parametrize("case, match", [
-    ("hash", "mesh_hash"),
-    ("time", "time axis"),
-    ("missing", "sun_direction"),
-    ("nofile", "does not exist"),
-])
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("hash", "mesh_hash"),
+        ("time", "time axis"),
+        ("missing", "sun_direction"),
+        ("nofile", "does not exist"),
+    ],
+)
 def test_cli_bad_input_one_line_exit_2(files, tmp_path, case, match):
     d, run, rep = files
     run_p, rep_p = d / "run.nc", d / "replay.nc"
@@ -226,8 +247,10 @@ def test_foreign_replay_raises_flux_file_error(files):
 
 
 def test_analysis_and_report_do_not_import_xarray_or_pyvista():
-    code = ("import sys, crater_thermal.analysis, crater_thermal.report, crater_thermal.viz, crater_thermal.cli;"
-            "bad = [m for m in ('xarray', 'pyvista') if m in sys.modules]; assert not bad, bad")
+    code = (
+        "import sys, crater_thermal.analysis, crater_thermal.report, crater_thermal.viz, crater_thermal.cli;"
+        "bad = [m for m in ('xarray', 'pyvista') if m in sys.modules]; assert not bad, bad"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=60)
     assert out.returncode == 0, out.stderr
 

@@ -46,10 +46,27 @@ save_spinup_fluxes = true
 """
 
 
-def small_case(tmp_path, name="small", facets=60, end="2019-01-31", spinup="periodic", spinup_days=29.53,
-               tol=0.001, every=0, extra_period=""):
-    text = SMALL_CASE.format(name=name, facets=facets, end=end, spinup=spinup, spinup_days=spinup_days, tol=tol,
-                             every=every, extra_period=extra_period)
+def small_case(
+    tmp_path,
+    name="small",
+    facets=60,
+    end="2019-01-31",
+    spinup="periodic",
+    spinup_days=29.53,
+    tol=0.001,
+    every=0,
+    extra_period="",
+):
+    text = SMALL_CASE.format(
+        name=name,
+        facets=facets,
+        end=end,
+        spinup=spinup,
+        spinup_days=spinup_days,
+        tol=tol,
+        every=every,
+        extra_period=extra_period,
+    )
     path = tmp_path / f"{name}.toml"
     path.write_text(text)
     return path
@@ -102,8 +119,9 @@ def test_crater_energy_conservation(tmp_path):
     over the crater with facet areas, using the solver's own quadrature: within 0.5% of the absorbed
     solar energy. Also checks that the exchanged IR the columns absorbed is what the saved samples say
     (linear between samples), i.e. the predictor step leaves no trace."""
-    case = config.load_case(small_case(tmp_path, spinup="fixed", spinup_days=1.0,
-                                       extra_period="initial_temperature_K = 100.0"))
+    case = config.load_case(
+        small_case(tmp_path, spinup="fixed", spinup_days=1.0, extra_period="initial_temperature_K = 100.0")
+    )
     timer = simulate.Timer()
     fc = simulate.compute_forcing(case, timer)
     nf = fc.mesh.n_facets
@@ -145,19 +163,22 @@ def test_replay_of_nominal_reproduces_run(small_run):
 
 def test_replay_fixed_start_is_exact(tmp_path):
     """Thesis procedure: uniform start, fixed spin-up. The replay re-traces the run exactly."""
-    case = config.load_case(small_case(tmp_path, spinup="fixed", spinup_days=10.0,
-                                       extra_period="initial_temperature_K = 120.0"))
+    case = config.load_case(
+        small_case(tmp_path, spinup="fixed", spinup_days=10.0, extra_period="initial_temperature_K = 120.0")
+    )
     out = simulate.run_case(case, tmp_path / "run.nc", progress=False)
     ds = io.open_run(out)
-    T, _ = simulate.replay_fluxes(ds, simulate.resolve_profiles(["1300/1800"]), initial_temperature=120.0,
-                                  progress=False)
+    T, _ = simulate.replay_fluxes(
+        ds, simulate.resolve_profiles(["1300/1800"]), initial_temperature=120.0, progress=False
+    )
     assert np.max(np.abs(T[0] - ds["surface_temperature"].values)) <= 1e-3  # float32 storage of the replay
 
 
 def _cli(*args, **kw):
     env = dict(os.environ, PYTHONPATH=str(REPO), CRATER_THERMAL_QUIET="1")
-    return subprocess.run([sys.executable, "-m", "crater_thermal", *map(str, args)], capture_output=True,
-                          text=True, env=env, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "crater_thermal", *map(str, args)], capture_output=True, text=True, env=env, **kw
+    )
 
 
 def test_cli_replay_and_bad_inputs(small_run, tmp_path):
@@ -197,27 +218,59 @@ def test_cli_replay_and_bad_inputs(small_run, tmp_path):
 
 def test_cli_run_bad_case(tmp_path):
     bad = tmp_path / "bad.toml"
-    bad.write_text(SMALL_CASE.format(name="bad", facets=60, end="2019-01-31", spinup="periodic", spinup_days=10,
-                                     tol=0.01, every=0, extra_period="").replace("lat_deg = -85.0", "lat_deg = -95.0"))
+    bad.write_text(
+        SMALL_CASE.format(
+            name="bad",
+            facets=60,
+            end="2019-01-31",
+            spinup="periodic",
+            spinup_days=10,
+            tol=0.01,
+            every=0,
+            extra_period="",
+        ).replace("lat_deg = -85.0", "lat_deg = -95.0")
+    )
     r = _cli("run", bad, "-o", tmp_path / "run.nc")
     assert r.returncode == 2 and "lat_deg" in r.stderr and "Traceback" not in r.stderr
     late = tmp_path / "late.toml"
-    late.write_text(SMALL_CASE.format(name="late", facets=60, end="2060-01-31", spinup="periodic", spinup_days=30,
-                                      tol=0.01, every=0, extra_period=""))
+    late.write_text(
+        SMALL_CASE.format(
+            name="late",
+            facets=60,
+            end="2060-01-31",
+            spinup="periodic",
+            spinup_days=30,
+            tol=0.01,
+            every=0,
+            extra_period="",
+        )
+    )
     r = _cli("run", late, "-o", tmp_path / "run.nc")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "2053" in r.stderr
 
 
 def test_resume_after_kill_matches_uninterrupted(tmp_path):
     """Kill a real run process after a mid-run checkpoint, resume it, compare with an uninterrupted run."""
-    path = small_case(tmp_path, name="long", facets=150, end="2019-12-31", spinup="fixed", spinup_days=1.0,
-                      every=40, extra_period="initial_temperature_K = 100.0")
+    path = small_case(
+        tmp_path,
+        name="long",
+        facets=150,
+        end="2019-12-31",
+        spinup="fixed",
+        spinup_days=1.0,
+        every=40,
+        extra_period="initial_temperature_K = 100.0",
+    )
     ref = simulate.run_case(config.load_case(path), tmp_path / "ref.nc", progress=False)
     out = tmp_path / "killed.nc"
     ckpt = Path(simulate.checkpoint_path(out))
     env = dict(os.environ, PYTHONPATH=str(REPO), CRATER_THERMAL_QUIET="1")
-    proc = subprocess.Popen([sys.executable, "-m", "crater_thermal", "run", str(path), "-o", str(out)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "crater_thermal", "run", str(path), "-o", str(out)],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     killed_at = None
     deadline = time.time() + 300
     while proc.poll() is None and time.time() < deadline:

@@ -81,11 +81,18 @@ def test_streamed_replay_matches_in_memory(tmp_path):
     run = io.open_run(simulate.run_case(_case(tmp_path, "r"), tmp_path / "r.nc", progress=False))
     profiles = simulate.resolve_profiles(["1300/1800", "rock"])
     ref, _ = simulate.replay_fluxes(run, profiles, initial_temperature=100.0, progress=False)
-    got, _ = simulate.replay_fluxes(run, profiles, initial_temperature=100.0, progress=False, chunk_mb=0.01,
-                                    chunk_columns=25)
+    got, _ = simulate.replay_fluxes(
+        run, profiles, initial_temperature=100.0, progress=False, chunk_mb=0.01, chunk_columns=25
+    )
     np.testing.assert_array_equal(got, ref)
-    out = simulate.replay_file(tmp_path / "r.nc", ["1300/1800", "rock"], initial_temperature=100.0,
-                               output=tmp_path / "rep.nc", progress=False, chunk_mb=0.01)
+    out = simulate.replay_file(
+        tmp_path / "r.nc",
+        ["1300/1800", "rock"],
+        initial_temperature=100.0,
+        output=tmp_path / "rep.nc",
+        progress=False,
+        chunk_mb=0.01,
+    )
     rep = io.open_replay(out)
     np.testing.assert_array_equal(rep["surface_temperature"].values, ref)
     assert list(rep["profile"].values) == ["1300/1800", "rock"]
@@ -97,8 +104,9 @@ def test_memory_bounded_by_budget_not_run_length(tmp_path):
     buffers) stays below the budget plus the radiation operator plus a fixed allowance, and does not grow
     when the record is 4x longer."""
     budget_mb, nf = 0.25, 300
-    simulate.run_case(_case(tmp_path, "warm", facets=nf, end="2019-01-03"), tmp_path / "warm.nc",
-                      progress=False)  # ephemeris tables, view-factor cache, numba: loaded before measuring
+    simulate.run_case(
+        _case(tmp_path, "warm", facets=nf, end="2019-01-03"), tmp_path / "warm.nc", progress=False
+    )  # ephemeris tables, view-factor cache, numba: loaded before measuring
     peaks = []
     for end in ("2019-01-31", "2019-04-30"):
         case = _case(tmp_path, "m" + end, facets=nf, end=end, chunk_mb=budget_mb)

@@ -71,8 +71,9 @@ def test_local_sweep_and_restart_skips_finished(tmp_path):
 def test_sweep_on_dask_local_cluster(tmp_path):
     distributed = pytest.importorskip("distributed")
     paths = _cases(tmp_path, lats=(-70.0,))
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
         res = sweep.sweep(paths, tmp_path / "out", scheduler=cluster.scheduler_address, progress=False)
     assert res[0]["done"] == ["run", "replay"]
     assert sweep.case_outputs(paths[0], tmp_path / "out")[0].exists()
@@ -105,9 +106,23 @@ def test_unreachable_scheduler_is_one_line_config_error(tmp_path, monkeypatch):
 def test_cli_unreachable_scheduler_exit_2(tmp_path):
     pytest.importorskip("distributed")
     address = f"tcp://127.0.0.1:{_free_port()}"
-    r = subprocess.run([sys.executable, "-m", "crater_thermal", "sweep", *map(str, _cases(tmp_path, lats=(-70.0,))),
-                        "-o", str(tmp_path / "out"), "--scheduler", address], capture_output=True, text=True,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "crater_thermal",
+            "sweep",
+            *map(str, _cases(tmp_path, lats=(-70.0,))),
+            "-o",
+            str(tmp_path / "out"),
+            "--scheduler",
+            address,
+        ],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        timeout=120,
+    )
     assert r.returncode == 2, r.stderr
     assert r.stderr.startswith("error:") and r.stderr.strip().count("\n") == 0 and address in r.stderr
 
@@ -115,8 +130,7 @@ def test_cli_unreachable_scheduler_exit_2(tmp_path):
 def test_scheduler_without_dask_names_the_extra(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask.distributed were not installed
     with pytest.raises(MissingExtraError, match=r"pip install 'crater_thermal\[distributed\]'"):
-        sweep.sweep(_cases(tmp_path, lats=(-70.0,)), tmp_path / "out", scheduler="tcp://127.0.0.1:8786",
-                    progress=False)
+        sweep.sweep(_cases(tmp_path, lats=(-70.0,)), tmp_path / "out", scheduler="tcp://127.0.0.1:8786", progress=False)
 
 
 def test_local_workers_are_spawned(tmp_path, monkeypatch):

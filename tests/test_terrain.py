@@ -85,8 +85,9 @@ def test_coordinate_round_trip_through_the_dem_is_within_a_metre(tmp_path):
 
 
 def test_pds3_img_lbl_reads_as_the_geotiff(tmp_path):
-    dem, z, tr, wkt = _flat_site(tmp_path, size_km=12.0, pixel_m=40.0, craters=[(4.0, 0.5, -0.5)],
-                                 roughness_m=8.0, seed=3)
+    dem, z, tr, wkt = _flat_site(
+        tmp_path, size_km=12.0, pixel_m=40.0, craters=[(4.0, 0.5, -0.5)], roughness_m=8.0, seed=3
+    )
     lbl = terrain.write_pds3(tmp_path / "site.lbl", z, tr)
     h_tif, info_tif, kind_tif = terrain.read_heights(dem)
     h_pds, info_pds, kind_pds = terrain.read_heights(lbl)
@@ -130,24 +131,37 @@ def _cli(argv, capsys):
 
 
 def _write_raw(path, z, crs, transform, nodata=None):
-    with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1, dtype="float32",
-                       crs=crs, transform=transform, nodata=nodata) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=z.shape[1],
+        height=z.shape[0],
+        count=1,
+        dtype="float32",
+        crs=crs,
+        transform=transform,
+        nodata=nodata,
+    ) as dst:
         dst.write(z.astype(np.float32), 1)
     return path
 
 
-@pytest.mark.parametrize("case, needle", [
-    ("no_crs", "no coordinate reference system"),
-    ("earth", "not the Moon"),
-    ("geographic", "geographic CRS"),
-    ("equirectangular", "not a projection for a site"),
-    ("holes", "nodata holes"),
-    ("outside", "outside DEM"),
-    ("beyond", "beyond the edge"),
-    ("absurd_fine", "absurd"),
-    ("absurd_zero", "absurd"),
-    ("huge", "site too large"),
-])
+@pytest.mark.parametrize(
+    "case, needle",
+    [
+        ("no_crs", "no coordinate reference system"),
+        ("earth", "not the Moon"),
+        ("geographic", "geographic CRS"),
+        ("equirectangular", "not a projection for a site"),
+        ("holes", "nodata holes"),
+        ("outside", "outside DEM"),
+        ("beyond", "beyond the edge"),
+        ("absurd_fine", "absurd"),
+        ("absurd_zero", "absurd"),
+        ("huge", "site too large"),
+    ],
+)
 def test_bad_dems_give_one_line_errors_and_write_nothing(tmp_path, capsys, case, needle):
     z = np.zeros((200, 200))
     good = terrain.polar_crs(LAT).to_wkt()
@@ -183,8 +197,24 @@ def test_bad_dems_give_one_line_errors_and_write_nothing(tmp_path, capsys, case,
             args["res"] = "5"
             args["radius"] = "4.9"
     out = tmp_path / "site.ply"
-    code, err = _cli(["mesh", "dem", str(dem), "--center-lat", str(args["lat"]), "--center-lon", str(LON),
-                      "--radius-km", args["radius"], "--resolution-m", args["res"], "-o", str(out)], capsys)
+    code, err = _cli(
+        [
+            "mesh",
+            "dem",
+            str(dem),
+            "--center-lat",
+            str(args["lat"]),
+            "--center-lon",
+            str(LON),
+            "--radius-km",
+            args["radius"],
+            "--resolution-m",
+            args["res"],
+            "-o",
+            str(out),
+        ],
+        capsys,
+    )
     assert code == 2
     assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err
     assert needle in err
@@ -195,20 +225,78 @@ def test_bad_dems_give_one_line_errors_and_write_nothing(tmp_path, capsys, case,
 
 def test_cli_synth_and_mesh_dem(tmp_path, capsys):
     tif = tmp_path / "s.tif"
-    cli.app(["dem", "synth", "--lat-deg", "-85", "--lon-deg", "30", "--size-km", "8", "--pixel-m", "40",
-             "--crater", "3", "--crater", "1@2,-2", "--roughness", "3", "-o", str(tif)], standalone_mode=False)
+    cli.app(
+        [
+            "dem",
+            "synth",
+            "--lat-deg",
+            "-85",
+            "--lon-deg",
+            "30",
+            "--size-km",
+            "8",
+            "--pixel-m",
+            "40",
+            "--crater",
+            "3",
+            "--crater",
+            "1@2,-2",
+            "--roughness",
+            "3",
+            "-o",
+            str(tif),
+        ],
+        standalone_mode=False,
+    )
     lbl = tmp_path / "s.lbl"
-    cli.app(["dem", "synth", "--lat-deg", "-85", "--lon-deg", "30", "--size-km", "8", "--pixel-m", "40",
-             "--crater", "3", "-o", str(lbl)], standalone_mode=False)
+    cli.app(
+        [
+            "dem",
+            "synth",
+            "--lat-deg",
+            "-85",
+            "--lon-deg",
+            "30",
+            "--size-km",
+            "8",
+            "--pixel-m",
+            "40",
+            "--crater",
+            "3",
+            "-o",
+            str(lbl),
+        ],
+        standalone_mode=False,
+    )
     assert (tmp_path / "s.IMG").exists() and (tmp_path / "s.LBL").exists()
     ply = tmp_path / "s.ply"
-    cli.app(["mesh", "dem", str(tif), "--center-lat", "-85", "--center-lon", "30", "--radius-km", "2",
-             "--resolution-m", "200", "--outer-radius-km", "3", "-o", str(ply)], standalone_mode=False)
+    cli.app(
+        [
+            "mesh",
+            "dem",
+            str(tif),
+            "--center-lat",
+            "-85",
+            "--center-lon",
+            "30",
+            "--radius-km",
+            "2",
+            "--resolution-m",
+            "200",
+            "--outer-radius-km",
+            "3",
+            "-o",
+            str(ply),
+        ],
+        standalone_mode=False,
+    )
     m = geometry.load_mesh(ply)
     assert m.meta["kind"] == "dem" and m.meta["outer_resolution_m"] == 800.0
     before = ply.read_bytes()
-    code, err = _cli(["mesh", "dem", str(tif), "--center-lat", "-85", "--center-lon", "30", "--radius-km", "2",
-                      "-o", str(ply)], capsys)
+    code, err = _cli(
+        ["mesh", "dem", str(tif), "--center-lat", "-85", "--center-lon", "30", "--radius-km", "2", "-o", str(ply)],
+        capsys,
+    )
     assert code == 2 and "exists" in err and ply.read_bytes() == before
     code, err = _cli(["dem", "synth", "--lat-deg", "-85", "--crater", "x@1", "-o", str(tmp_path / "b.tif")], capsys)
     assert code == 2 and "--crater" in err
@@ -249,22 +337,27 @@ def test_site_cases_name_their_dem_and_load_with_it(tmp_path, path):
     (tmp_path / dem_name).write_bytes(b"stand-in")  # the loader checks existence; the mesher reads it
     case = config.loads_case(text, base_dir=tmp_path, name=path.stem)
     assert case.crater.kind == "dem" and case.crater.dem == (tmp_path / dem_name).resolve()
-    est = terrain.estimate_site(case.crater.radius_km, case.crater.resolution_m, case.crater.outer_radius_km,
-                                case.crater.outer_resolution_m)
+    est = terrain.estimate_site(
+        case.crater.radius_km, case.crater.resolution_m, case.crater.outer_radius_km, case.crater.outer_resolution_m
+    )
     assert est["n_facets"] < 30_000  # the README's "fits 2 cores" sizes
 
 
 def test_dem_case_keys_are_validated(tmp_path):
     (tmp_path / "d.tif").write_bytes(b"x")
-    base = ('[crater]\nkind = "dem"\ndem = "d.tif"\nradius_km = 3.0\n{extra}[location]\nlat_deg = -85.0\n'
-            '[period]\nstart = "2019-01-01"\nend = "2019-02-01"\n')
+    base = (
+        '[crater]\nkind = "dem"\ndem = "d.tif"\nradius_km = 3.0\n{extra}[location]\nlat_deg = -85.0\n'
+        '[period]\nstart = "2019-01-01"\nend = "2019-02-01"\n'
+    )
     ok = config.loads_case(base.format(extra=""), base_dir=tmp_path)
     assert ok.crater.height_kind == "auto" and ok.crater.max_facets == terrain.MAX_FACETS
-    for extra, needle in (('center_lat_deg = -80.0\n', "differs from location.lat_deg"),
-                          ("resolution_m = -5.0\n", "resolution_m"),
-                          ('height_kind = "feet"\n', "height_kind"),
-                          ("outer_resolution_m = 500.0\n", "needs crater.outer_radius_km"),
-                          ("outer_radius_km = 2.0\n", "must exceed"),
-                          ("diameter_km = 2.0\n", "diameter_km")):
+    for extra, needle in (
+        ("center_lat_deg = -80.0\n", "differs from location.lat_deg"),
+        ("resolution_m = -5.0\n", "resolution_m"),
+        ('height_kind = "feet"\n', "height_kind"),
+        ("outer_resolution_m = 500.0\n", "needs crater.outer_radius_km"),
+        ("outer_radius_km = 2.0\n", "must exceed"),
+        ("diameter_km = 2.0\n", "diameter_km"),
+    ):
         with pytest.raises(ConfigError, match=needle):
             config.loads_case(base.format(extra=extra), base_dir=tmp_path)

@@ -164,7 +164,9 @@ def test_downward_mesh_refused_then_flipped(tmp_path):
     assert not (tmp_path / "a.nc").exists()
     good = subprocess.run(cmd + ["--flip", "-o", str(tmp_path / "b.nc")], capture_output=True, text=True)
     assert good.returncode == 0, good.stderr
-    text = ('[crater]\nkind = "mesh"\nmesh = "down.ply"\nflip = true\n[location]\nlat_deg = -85.0\n'
-            '[period]\nstart = "2019-01-01"\nend = "2019-01-02"\n')
+    text = (
+        '[crater]\nkind = "mesh"\nmesh = "down.ply"\nflip = true\n[location]\nlat_deg = -85.0\n'
+        '[period]\nstart = "2019-01-01"\nend = "2019-01-02"\n'
+    )
     mesh = case_mesh(loads_case(text, base_dir=tmp_path))
     assert mesh.normals[:, 2].min() > 0.0

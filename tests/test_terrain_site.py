@@ -80,8 +80,10 @@ def test_crater_as_dem_matches_the_generator(crater_dem):
 
     geometry.save_mesh(gen, tmp / "gen.ply", overwrite=True)
     night = {}
-    for name, crater in (("gen", 'kind = "mesh"\nmesh = "gen.ply"'),
-                         ("dem", f'kind = "dem"\ndem = "crater.tif"\nradius_km = {r_foot_km!r}\nresolution_m = 100.0')):
+    for name, crater in (
+        ("gen", 'kind = "mesh"\nmesh = "gen.ply"'),
+        ("dem", f'kind = "dem"\ndem = "crater.tif"\nradius_km = {r_foot_km!r}\nresolution_m = 100.0'),
+    ):
         out = simulate.run_case(_case(tmp, name, crater), tmp / f"{name}.nc", overwrite=True, progress=False)
         ds = io.open_run(out)
         dark = ds["sun_direction"].values[:, 2] < 0
@@ -98,11 +100,35 @@ def test_crater_as_dem_matches_the_generator(crater_dem):
 def test_synthetic_site_end_to_end(tmp_path):
     """dem synth -> [crater] kind = "dem" run (with an outer ring) -> replay -> report with the site sections."""
     tif = tmp_path / "site.tif"
-    cli.app(["dem", "synth", "--lat-deg", "-87", "--lon-deg", "45", "--size-km", "7", "--pixel-m", "40",
-             "--crater", "1.2", "--crater", "0.6@1.0,-0.8", "--roughness", "4", "--seed", "2", "-o", str(tif)],
-            standalone_mode=False)
-    crater = ('kind = "dem"\ndem = "site.tif"\nradius_km = 1.2\nresolution_m = 200.0\n'
-              "outer_radius_km = 2.5\nouter_resolution_m = 600.0")
+    cli.app(
+        [
+            "dem",
+            "synth",
+            "--lat-deg",
+            "-87",
+            "--lon-deg",
+            "45",
+            "--size-km",
+            "7",
+            "--pixel-m",
+            "40",
+            "--crater",
+            "1.2",
+            "--crater",
+            "0.6@1.0,-0.8",
+            "--roughness",
+            "4",
+            "--seed",
+            "2",
+            "-o",
+            str(tif),
+        ],
+        standalone_mode=False,
+    )
+    crater = (
+        'kind = "dem"\ndem = "site.tif"\nradius_km = 1.2\nresolution_m = 200.0\n'
+        "outer_radius_km = 2.5\nouter_resolution_m = 600.0"
+    )
     text = CASE.format(name="site", crater=crater, lat=-87.0, lon=45.0)
     text = text.replace('end = "2019-01-08"', 'end = "2019-01-03"').replace("spinup_days = 29.53", "spinup_days = 3.0")
     (tmp_path / "site.toml").write_text(text)  # short: a smoke test of the whole chain, not of the physics
@@ -115,8 +141,9 @@ def test_synthetic_site_end_to_end(tmp_path):
     assert json.loads(ds.attrs["mesh_meta"])["outer_radius_km"] == 2.5
     ds.close()
     with pytest.warns(DensityExtrapolationWarning):  # 800 kg m-3 is below Table 7.2 (the thesis's loose)
-        rep = simulate.replay_file(run, ["1300/1800", "800/1100"], fixed_spinup=True,
-                                   output=tmp_path / "replay.nc", progress=False)
+        rep = simulate.replay_file(
+            run, ["1300/1800", "800/1100"], fixed_spinup=True, output=tmp_path / "replay.nc", progress=False
+        )
     rds = io.open_replay(rep)
     assert "inner" in rds
     rds.close()

@@ -138,8 +138,13 @@ def test_geothermal_steady_state(which):
     Backward steps of 1e9 s (the scheme is L-stable) reach the fixed point."""
     Q, G, eps = 2.0, 0.033, 0.98
     if which == "constant":
-        s = th.ColumnSolver(["1300/1800"], property_set=mat.constant_set(2e-3, 1500.0, 500.0),
-                            emissivity=eps, geothermal_flux=G, dt_max=1e9)
+        s = th.ColumnSolver(
+            ["1300/1800"],
+            property_set=mat.constant_set(2e-3, 1500.0, 500.0),
+            emissivity=eps,
+            geothermal_flux=G,
+            dt_max=1e9,
+        )
     else:
         s = th.ColumnSolver([which], emissivity=eps, geothermal_flux=G, dt_max=1e9)
     s.set_uniform(100.0)
@@ -166,8 +171,9 @@ def test_geothermal_steady_state(which):
 
 def test_very_low_conductivity_tracks_radiative_equilibrium():
     """k -> 0 and tiny heat capacity: the surface is in instantaneous radiative equilibrium."""
-    s = th.ColumnSolver(["1300/1800"], property_set=mat.constant_set(1e-9, 100.0, 1.0),
-                        emissivity=0.95, geothermal_flux=0.0)
+    s = th.ColumnSolver(
+        ["1300/1800"], property_set=mat.constant_set(1e-9, 100.0, 1.0), emissivity=0.95, geothermal_flux=0.0
+    )
     t = np.arange(0.0, LUNAR_DAY, FLUX_STEP)
     Q = forcing("wall", t)
     s.set_uniform(float((Q[0] / (0.95 * SIGMA)) ** 0.25))

@@ -13,8 +13,9 @@ from crater_thermal.raytrace import RayTracer
 from crater_thermal.viewfactors import view_factor_matrix
 
 
-def terrain_mesh(n_facets, size_m=20_000.0, diameter_m=10_000.0, depth_m=2_000.0, rough_m=0.0, flat_plain=False,
-                 seed=0):
+def terrain_mesh(
+    n_facets, size_m=20_000.0, diameter_m=10_000.0, depth_m=2_000.0, rough_m=0.0, flat_plain=False, seed=0
+):
     """Height field on a regular grid (two triangles per cell): a paraboloid crater in a plain, with a
     raised rim and optional Gaussian roughness; ``flat_plain``: exactly z = 0 outside the crater."""
     k = max(2, int(round(np.sqrt(n_facets / 2.0))))

@@ -1,6 +1,5 @@
 """Tests for crater_thermal.viewfactors: analytic cavities, reciprocity, visibility, near pairs, cache."""
 
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -83,7 +82,7 @@ def _two_plates(n, gap=None, blocker=False):
 def _plate_to_plate(m, nA):
     F = view_factor_matrix(m)
     A = m.areas
-    return float((A[:nA, None] * F[:nA, nA:2 * nA].toarray()).sum() / A[:nA].sum())
+    return float((A[:nA, None] * F[:nA, nA : 2 * nA].toarray()).sum() / A[:nA].sum())
 
 
 def test_perpendicular_squares_sharing_an_edge():

@@ -15,8 +15,11 @@ from synthetic import make_replay, make_run
 
 pytest.importorskip("pyvista")
 
-ENV = {**os.environ, "PYTHONPATH": str(viz.Path(viz.__file__).resolve().parents[1]),
-       "VTK_DEFAULT_OPENGL_WINDOW": os.environ.get("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")}
+ENV = {
+    **os.environ,
+    "PYTHONPATH": str(viz.Path(viz.__file__).resolve().parents[1]),
+    "VTK_DEFAULT_OPENGL_WINDOW": os.environ.get("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow"),
+}
 
 
 @pytest.fixture(scope="module")
@@ -75,14 +78,40 @@ def test_bad_arguments(files, tmp_path):
 
 
 def test_cli_show(files, tmp_path):
-    out = subprocess.run([sys.executable, "-m", "crater_thermal", "show", str(files / "run.nc"),
-                          "--screenshot", str(tmp_path / "c.png")], capture_output=True, text=True, env=ENV,
-                         timeout=120)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "crater_thermal",
+            "show",
+            str(files / "run.nc"),
+            "--screenshot",
+            str(tmp_path / "c.png"),
+        ],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     assert _mesh_pixels(tmp_path / "c.png") > 0.10
-    bad = subprocess.run([sys.executable, "-m", "crater_thermal", "show", str(files / "run.nc"), "--var", "nope",
-                          "--screenshot", str(tmp_path / "n.png")], capture_output=True, text=True, env=ENV,
-                         timeout=120)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "crater_thermal",
+            "show",
+            str(files / "run.nc"),
+            "--var",
+            "nope",
+            "--screenshot",
+            str(tmp_path / "n.png"),
+        ],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=120,
+    )
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "var=" in bad.stderr
 
 
@@ -94,4 +123,3 @@ def test_mp4_animation_through_imageio_ffmpeg(files, tmp_path):
     n_frames, _ = imageio_ffmpeg.count_frames_and_secs(str(tmp_path / "a.mp4"))
     assert n_frames == 3
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
-

@@ -37,20 +37,28 @@ def main(T_nom: float = 58.1, dT: float = -2.77) -> dict:
         "scatter_0.47K_m10": ins.Observation(natural_scatter_K=0.47, reference_footprints=10),
         "no_scatter": ins.Observation(natural_scatter_K=0.0),
     }
-    out = {"T_nominal_K": T_nom, "dT_K": dT, "observations": {k: v.as_dict() for k, v in variants.items()},
-           "instruments": {}}
+    out = {
+        "T_nominal_K": T_nom,
+        "dT_K": dT,
+        "observations": {k: v.as_dict() for k, v in variants.items()},
+        "instruments": {},
+    }
     rows = []
     for name, inst in ins.PRESETS.items():
         res = {k: ins.dwell_for_detection(dT, T_nom, inst, o) for k, o in variants.items()}
         band = ins.band_table([T_nom, 300.0], [inst])[name]
         out["instruments"][name] = {"instrument": inst.as_dict(), "band": band, "results": res}
-        rows.append(f"| {name} | {inst.lo_um:g}-{inst.hi_um:g} | {band['band_radiance_W_m2_sr'][0]:.3g} | "
-                    f"{band['netd_K'][0]:.3g} | " + " | ".join(_dwell(res[k]) for k in variants) + " |")
+        rows.append(
+            f"| {name} | {inst.lo_um:g}-{inst.hi_um:g} | {band['band_radiance_W_m2_sr'][0]:.3g} | "
+            f"{band['netd_K'][0]:.3g} | " + " | ".join(_dwell(res[k]) for k in variants) + " |"
+        )
     (REPO / "validation" / "results").mkdir(exist_ok=True)
     (REPO / "validation" / "results" / "detectability.json").write_text(json.dumps(out, indent=2) + "\n")
     print(f"Scene: nominal {T_nom:g} K, loose - nominal {dT:g} K; P_D >= 0.9 at 1% false alarms, one-sided.\n")
-    print("| instrument | band [um] | band radiance at scene [W m-2 sr-1] | NETD at scene [K] | "
-          "0.94 K scatter, 1 reference | 0.47 K, 1 ref. | 0.94 K, 10 ref. | 0.47 K, 10 ref. | no scatter |")
+    print(
+        "| instrument | band [um] | band radiance at scene [W m-2 sr-1] | NETD at scene [K] | "
+        "0.94 K scatter, 1 reference | 0.47 K, 1 ref. | 0.94 K, 10 ref. | 0.47 K, 10 ref. | no scatter |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     return out

@@ -48,13 +48,20 @@ def main() -> None:
     night = analysis.night_mask(run)
     floor = analysis.regions_of(run) == "floor"
     eps = float(ds.attrs["emissivity"])
-    out = {"run": _shown(run_nc), "lat_deg": float(run.attrs["lat_deg"]),
-           "night_floor_absorbed_ir_median_W_m2": float(np.median(eps * ds["ir_incident"].values[night][:, floor])),
-           # year mean of what the floor absorbs: sunlight (direct and scattered) and the walls' IR
-           "floor_absorbed_year_mean_W_m2": float(np.mean(
-               ((1 - float(ds.attrs["albedo"])) * ds["solar_incident"].values
-                + eps * ds["ir_incident"].values)[:, floor])),
-           "night_floor_T_median_K": {}}
+    out = {
+        "run": _shown(run_nc),
+        "lat_deg": float(run.attrs["lat_deg"]),
+        "night_floor_absorbed_ir_median_W_m2": float(np.median(eps * ds["ir_incident"].values[night][:, floor])),
+        # year mean of what the floor absorbs: sunlight (direct and scattered) and the walls' IR
+        "floor_absorbed_year_mean_W_m2": float(
+            np.mean(
+                ((1 - float(ds.attrs["albedo"])) * ds["solar_incident"].values + eps * ds["ir_incident"].values)[
+                    :, floor
+                ]
+            )
+        ),
+        "night_floor_T_median_K": {},
+    }
     nominal = thermal.parse_profile("1300/1800")
     for q in FLUXES_W_M2:
         T, _ = simulate.replay_fluxes(ds, [nominal], geothermal_flux=q, progress=False)

@@ -35,8 +35,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         run_nom = io.open_run(simulate.run_case(nominal, Path(tmp) / "nom.nc", progress=False))
         run_loose = io.open_run(simulate.run_case(loose, Path(tmp) / "loose.nc", progress=False))
-    T_replay, _ = simulate.replay_fluxes(run_nom, simulate.resolve_profiles(["1300/1800", "800/1100"]),
-                                         progress=False)
+    T_replay, _ = simulate.replay_fluxes(run_nom, simulate.resolve_profiles(["1300/1800", "800/1100"]), progress=False)
     night = run_nom["sun_direction"].values[:, 2] < 0
     # inside the rim crest only: the outer flank sees little of the crater, so its IR hardly matters
     meta = json.loads(run_nom.attrs["mesh_meta"])

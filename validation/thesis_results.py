@@ -61,10 +61,13 @@ def _case_numbers(folder: Path) -> dict | None:
     loose = analysis.profile_temperature(rep, "800/1100") - T_nom
     rock = analysis.profile_temperature(rep, "rock") - T_nom if "rock" in list(rep["profile"].values) else None
     nf = T_nom.shape[1]
-    out = {"lat_deg": float(run.attrs["lat_deg"]), "start_method": run.attrs.get("start_method", ""),
-           "albedo_model": str(run.attrs.get("albedo_model", "constant")),
-           "start_residual_max_K": float(np.nanmax(run["start_residual"].values)) if "start_residual" in run else None,
-           "night_definition": "facet, 24 h without direct sunlight"}
+    out = {
+        "lat_deg": float(run.attrs["lat_deg"]),
+        "start_method": run.attrs.get("start_method", ""),
+        "albedo_model": str(run.attrs.get("albedo_model", "constant")),
+        "start_residual_max_K": float(np.nanmax(run["start_residual"].values)) if "start_residual" in run else None,
+        "night_definition": "facet, 24 h without direct sunlight",
+    }
 
     def med(a, smask, region):
         m = np.ones(nf, bool) if region is None else region
@@ -121,7 +124,7 @@ def main() -> None:
     if "--albedo" in args:
         i = args.index("--albedo")
         albedo_dir = Path(args[i + 1])
-        del args[i:i + 2]
+        del args[i : i + 2]
     if not args:
         sys.exit(__doc__)
     conv_dir = Path(args[0])
@@ -145,48 +148,59 @@ def main() -> None:
     (out / "thesis_results.json").write_text(json.dumps(result, indent=2) + "\n")
 
     f = lambda v, n=2: "—" if v is None else f"{v:.{n}f}"  # noqa: E731
-    print("| lat | night floor T, nominal [K] | night loose − nominal: floor / equator-facing upper wall / its top "
-          "ring / often lit [K] | lit \\|loose − nominal\\|, equator-facing upper wall [K] "
-          "| \\|rock − nominal\\| floor [K] | thesis night (crater centre): floor T, floor ΔT / thesis \"sunlit upper wall\" ΔT [K] "
-          "| 3-yr spin-up: floor T, floor ΔT [K] |")
+    print(
+        "| lat | night floor T, nominal [K] | night loose − nominal: floor / equator-facing upper wall / its top "
+        "ring / often lit [K] | lit \\|loose − nominal\\|, equator-facing upper wall [K] "
+        "| \\|rock − nominal\\| floor [K] "
+        '| thesis night (crater centre): floor T, floor ΔT / thesis "sunlit upper wall" ΔT [K] '
+        "| 3-yr spin-up: floor T, floor ΔT [K] |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, c in result["converged"].items():
         fa = result["faithful"].get(name)
         faith = f"{f(fa['night_T_nominal_floor_K'], 1)}, {f(fa['night_dT_loose_floor_K'])}" if fa else "—"
-        print(f"| {c['lat_deg']:g}° | {f(c['night_T_nominal_floor_K'], 1)} | {f(c['night_dT_loose_floor_K'])} / "
-              f"{f(c['night_dT_loose_upper_wall_equator_facing_K'])} / "
-              f"{f(c['night_dT_loose_top_wall_ring_equator_facing_K'])} / {f(c['night_dT_loose_often_lit_K'])} | "
-              f"{f(c['lit_abs_dT_loose_upper_wall_equator_facing_K'])} | {f(c.get('all_abs_dT_rock_floor_K'), 1)} | "
-              f"{f(c['centre_night_T_nominal_floor_K'], 1)}, {f(c['centre_night_dT_loose_floor_K'])} / "
-              f"{f(c['centre_night_dT_loose_upper_wall_sunlit_thesis_K'])}"
-              f" | {faith} |")
+        print(
+            f"| {c['lat_deg']:g}° | {f(c['night_T_nominal_floor_K'], 1)} | {f(c['night_dT_loose_floor_K'])} / "
+            f"{f(c['night_dT_loose_upper_wall_equator_facing_K'])} / "
+            f"{f(c['night_dT_loose_top_wall_ring_equator_facing_K'])} / {f(c['night_dT_loose_often_lit_K'])} | "
+            f"{f(c['lit_abs_dT_loose_upper_wall_equator_facing_K'])} | {f(c.get('all_abs_dT_rock_floor_K'), 1)} | "
+            f"{f(c['centre_night_T_nominal_floor_K'], 1)}, {f(c['centre_night_dT_loose_floor_K'])} / "
+            f"{f(c['centre_night_dT_loose_upper_wall_sunlit_thesis_K'])}"
+            f" | {faith} |"
+        )
     print()
     print("| flat lat | night loose−nominal Q1 / median / Q3 [K] | lit loose−nominal Q1 / median / Q3 [K] |")
     print("|---|---|---|")
     fmt = lambda qs: "—" if qs is None else " / ".join(f(v) for v in qs)  # noqa: E731
-    for name, c in result["flat"].items():
+    for c in result["flat"].values():
         print(f"| {c['lat_deg']:g}° | {fmt(c['night_dT_loose_quartiles_K'])} | {fmt(c['day_dT_loose_quartiles_K'])} |")
     if result["hayne2017"] or result["hayne2017_flat"]:
         print()
-        print("| case | mean T nominal, constant → hayne2017 [K] | night floor T [K] | equator-facing upper wall: "
-              "mean T / max T [K] | night loose − nominal floor [K] | night loose − nominal eq.-facing upper wall [K] |")
+        print(
+            "| case | mean T nominal, constant → hayne2017 [K] | night floor T [K] | equator-facing upper wall: "
+            "mean T / max T [K] | night loose − nominal floor [K] | night loose − nominal eq.-facing upper wall [K] |"
+        )
         print("|---|---|---|---|---|---|")
         pairs = [(k, result["converged"].get(k), v) for k, v in result["hayne2017"].items()]
         pairs += [(k, result["flat"].get(k), v) for k, v in result["hayne2017_flat"].items()]
         for name, c, h in pairs:
             if c is None:
                 continue
-            arrow = lambda key, n=2: f"{f(c.get(key), n)} → {f(h.get(key), n)}"  # noqa: E731
-            print(f"| {name} | {arrow('mean_T_nominal_K', 1)} | {arrow('night_T_nominal_floor_K', 1)} | "
-                  f"{arrow('mean_T_nominal_upper_wall_equator_facing_K', 1)} / "
-                  f"{arrow('max_T_nominal_upper_wall_equator_facing_K', 1)} | {arrow('night_dT_loose_floor_K')} | "
-                  f"{arrow('night_dT_loose_upper_wall_equator_facing_K')} |")
+            arrow = lambda key, n=2, c=c, h=h: f"{f(c.get(key), n)} → {f(h.get(key), n)}"  # noqa: E731
+            print(
+                f"| {name} | {arrow('mean_T_nominal_K', 1)} | {arrow('night_T_nominal_floor_K', 1)} | "
+                f"{arrow('mean_T_nominal_upper_wall_equator_facing_K', 1)} / "
+                f"{arrow('max_T_nominal_upper_wall_equator_facing_K', 1)} | {arrow('night_dT_loose_floor_K')} | "
+                f"{arrow('night_dT_loose_upper_wall_equator_facing_K')} |"
+            )
         for name, c, h in pairs:
             if c is not None and name.startswith("flat"):
-                print(f"| {name} night/day median T [K] | {f(c['night_T_nominal_median_K'], 1)} → "
-                      f"{f(h['night_T_nominal_median_K'], 1)} / {f(c['day_T_nominal_median_K'], 1)} → "
-                      f"{f(h['day_T_nominal_median_K'], 1)}; night ΔT quartiles "
-                      f"{fmt(c['night_dT_loose_quartiles_K'])} → {fmt(h['night_dT_loose_quartiles_K'])} |")
+                print(
+                    f"| {name} night/day median T [K] | {f(c['night_T_nominal_median_K'], 1)} → "
+                    f"{f(h['night_T_nominal_median_K'], 1)} / {f(c['day_T_nominal_median_K'], 1)} → "
+                    f"{f(h['day_T_nominal_median_K'], 1)}; night ΔT quartiles "
+                    f"{fmt(c['night_dT_loose_quartiles_K'])} → {fmt(h['night_dT_loose_quartiles_K'])} |"
+                )
 
 
 if __name__ == "__main__":

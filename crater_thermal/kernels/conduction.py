@@ -179,8 +179,35 @@ def _newton(alpha, a4, rhs, tguess, st, j):
 
 
 @njit(cache=True, error_model="numpy")
-def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, qa, qb,
-          K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used):
+def _step(
+    T,
+    m,
+    b0,
+    b3,
+    e0,
+    e1,
+    anyrock,
+    ccoef,
+    ctmin,
+    rdz,
+    es,
+    G,
+    scheme,
+    dt,
+    qa,
+    qb,
+    K,
+    Cc,
+    R,
+    Tg,
+    p,
+    q,
+    st,
+    e_abs,
+    e_emit,
+    alt_add,
+    alt_used,
+):
     """One time step of a batch of columns (T: (nz, LANES)) in place; absorbed flux qa (LANES,)
     at the start, qb at the end. Adds the step's absorbed / emitted energy [J m-2] (with the
     scheme's quadrature) to e_abs, e_emit.
@@ -259,8 +286,32 @@ def _step(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt, q
 
 
 @njit(cache=True, error_model="numpy")
-def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max, adapt_K,
-               times, absorbed, fidx, out, record, acc, status, fail_idx):
+def _run_batch(
+    bi,
+    T,
+    m,
+    b0,
+    b3,
+    e0,
+    e1,
+    rock,
+    ccoef,
+    ctmin,
+    rdz,
+    es,
+    G,
+    scheme,
+    dt_max,
+    adapt_K,
+    times,
+    absorbed,
+    fidx,
+    out,
+    record,
+    acc,
+    status,
+    fail_idx,
+):
     """Advance columns bi*LANES ... (bi+1)*LANES-1 (see :func:`run_columns`)."""
     ncol, nz = T.shape
     nt = times.shape[0]
@@ -334,8 +385,35 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
                     ea_s[j] = e_abs[j]
                     ee_s[j] = e_emit[j]
                     st_s[j] = st[j]
-            _step(Tb, mb, b0b, b3b, e0b, e1b, anyrock, ccoef, ctmin, rdz, es, G, scheme, dt,
-                  qa, qb, K, Cc, R, Tg, p, q, st, e_abs, e_emit, alt_add, alt_used)
+            _step(
+                Tb,
+                mb,
+                b0b,
+                b3b,
+                e0b,
+                e1b,
+                anyrock,
+                ccoef,
+                ctmin,
+                rdz,
+                es,
+                G,
+                scheme,
+                dt,
+                qa,
+                qb,
+                K,
+                Cc,
+                R,
+                Tg,
+                p,
+                q,
+                st,
+                e_abs,
+                e_emit,
+                alt_add,
+                alt_used,
+            )
             if adapt:
                 # adaptive refinement, decided per column (so that a column's result never
                 # depends on the other columns of its batch): where the surface curved strongly
@@ -358,12 +436,35 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
                     for r in range(N_REFINE):
                         q2a[j] = qa[j] + (qb[j] - qa[j]) * (r / N_REFINE)
                         q2b[j] = qa[j] + (qb[j] - qa[j]) * ((r + 1) / N_REFINE)
-                        _step(Tb[:, j:j + 1], mb[:, j:j + 1], b0b[:, j:j + 1], b3b[:, j:j + 1],
-                              e0b[:, j:j + 1], e1b[:, j:j + 1], anyrock, ccoef, ctmin, rdz, es, G,
-                              scheme, dt / N_REFINE, q2a[j:j + 1], q2b[j:j + 1], K[:, j:j + 1],
-                              Cc[:, j:j + 1], R[:, j:j + 1], Tg[:, j:j + 1], p[:, j:j + 1],
-                              q[:, j:j + 1], st[j:j + 1], e_abs[j:j + 1], e_emit[j:j + 1],
-                              alt_add[j:j + 1], alt_used[j:j + 1])
+                        _step(
+                            Tb[:, j : j + 1],
+                            mb[:, j : j + 1],
+                            b0b[:, j : j + 1],
+                            b3b[:, j : j + 1],
+                            e0b[:, j : j + 1],
+                            e1b[:, j : j + 1],
+                            anyrock,
+                            ccoef,
+                            ctmin,
+                            rdz,
+                            es,
+                            G,
+                            scheme,
+                            dt / N_REFINE,
+                            q2a[j : j + 1],
+                            q2b[j : j + 1],
+                            K[:, j : j + 1],
+                            Cc[:, j : j + 1],
+                            R[:, j : j + 1],
+                            Tg[:, j : j + 1],
+                            p[:, j : j + 1],
+                            q[:, j : j + 1],
+                            st[j : j + 1],
+                            e_abs[j : j + 1],
+                            e_emit[j : j + 1],
+                            alt_add[j : j + 1],
+                            alt_used[j : j + 1],
+                        )
                         t0 = Tb[0, j]
                         hs += dt / N_REFINE * 4.0 * es * t0 * t0 * t0
                     a_h[j] += hs
@@ -404,8 +505,31 @@ def _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme,
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max, adapt_K,
-                times, absorbed, fidx, out, record, acc, status, fail_idx):
+def run_columns(
+    T,
+    m,
+    b0,
+    b3,
+    e0,
+    e1,
+    rock,
+    ccoef,
+    ctmin,
+    rdz,
+    es,
+    G,
+    scheme,
+    dt_max,
+    adapt_K,
+    times,
+    absorbed,
+    fidx,
+    out,
+    record,
+    acc,
+    status,
+    fail_idx,
+):
     """Advance every column through the forcing samples ``times``.
 
     Parameters
@@ -425,19 +549,90 @@ def run_columns(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt
     """
     nb = (T.shape[0] + LANES - 1) // LANES
     for bi in prange(nb):
-        _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
-                   adapt_K, times, absorbed, fidx, out, record, acc, status, fail_idx)
+        _run_batch(
+            bi,
+            T,
+            m,
+            b0,
+            b3,
+            e0,
+            e1,
+            rock,
+            ccoef,
+            ctmin,
+            rdz,
+            es,
+            G,
+            scheme,
+            dt_max,
+            adapt_K,
+            times,
+            absorbed,
+            fidx,
+            out,
+            record,
+            acc,
+            status,
+            fail_idx,
+        )
 
 
 @njit(cache=True, error_model="numpy")
-def run_columns_serial(T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
-                       adapt_K, times, absorbed, fidx, out, record, acc, status, fail_idx):
+def run_columns_serial(
+    T,
+    m,
+    b0,
+    b3,
+    e0,
+    e1,
+    rock,
+    ccoef,
+    ctmin,
+    rdz,
+    es,
+    G,
+    scheme,
+    dt_max,
+    adapt_K,
+    times,
+    absorbed,
+    fidx,
+    out,
+    record,
+    acc,
+    status,
+    fail_idx,
+):
     """As :func:`run_columns` in the calling thread (no thread-pool start-up: for few columns,
     e.g. the per-step calls of a small coupled run on a busy machine)."""
     nb = (T.shape[0] + LANES - 1) // LANES
     for bi in range(nb):
-        _run_batch(bi, T, m, b0, b3, e0, e1, rock, ccoef, ctmin, rdz, es, G, scheme, dt_max,
-                   adapt_K, times, absorbed, fidx, out, record, acc, status, fail_idx)
+        _run_batch(
+            bi,
+            T,
+            m,
+            b0,
+            b3,
+            e0,
+            e1,
+            rock,
+            ccoef,
+            ctmin,
+            rdz,
+            es,
+            G,
+            scheme,
+            dt_max,
+            adapt_K,
+            times,
+            absorbed,
+            fidx,
+            out,
+            record,
+            acc,
+            status,
+            fail_idx,
+        )
 
 
 @njit(parallel=True, cache=True, error_model="numpy")

@@ -63,8 +63,9 @@ def scatter_visible(n, pos, val, blocked, out):
 
 
 @njit(nogil=True, cache=True)
-def near_block_pairs(r0, r1, c0, c1, diag, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut,
-                     o32, d32, pi_, pj_, gg, need, near_kernel):
+def near_block_pairs(
+    r0, r1, c0, c1, diag, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o32, d32, pi_, pj_, gg, need, near_kernel
+):
     """Candidate pairs of a near block (rows r0..r1-1, columns c0..c1-1; ``diag``: only j > i).
 
     Same rule as the exact matrix: sub-facet quadrature for pairs closer than ``near_factor`` facet

@@ -47,8 +47,9 @@ def main(kernels: Path, out: Path = HERE / "sun_moon_me_de421.npz") -> Path:
         frame = pc.build_frame_named("MOON_ME_DE421")
         ts = load.timescale(builtin=True)
         kernel = load_file(str(eph.de421_path()))
-        t = ts.from_datetimes([x.replace(tzinfo=dt.timezone.utc)
-                               for x in times.astype("datetime64[us]").astype(object)])
+        t = ts.from_datetimes(
+            [x.replace(tzinfo=dt.timezone.utc) for x in times.astype("datetime64[us]").astype(object)]
+        )
         enu, dist = [], []
         for lat, lon in SITES:
             site = kernel["moon"] + pc.build_latlon_degrees(frame, lat, lon)
@@ -57,8 +58,15 @@ def main(kernels: Path, out: Path = HERE / "sun_moon_me_de421.npz") -> Path:
             enu.append(np.stack([np.sin(az.radians) * ca, np.cos(az.radians) * ca, np.sin(alt.radians)], axis=-1))
             dist.append(d.m)
         kernel.close()
-    np.savez_compressed(out, times=times, sites=np.array(SITES), enu=np.array(enu), distance_m=np.array(dist),
-                        skyfield_version=skyfield.__version__, numpy_version=np.__version__)
+    np.savez_compressed(
+        out,
+        times=times,
+        sites=np.array(SITES),
+        enu=np.array(enu),
+        distance_m=np.array(dist),
+        skyfield_version=skyfield.__version__,
+        numpy_version=np.__version__,
+    )
     return out
 
 
