@@ -469,6 +469,14 @@ RUN_SERIES_ATTRS = {
     "ir_incident": {"units": "W m-2", "long_name": "longwave irradiance from the terrain"},
     "solar_direct": {"units": "W m-2", "long_name": "direct solar irradiance"},
     "surface_temperature": {"units": "K"},
+    "solar_absorbed": {
+        "units": "W m-2",
+        "long_name": "absorbed shortwave flux (incidence-dependent albedo of direct light, albedo_model)",
+    },
+    "spinup_solar_absorbed": {
+        "units": "W m-2",
+        "long_name": "absorbed shortwave flux over the spin-up window (albedo_model)",
+    },
 }
 
 
@@ -655,8 +663,7 @@ def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
                 raise FluxFileError(
                     f"{path}: '{name}' has units {ds[name].attrs.get('units')!r}, expected {FLUX_UNITS[0]!r}"
                 )
-            v = ds[name].values
-            if not np.all(np.isfinite(v)) or np.any(v < 0):
+            if any(not np.all(np.isfinite(v)) or np.any(v < 0) for v in _blocks(ds[name])):
                 raise FluxFileError(f"{path}: '{name}' has NaN/inf or negative values")
     _check_attr_range(ds, path, "albedo", 0.0, 1.0)
     _check_attr_range(ds, path, "emissivity", 1e-6, 1.0)

@@ -87,12 +87,15 @@ class CoupledStepper:
     solver : thermal.ColumnSolver with one column per facet.
     F : vfoperator.ViewFactorOperator (or a sparse (nf, nf) matrix), or None for no exchange (flat ground).
     albedo, emissivity : [-]
+    solar_is_absorbed : the sunlight rows handed to :meth:`step` are already the absorbed sunlight
+        [W m-2] (an incidence-dependent albedo, ``[surface] albedo_model``), not the incident one.
     """
 
     solver: object
     F: object
     albedo: float
     emissivity: float
+    solar_is_absorbed: bool = False
 
     def ir(self, T_surface: np.ndarray) -> np.ndarray:
         """IR irradiance [W m-2] on every facet from the others' emission."""
@@ -103,6 +106,9 @@ class CoupledStepper:
         return np.maximum(ir, 0.0)
 
     def absorbed(self, solar: np.ndarray, ir: np.ndarray) -> np.ndarray:
+        """Absorbed flux [W m-2] of sunlight rows (incident, or absorbed when ``solar_is_absorbed``) and IR."""
+        if self.solar_is_absorbed:
+            return solar + self.emissivity * ir
         return (1.0 - self.albedo) * solar + self.emissivity * ir
 
     def step(self, solar_k, solar_k1, ir_k, duration_s):
@@ -482,6 +488,7 @@ class Forcing:
     direct: np.ndarray | None = None  # (ns + nt - 1, nf) [W m-2]
     solar: np.ndarray | None = None  # direct + scattered [W m-2]
     store: object = None  # io.SegmentStore with series "direct" and "solar" (streamed runs)
+    drive: str = "solar"  # series the stepper consumes: "solar", or "absorbed" (incidence-dependent albedo)
 
     @property
     def n_spin(self) -> int:
@@ -500,7 +507,7 @@ class Forcing:
         return arr[:ns], arr[ns - 1 :]
 
     def rows(self, name: str, k0: int, k1: int) -> np.ndarray:
-        """Rows ``k0 .. k1 - 1`` of ``"direct"`` or ``"solar"`` over spin-up + record [W m-2]."""
+        """Rows ``k0 .. k1 - 1`` of ``"direct"``, ``"solar"`` or ``"absorbed"`` over spin-up + record [W m-2]."""
         if self.store is not None:
             return self.store.read(name, k0, k1)
         return getattr(self, name)[k0:k1]
@@ -581,7 +588,7 @@ class Sunlight:
 
         timer = timer or Timer()
         sun = case.sun
-        self.case, self.mesh, self.tracer = case, mesh, tracer
+        self.case, self.mesh, self.tracer, self.F = case, mesh, tracer, F
         self.method = getattr(sun, "method", "horizon")
         self.hmap = self.disk = None
         if self.method == "horizon":
@@ -639,6 +646,26 @@ class Sunlight:
         with timer("radiosity"):
             solar = direct if self.scat is None else self.scat.solar_incident(direct)
         return direct, solar
+
+    @property
+    def incidence_dependent(self) -> bool:
+        """Whether direct sunlight is reflected with an incidence-dependent albedo A(i)."""
+        return getattr(self.case.surface, "albedo_model", "constant") != "constant"
+
+    def with_absorbed(self, sun_dirs, sun_dist_m, timer: Timer):
+        """``(direct, solar, absorbed)`` (n, nf) [W m-2]; ``absorbed`` is None for a constant albedo
+        (then it is ``(1 - A) solar``), else :func:`absorbed_sunlight` with the case's ``albedo_model``
+        (and ``solar`` its scattered light of A(i)-reflected direct light)."""
+        if not self.incidence_dependent:
+            return (*self(sun_dirs, sun_dist_m, timer), None)
+        scat, self.scat = self.scat, None  # direct light only: the scattering is done with A(i) below
+        try:
+            direct, _ = self(sun_dirs, sun_dist_m, timer)
+        finally:
+            self.scat = scat
+        with timer("radiosity"):
+            solar, absorbed = absorbed_sunlight(self.case, self.mesh, sun_dirs, direct, scat, self.F)
+        return direct, solar, absorbed
 
 
 def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
@@ -772,13 +799,6 @@ def run_case(
 
     out_path = Path(out_path)
     ckpt_path = Path(checkpoint_path(out_path))
-    if getattr(case.surface, "albedo_model", "constant") != "constant":
-        # absorbed_sunlight() and the replay of solar_absorbed exist; the streamed run (SegmentStore) does not
-        # yet store an absorbed-sunlight series (issue 10, to be wired in)
-        raise ConfigError(
-            f"albedo_model = {case.surface.albedo_model!r} is not yet supported by the streamed "
-            'run; use albedo_model = "constant"'
-        )
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():
@@ -808,18 +828,23 @@ def run_case(
     if ckpt is None:
         store.remove()
         store = io.SegmentStore(scratch, block)
-    fc = Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, store=store)
+    incidence = getattr(case.surface, "albedo_model", "constant") != "constant"
+    fc = Forcing(
+        mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
+    )
     n_all = len(sun_dirs)
     if not store.marked("sunlight"):
         sunlight = Sunlight(case, mesh, tracer, F, timer, progress)
         with _stage(progress, f"sunlight ({nf} facets)") as report:
             for k0 in range(0, n_all, block):
                 k1 = min(n_all, k0 + block)
-                direct, solar = sunlight(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
+                direct, solar, absorbed = sunlight.with_absorbed(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
                 with timer("io"):
                     store.write("direct", k0, direct)
                     store.write("solar", k0, solar)
-                del direct, solar
+                    if absorbed is not None:
+                        store.write("absorbed", k0, absorbed)
+                del direct, solar, absorbed
                 if report is not None:
                     report(k1, n_all)
         store.mark("sunlight")
@@ -835,7 +860,7 @@ def run_case(
         geothermal_flux=case.surface.geothermal_flux_W_m2,
         **solver_kw,
     )
-    stepper = CoupledStepper(solver, fc.F, albedo, eps)
+    stepper = CoupledStepper(solver, fc.F, albedo, eps, solar_is_absorbed=incidence)
     t0 = fc.times[0]
     spin_t = seconds_since(fc.spin_times, t0)
     rec_t = seconds_since(fc.times, t0)
@@ -896,7 +921,7 @@ def run_case(
                 sol = None
                 w0 = k
                 with timer("io"):
-                    sol = fc.rows("solar", off + k, off + min(nt, k + block + 1))
+                    sol = fc.rows(fc.drive, off + k, off + min(nt, k + block + 1))
             with timer("conduction_record"):
                 T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
             pend_T[n_pend], pend_ir[n_pend] = T1, ir_k
@@ -954,11 +979,15 @@ def run_case(
             ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
             ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b)),
         ]
+        if incidence:
+            series.append(("solar_absorbed", "time", nt, lambda a, b: store.read("absorbed", off + a, off + b)))
         if save_spin:
             series += [
                 ("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
                 ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b)),
             ]
+            if incidence:
+                series.append(("spinup_solar_absorbed", "spinup_time", ns, lambda a, b: store.read("absorbed", a, b)))
         variables = {
             name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}))
             for name, dim, n, _ in series
@@ -987,7 +1016,7 @@ def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> 
     total = None
     for a in range(k0, k1, block):
         b = min(k1, a + block)
-        part = fn(fc.rows("solar", a, b)) * (b - a)
+        part = fn(fc.rows(fc.drive, a, b)) * (b - a)
         total = part if total is None else total + part
     return total / max(1, k1 - k0)
 
@@ -1043,7 +1072,7 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
         run_window(
             stepper,
             spin_t,
-            lambda a, b: fc.rows("solar", a, b),
+            lambda a, b: fc.rows(fc.drive, a, b),
             block,
             on_ir=keep_ir,
             on_step=None if report is None else lambda k: report(done0 + k, total),

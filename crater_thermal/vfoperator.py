@@ -413,9 +413,6 @@ class _Builder:
         self.P = np.ascontiguousarray((tracer.origins - centre)[p])
         self.V = np.ascontiguousarray(mesh.vertices - centre)
         self.Fc = np.ascontiguousarray(mesh.faces[p])
-        from crater_thermal.kernels.viewfactors import near_kernel
-
-        self.near_kernel = near_kernel  # the exact matrix's near-pair quadrature
         self.bary = vf.subtriangle_barycentrics(vf.NEAR_SUBDIVISIONS)
         self.near_factor = float(vf.NEAR_DISTANCE_FACTOR)
         self.cos_cut = float(vf.COS_CUTOFF)
@@ -491,6 +488,7 @@ class _Builder:
     # ---- near blocks
     def near_blocks(self, blocks):
         from crater_thermal.kernels import vfoperator as kv
+        from crater_thermal.kernels import viewfactors as kvf
 
         tr = self.tree
         cap = sum(tr.size(s) * tr.size(t) for s, t, _ in blocks)
@@ -502,7 +500,7 @@ class _Builder:
         need = np.empty(cap, np.bool_)
         n = 0
         for s, t, diag in blocks:
-            n += kv.near_block_pairs(
+            n += kvf.block_pairs(
                 int(tr.lo[s]),
                 int(tr.hi[s]),
                 int(tr.lo[t]),
@@ -524,7 +522,7 @@ class _Builder:
                 pj_[n:],
                 gg[n:],
                 need[n:],
-                self.near_kernel,
+                True,
             )
         if n == 0:
             return [], [], 0, 0

@@ -280,18 +280,34 @@ save_spinup_fluxes = true
 """
 
 
-def test_hayne2017_run_is_refused_until_the_streamed_run_stores_absorbed_sunlight(tmp_path):
-    """The streamed run (SegmentStore) does not store absorbed sunlight yet: a clear one-line error, no output."""
+def test_hayne2017_streamed_run_saves_absorbed_sunlight_and_replays_exactly(tmp_path):
+    """albedo_model = "hayne2017" in a streamed run: run.nc carries solar_absorbed (and its spin-up
+    series) equal to (1 - A(i)) direct + (1 - A0) scattered for the saved Sun directions; sunlit ground
+    absorbs less than with the constant albedo; a replay of the nominal profile from the same uniform
+    start re-traces the run (it is driven by the saved absorbed sunlight, not (1 - A0) incident)."""
     from crater_thermal import config
-    from crater_thermal.errors import ConfigError as CE
 
     path = tmp_path / "hayne.toml"
     path.write_text(HAYNE_CASE)
     case = config.load_case(path)
-    assert case.surface.albedo_model == "hayne2017"
-    with pytest.raises(CE, match="albedo_model"):
-        simulate.run_case(case, tmp_path / "run.nc", progress=False)
-    assert not (tmp_path / "run.nc").exists()
+    ds = io.open_run(simulate.run_case(case, tmp_path / "run.nc", progress=False))
+    for name in ("solar_absorbed", "spinup_solar_absorbed"):
+        assert name in ds and ds[name].attrs["units"] == "W m-2"
+    direct = ds["solar_direct"].values
+    solar = ds["solar_incident"].values
+    absorbed = ds["solar_absorbed"].values
+    mesh = simulate.case_mesh(case)
+    A = illumination.direct_albedo(mesh.normals, ds["sun_direction"].values, 0.12, "hayne2017")
+    # the identity of absorbed_sunlight(); 1e-3 W m-2: float32 storage of ~1e3 W m-2 values (6e-5 relative)
+    np.testing.assert_allclose(absorbed, (1 - A) * direct + 0.88 * (solar - direct), atol=1e-3, rtol=1e-6)
+    lit = direct > 10.0
+    assert lit.any()
+    assert np.all(absorbed[lit] < 0.88 * solar[lit])  # A(i) > A0 away from normal incidence (i > 0 here)
+    T, _ = simulate.replay_fluxes(
+        ds, simulate.resolve_profiles(["1300/1800"]), initial_temperature=100.0, fixed_spinup=True, progress=False
+    )
+    # same columns, same forcing, same uniform start: only float32 storage of the fluxes differs
+    assert np.max(np.abs(T[0] - ds["surface_temperature"].values)) <= 1e-3
 
 
 def test_replay_uses_saved_absorbed_sunlight():

@@ -1,8 +1,8 @@
 """Numba kernels of the compressed view-factor operator (:mod:`crater_thermal.vfoperator`).
 
-Only numpy and numba are imported here; the near-pair quadrature kernel of the exact matrix is passed
-in as an argument (so that both paths compute the very same entries).  Kernels never raise and never
-do I/O.
+Only numpy and numba are imported here; the near blocks' candidate pairs come from the exact matrix's
+kernel (:func:`crater_thermal.kernels.viewfactors.block_pairs`), so both paths compute the very same
+entries.  Kernels never raise and never do I/O.
 
 All arrays are in the operator's *cluster order* (facets permuted so that every cluster of the tree
 is a contiguous index range).  The operator stores the symmetric matrix ``G_ij = A_i F_ij = A_i A_j
@@ -60,62 +60,6 @@ def scatter_visible(n, pos, val, blocked, out):
     for k in range(n):
         if blocked[k] == -1:
             out[pos[k]] = val[k]
-
-
-@njit(nogil=True, cache=True)
-def near_block_pairs(
-    r0, r1, c0, c1, diag, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o32, d32, pi_, pj_, gg, need, near_kernel
-):
-    """Candidate pairs of a near block (rows r0..r1-1, columns c0..c1-1; ``diag``: only j > i).
-
-    Same rule as the exact matrix: sub-facet quadrature for pairs closer than ``near_factor`` facet
-    sizes (``near_kernel(i, j, V, Fc, N, C, A, bary, poly)``, the exact matrix's njit function), the
-    centroid kernel otherwise; ``need[k]`` False for near pairs taken as visible without a
-    ray.  Writes ``G_ij`` [m2] into gg; returns the number of pairs.
-    """
-    n = 0
-    cc2 = cos_cut * cos_cut
-    poly = np.empty((4, 3))
-    for i in range(r0, r1):
-        cix = C[i, 0]
-        ciy = C[i, 1]
-        ciz = C[i, 2]
-        nix = N[i, 0]
-        niy = N[i, 1]
-        niz = N[i, 2]
-        si = S[i]
-        j0 = i + 1 if diag else c0
-        for j in range(j0, c1):
-            dx = C[j, 0] - cix
-            dy = C[j, 1] - ciy
-            dz = C[j, 2] - ciz
-            d2 = dx * dx + dy * dy + dz * dz
-            ci = nix * dx + niy * dy + niz * dz
-            cj = -(N[j, 0] * dx + N[j, 1] * dy + N[j, 2] * dz)
-            sm = si if si > S[j] else S[j]
-            lim = near_factor * sm
-            facing = ci > 0.0 and cj > 0.0 and ci * ci > cc2 * d2 and cj * cj > cc2 * d2
-            if d2 < lim * lim:
-                k = near_kernel(i, j, V, Fc, N, C, A, bary, poly)
-                if k <= 0.0:
-                    continue
-                need[n] = facing
-            elif facing:
-                k = ci * cj / (math.pi * d2 * d2)
-                need[n] = True
-            else:
-                continue
-            o32[n, 0] = P[i, 0]
-            o32[n, 1] = P[i, 1]
-            o32[n, 2] = P[i, 2]
-            d32[n, 0] = P[j, 0] - P[i, 0]
-            d32[n, 1] = P[j, 1] - P[i, 1]
-            d32[n, 2] = P[j, 2] - P[i, 2]
-            pi_[n] = i
-            pj_[n] = j
-            gg[n] = k * A[i] * A[j]
-            n += 1
-    return n
 
 
 @njit(nogil=True, cache=True)

@@ -6,7 +6,8 @@ consistency check is returned as a flag that the wrapper turns into an exception
 * :func:`clip_by_plane`, :func:`point_to_polygon`, :func:`facet_to_facet`, :func:`near_kernel`: the
   exact point-to-polygon view factor (Lambert's contour formula) and its sub-triangle quadrature for
   near pairs;
-* :func:`candidate_pairs`: the pairs of a block of rows that need a kernel value (and a visibility ray);
+* :func:`block_pairs` (and :func:`candidate_pairs`, its exact-matrix form): the pairs of a block of rows
+  (and columns, for the compressed operator's near blocks) that need a kernel value (and a visibility ray);
 * :func:`compact_pairs`, :func:`fill_pairs`, :func:`rescale_rows`: assembly of the symmetric CSR matrix.
 """
 
@@ -91,17 +92,22 @@ def near_kernel(i, j, V, Fc, N, C, A, bary, poly):
 
 
 @njit(nogil=True, cache=True)
-def candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o32, d32, pi_, pj_, kk, need):
-    """Fill buffers with the candidate pairs (i, j > i) of rows i0..i1-1; returns their number.
+def block_pairs(
+    r0, r1, c0, c1, diag, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o32, d32, pi_, pj_, kk, need, times_areas
+):
+    """Fill buffers with the candidate pairs of rows r0..r1-1 and columns c0..c1-1 (``diag``: only j > i);
+    returns their number. One rule for the exact matrix and the compressed operator's near blocks.
 
+    Pairs closer than ``near_factor`` facet sizes take the sub-facet quadrature (:func:`near_kernel`),
+    the others the centroid kernel cos_i cos_j / (pi d^2) [m-2] when both facets face each other past
+    ``cos_cut``. kk: the kernel K_ij [m-2], or G_ij = K_ij A_i A_j [m2] with ``times_areas``.
     o32/d32: float32 ray origin (P_i) and unnormalised direction (P_j - P_i), so tfar = 1 reaches P_j.
     need: False for near pairs taken as visible without a ray.
     """
-    nf = C.shape[0]
     n = 0
     cc2 = cos_cut * cos_cut
     poly = np.empty((4, 3))
-    for i in range(i0, i1):
+    for i in range(r0, r1):
         cix = C[i, 0]
         ciy = C[i, 1]
         ciz = C[i, 2]
@@ -109,7 +115,8 @@ def candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o3
         niy = N[i, 1]
         niz = N[i, 2]
         si = S[i]
-        for j in range(i + 1, nf):
+        j0 = i + 1 if diag else c0
+        for j in range(j0, c1):
             dx = C[j, 0] - cix
             dy = C[j, 1] - ciy
             dz = C[j, 2] - ciz
@@ -137,9 +144,39 @@ def candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o3
             d32[n, 2] = P[j, 2] - P[i, 2]
             pi_[n] = i
             pj_[n] = j
-            kk[n] = k
+            kk[n] = k * A[i] * A[j] if times_areas else k
             n += 1
     return n
+
+
+@njit(nogil=True, cache=True)
+def candidate_pairs(i0, i1, C, N, S, A, P, V, Fc, bary, near_factor, cos_cut, o32, d32, pi_, pj_, kk, need):
+    """The exact matrix's candidate pairs (i, j > i) of rows i0..i1-1 with their kernel K_ij [m-2]
+    (:func:`block_pairs` over all columns); returns their number."""
+    return block_pairs(
+        i0,
+        i1,
+        0,
+        C.shape[0],
+        True,
+        C,
+        N,
+        S,
+        A,
+        P,
+        V,
+        Fc,
+        bary,
+        near_factor,
+        cos_cut,
+        o32,
+        d32,
+        pi_,
+        pj_,
+        kk,
+        need,
+        False,
+    )
 
 
 @njit(nogil=True, cache=True)
