@@ -136,22 +136,12 @@ def _check_profile(p: Profile, allow_inverted: bool, warn: bool = True) -> Profi
 
 
 def parse_profile(spec, allow_inverted: bool = False, label: str | None = None, warn: bool = True) -> Profile:
-    """Build a :class:`Profile` from a label or a layer list (:func:`crater_thermal.profiles.parse_profile`).
+    """:func:`crater_thermal.profiles.parse_profile` (labels such as ``"1300/1800"``, ``"rock"``,
+    ``"hayne2017"``, or a layer list of (bottom_depth_m, density_kg_m3); same ``allow_inverted`` and
+    ``label``) plus the density checks of the thermal model.
 
-    Parameters
-    ----------
-    spec : str, Profile or sequence of (bottom_depth_m, density_kg_m3)
-        ``"1300/1800"``: top density over 2 cm, bottom density to 2 m; ``"1500"``: homogeneous;
-        ``"rock"``: homogeneous rock, 3070 kg m-3; ``"hayne2017"``: exponential profile of
-        Hayne et al. 2017 (1100 -> 1800 kg m-3, H = 6 cm); a layer list such as
-        ``[(0.05, 1100), (2.0, 1700)]``.
-    allow_inverted : bool
-        Accept density decreasing with depth (otherwise ProfileError).
-    label : str, optional
-        Label for a layer list (default: ``"d1:rho1,d2:rho2,..."``).
-    warn : bool
-        Emit :class:`~crater_thermal.materials.DensityExtrapolationWarning` for regolith densities
-        outside Table 7.2 (1300-1970 kg m-3). Densities outside 500-3500 raise ProfileError.
+    ``warn``: emit :class:`~crater_thermal.materials.DensityExtrapolationWarning` for regolith densities
+    outside Table 7.2 (1300-1970 kg m-3). Densities outside 500-3500 kg m-3 raise ProfileError.
     """
     p = profiles.parse_profile(spec, allow_inverted, label)
     # the built-in hayne2017 label never warns (its set's conductivity is not Table 7.2)
