@@ -208,11 +208,14 @@ class ScatteringSolver:
 
         Returns
         -------
-        Q : same shape as ``E_direct`` [W m-2]; ``Q = E + F B``.
+        Q : same shape as ``E_direct`` [W m-2]; ``Q = E + max(F B, 0)``. The scattered part is
+            non-negative physically; the compressed operator's low-rank far field can return round-off
+            negatives (about 1e-3 of the largest term) where a facet sees no lit terrain, so it is clipped
+            at zero (a run's flux file refuses negative irradiance).
         """
         E = np.asarray(E_direct, dtype=float)
         B = self.exitance(E)
-        return E + np.asarray(self.F.matvec(np.ascontiguousarray(B.T))).T
+        return E + np.maximum(np.asarray(self.F.matvec(np.ascontiguousarray(B.T))).T, 0.0)
 
 
 def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
@@ -236,7 +239,8 @@ def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
     eps = check_per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
     u = eps * SIGMA * T**4
     flat = u.reshape(-1, nf)
-    return np.asarray(F.matvec(np.ascontiguousarray(flat.T))).T.reshape(T.shape)
+    # >= 0 physically; clipped for the compressed operator's round-off (see solar_incident)
+    return np.maximum(np.asarray(F.matvec(np.ascontiguousarray(flat.T))).T.reshape(T.shape), 0.0)
 
 
 def equilibrium_temperature(F, solar_incident: np.ndarray, albedo=ALBEDO, emissivity=EMISSIVITY) -> np.ndarray:
