@@ -51,6 +51,7 @@ number of right-hand sides at once.
 
 from __future__ import annotations
 
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
@@ -93,6 +94,12 @@ MAX_BLOCK_ENTRIES = 1 << 21
 RAY_CHUNK = 1 << 19
 #: Near blocks per work unit (candidate pairs).
 NEAR_BATCH_PAIRS = 1 << 18
+#: Threads per product (the numba kernels release the GIL; each thread adds its share of the stored
+#: entries into its own array, the arrays are summed).
+PRODUCT_THREADS = max(1, min(os.cpu_count() or 1, 8))
+#: Multiply-adds (stored entries x right-hand sides) below which a product stays on one thread
+#: (thread start-up costs ~0.1 ms, about a million multiply-adds).
+PARALLEL_MIN_WORK = 4_000_000
 #: Part of the cache key of a compressed operator: bump it when the numbers change.
 ALGORITHM_VERSION = "c1"
 
@@ -226,6 +233,8 @@ class CompressedViewFactors(ViewFactorOperator):
         self.tolerance = float(tolerance)
         self.stats = dict(stats)
         self._max_rank = int(self.rank.max()) if len(self.rank) else 1
+        self._split: list | None = None
+        self._entries = 0
 
     @property
     def nbytes(self) -> int:
@@ -253,24 +262,63 @@ class CompressedViewFactors(ViewFactorOperator):
     def is_zero(self) -> bool:
         return len(self.data) == 0 and len(self.rank) == 0
 
-    def _apply_G(self, X: np.ndarray) -> np.ndarray:
-        """``G X`` for X (n, k) in cluster order (D G D when rescaled)."""
+    def _parts(self, k: int) -> list[tuple[int, int, int, int]]:
+        """Work split of a product with k right-hand sides between threads: (row range of the sparse
+        part, range of low-rank blocks) per thread, balanced by stored entries; a single part when the
+        product is smaller than :data:`PARALLEL_MIN_WORK`."""
+        nr, nb = len(self.indptr) - 1, len(self.rank)
+        if self._split is None:
+            lr_work = (self.r1 - self.r0 + self.c1 - self.c0) * self.rank.astype(np.int64)
+            self._entries = int(self.indptr[-1]) + int(lr_work.sum())
+            nt = PRODUCT_THREADS
+            if nt == 1:
+                self._split = [(0, nr, 0, nb)]
+            else:
+                q = np.arange(1, nt) / nt
+                rows = np.searchsorted(self.indptr, q * self.indptr[-1])
+                cum = np.cumsum(lr_work)
+                blocks = np.searchsorted(cum, q * (cum[-1] if nb else 0))
+                rb = [0, *np.minimum(rows, nr).tolist(), nr]
+                bb = [0, *np.minimum(blocks, nb).tolist(), nb]
+                self._split = [(rb[t], rb[t + 1], bb[t], bb[t + 1]) for t in range(nt)]
+        if self._entries * k < PARALLEL_MIN_WORK:
+            return [(0, nr, 0, nb)]
+        return self._split
+
+    def _apply_part(self, X: np.ndarray, part) -> np.ndarray:
+        """One thread's share of ``G X`` (X (n, k) in cluster order), into a fresh array."""
         from crater_thermal.kernels import vfoperator as kv
 
-        if self.scale is not None:
-            X = X * self.scale[:, None]
+        i0, i1, b0, b1 = part
+        b = slice(b0, b1)
+        lr = (self.r0[b], self.r1[b], self.c0[b], self.c1[b], self.rank[b], self.uoff[b], self.voff[b], self.U, self.V)
         Y = np.zeros_like(X)
-        lr = (self.r0, self.r1, self.c0, self.c1, self.rank, self.uoff, self.voff, self.U, self.V)
         if X.shape[1] == 1:
             x1, y1 = np.ascontiguousarray(X[:, 0]), np.zeros(X.shape[0])
-            kv.sym_sparse_matvec1(self.indptr, self.indices, self.data, x1, y1)
-            if len(self.rank):
+            kv.sym_sparse_matvec1(self.indptr, self.indices, self.data, x1, y1, i0, i1)
+            if b1 > b0:
                 kv.lowrank_matvec1(*lr, x1, y1, np.empty(2 * self._max_rank))
             Y[:, 0] = y1
         else:
-            kv.sym_sparse_matvec(self.indptr, self.indices, self.data, X, Y)
-            if len(self.rank):
+            kv.sym_sparse_matvec(self.indptr, self.indices, self.data, X, Y, i0, i1)
+            if b1 > b0:
                 kv.lowrank_matvec(*lr, X, Y, np.empty((2 * self._max_rank, X.shape[1])))
+        return Y
+
+    def _apply_G(self, X: np.ndarray) -> np.ndarray:
+        """``G X`` for X (n, k) in cluster order (D G D when rescaled); the kernels release the GIL,
+        so the parts of :meth:`_parts` run on threads and their sums are added."""
+        if self.scale is not None:
+            X = X * self.scale[:, None]
+        parts = self._parts(X.shape[1])
+        if len(parts) == 1:
+            Y = self._apply_part(X, parts[0])
+        else:
+            with ThreadPoolExecutor(len(parts)) as pool:
+                Ys = list(pool.map(lambda part: self._apply_part(X, part), parts))
+            Y = Ys[0]
+            for other in Ys[1:]:
+                Y += other
         if self.scale is not None:
             Y *= self.scale[:, None]
         return Y

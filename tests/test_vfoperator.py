@@ -63,6 +63,23 @@ def test_compressed_products_match_exact(terrain5k):
     assert comp.nbytes < 0.5 * exact.nbytes
 
 
+def test_threaded_products_equal_one_thread(terrain5k, monkeypatch):
+    # the product is split between threads (sparse rows and low-rank blocks, each thread into its own
+    # array); the sum equals the one-thread product up to the order of additions (1e-15 relative)
+    _, _, _, comp = terrain5k
+    X = np.random.default_rng(5).random((comp.shape[0], 3))
+    monkeypatch.setattr(vo, "PARALLEL_MIN_WORK", 1 << 62)
+    one = [comp @ X, comp @ X[:, 0], comp.rmatvec(X)]
+    for threads in (2, 3):
+        monkeypatch.setattr(vo, "PARALLEL_MIN_WORK", 1)
+        monkeypatch.setattr(vo, "PRODUCT_THREADS", threads)
+        comp._split = None
+        assert len(comp._parts(1)) == threads
+        for a, b in zip([comp @ X, comp @ X[:, 0], comp.rmatvec(X)], one):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15 * np.abs(b).max())
+    comp._split = None
+
+
 def test_compressed_reciprocity_and_row_sums(terrain5k):
     m, _, exact, comp = terrain5k
     rng = np.random.default_rng(3)

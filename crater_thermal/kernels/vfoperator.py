@@ -77,11 +77,11 @@ def keep_visible(n, blocked, need, pi_, pj_, gg):
 
 
 @njit(nogil=True, cache=True)
-def sym_sparse_matvec(indptr, indices, data, x, y):
-    """``y += (S + S^T) x`` for the strictly upper-triangular CSR ``S`` (x, y: (n, k) float64)."""
-    nr = indptr.shape[0] - 1
+def sym_sparse_matvec(indptr, indices, data, x, y, i0, i1):
+    """``y += (S + S^T) x`` over the rows i0..i1-1 of the strictly upper-triangular CSR ``S``
+    (x, y: (n, k) float64). Row ranges split the product between threads (each with its own y)."""
     k = x.shape[1]
-    for i in range(nr):
+    for i in range(i0, i1):
         for q in range(indptr[i], indptr[i + 1]):
             j = indices[q]
             g = np.float64(data[q])
@@ -190,10 +190,9 @@ def aca_full(R, budget, rmax, U, V):
 
 
 @njit(nogil=True, cache=True)
-def sym_sparse_matvec1(indptr, indices, data, x, y):
-    """One right-hand side: ``y += (S + S^T) x`` (x, y: (n,) float64)."""
-    nr = indptr.shape[0] - 1
-    for i in range(nr):
+def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
+    """One right-hand side of :func:`sym_sparse_matvec`: rows i0..i1-1 (x, y: (n,) float64)."""
+    for i in range(i0, i1):
         xi = x[i]
         acc = 0.0
         for q in range(indptr[i], indptr[i + 1]):
