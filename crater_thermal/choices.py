@@ -18,6 +18,7 @@ __all__ = [
     "CRATER_KINDS",
     "HEIGHT_KINDS",
     "SPINUP_MODES",
+    "SPINUP_IR_METHODS",
     "PROPERTY_SETS",
     "LIMB_DARKENING_LAWS",
     "ALBEDO_MODELS",
@@ -40,6 +41,9 @@ CRATER_KINDS = ("crater", "flat", "mesh", "dem")
 HEIGHT_KINDS = ("auto", "height", "radius")
 #: Spin-up procedures (simulate.run_case).
 SPINUP_MODES = ("periodic", "fixed")
+#: IR exchange during a periodic spin-up: "coupled" (every step, as the record), "lagged" (each window
+#: with the IR series of the previous one), "auto" (simulate.spinup_ir_method: lagged on large meshes).
+SPINUP_IR_METHODS = ("auto", "coupled", "lagged")
 #: Thermophysical property sets (materials.PROPERTY_SETS has one PropertySet per name).
 PROPERTY_SETS = ("apollo", "hayne2017")
 #: Limb-darkening laws of the Sun's disk (illumination.LIMB_DARKENING_COEFFS has one law per name).

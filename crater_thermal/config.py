@@ -441,6 +441,16 @@ SCHEMA: Tuple[Key, ...] = (
         hi=1000.0,
     ),
     K("period", "periodic_tol_K", "float", 0.01, "periodic-state convergence tolerance", unit="K", lo=1e-6, hi=10.0),
+    K(
+        "period",
+        "spinup_ir",
+        "choice",
+        "auto",
+        "IR exchange in the periodic spin-up windows: coupled (every step, as in the record), lagged (each "
+        "window driven by the previous window's IR: one conduction solve per step instead of two), auto "
+        "(lagged from 10,000 facets)",
+        choices=choices.SPINUP_IR_METHODS,
+    ),
     # [steps]
     K(
         "steps",
@@ -774,6 +784,7 @@ class Period:
         gives ``spinup_days``)
     initial_temperature_K : float or None [K]
     periodic_tol_K : float [K]
+    spinup_ir : "auto" | "coupled" | "lagged"  IR exchange in the periodic spin-up windows
     """
 
     @property
