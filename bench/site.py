@@ -105,6 +105,7 @@ def main() -> None:
     }
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
+        os.environ.setdefault("CRATER_THERMAL_CACHE", str(tmp / "cache"))  # a cold cache: every stage is paid
         z, tr, wkt = terrain.synthetic_heights(
             LAT, LON, 40.0, 100.0, craters=[(10.0, 0.0, 0.0), (4.0, 8.0, -6.0)], roughness_m=15.0, seed=1
         )
