@@ -46,7 +46,8 @@ i.e. ~N^1.7-1.9 at these sizes (bench/results/viewfactor_operator.json); the bui
 (rays like the exact matrix, O(N^2) time, but never more than one block of entries in memory per
 thread) plus the cross approximation (O(entries * rank)).  Products run in numba
 (:mod:`crater_thermal.kernels.vfoperator`), one pass over the stored entries per product, for any
-number of right-hand sides at once.
+number of right-hand sides at once, split between :data:`PRODUCT_THREADS` threads (rows of the sparse
+part and runs of low-rank blocks balanced by stored entries, each thread adding into its own array).
 """
 
 from __future__ import annotations
@@ -209,6 +210,17 @@ def as_operator(F) -> ViewFactorOperator:
     return SparseViewFactors(sp.csr_matrix(a))
 
 
+_POOL: dict = {}
+
+
+def _product_pool(n: int) -> ThreadPoolExecutor:
+    """A thread pool of n workers kept for the products (starting threads per product costs ~0.1 ms)."""
+    pool = _POOL.get(n)
+    if pool is None:
+        pool = _POOL[n] = ThreadPoolExecutor(n, thread_name_prefix="vfproduct")
+    return pool
+
+
 class CompressedViewFactors(ViewFactorOperator):
     """Hierarchically compressed view factors (module docstring); build with :func:`compressed_view_factors`.
 
@@ -314,8 +326,7 @@ class CompressedViewFactors(ViewFactorOperator):
         if len(parts) == 1:
             Y = self._apply_part(X, parts[0])
         else:
-            with ThreadPoolExecutor(len(parts)) as pool:
-                Ys = list(pool.map(lambda part: self._apply_part(X, part), parts))
+            Ys = list(_product_pool(len(parts)).map(lambda part: self._apply_part(X, part), parts))
             Y = Ys[0]
             for other in Ys[1:]:
                 Y += other
