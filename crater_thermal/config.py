@@ -476,6 +476,16 @@ SCHEMA: Tuple[Key, ...] = (
         default_doc="solver default",
         allowed_doc="0 < dt ≤ flux step [s]",
     ),
+    K(
+        "steps",
+        "ir_coupling",
+        "choice",
+        "extrapolated",
+        "IR at the end of a coupled step: extrapolated in time from the exact IR of the two samples before "
+        "(one conduction solve per step), or predictor-corrector (a predictor solve, then the step again "
+        "with the predicted IR: two solves); README: accuracy of each",
+        choices=choices.IR_COUPLING_SCHEMES,
+    ),
     # [surface]
     K(
         "surface",
@@ -806,7 +816,7 @@ class Period:
 @_section("steps")
 class Steps:
     """Time steps: flux step ``flux_step_hours`` [h], optional largest conduction sub-step
-    ``conduction_step_s`` [s]."""
+    ``conduction_step_s`` [s], the coupled step's IR scheme ``ir_coupling``."""
 
     @property
     def flux_step_s(self) -> float:

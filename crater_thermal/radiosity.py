@@ -184,10 +184,12 @@ class ScatteringSolver:
             self.iterations = 0
             R = rhs.reshape(self.n_facets, -1)
             G = None if B0 is None else np.asarray(B0, dtype=float).T.reshape(R.shape)
-            B = np.empty_like(R)
-            for c in range(0, R.shape[1], ITERATIVE_BLOCK):
-                sl = slice(c, c + ITERATIVE_BLOCK)
-                B[:, sl] = self._iterate(np.ascontiguousarray(R[:, sl]), None if G is None else G[:, sl])
+            B = np.zeros_like(R)
+            # samples with no sunlight anywhere (night over the whole mesh) have B = 0 exactly: skipped
+            lit = np.flatnonzero(np.any(R != 0.0, axis=0))
+            for c in range(0, len(lit), ITERATIVE_BLOCK):
+                cols = lit[c : c + ITERATIVE_BLOCK]
+                B[:, cols] = self._iterate(np.ascontiguousarray(R[:, cols]), None if G is None else G[:, cols])
             B = B.reshape(rhs.shape)
         else:
             # B = sum_{k=0}^{n-1} (A F)^k A E   (n reflections in total)
@@ -215,7 +217,13 @@ class ScatteringSolver:
         """
         E = np.asarray(E_direct, dtype=float)
         B = self.exitance(E)
-        return E + np.maximum(np.asarray(self.F.matvec(np.ascontiguousarray(B.T))).T, 0.0)
+        if E.ndim == 1:
+            return E + np.maximum(np.asarray(self.F.matvec(B)), 0.0)
+        Q = E.copy()
+        lit = np.flatnonzero(np.any(B != 0.0, axis=1))  # rows with no exitance anywhere scatter nothing
+        if len(lit):
+            Q[lit] += np.maximum(np.asarray(self.F.matvec(np.ascontiguousarray(B[lit].T))).T, 0.0)
+        return Q
 
 
 def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:

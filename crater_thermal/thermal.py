@@ -537,22 +537,30 @@ class ColumnSolver:
         self._initialised = True
 
     # -- time stepping -----------------------------------------------------------------------
-    def _run(self, times, a, fidx, record, t_offset, out=None):
+    def _run(self, times, a, fidx, record, t_offset, out=None, cols=None):
         nt = times.shape[0]
+        if cols is None:
+            T, m, b0, b3, e0, e1, rock, acc = self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.acc
+        else:  # a subset of the columns (copies, written back below)
+            T, m, b0, b3, e0, e1, rock, acc = (
+                np.ascontiguousarray(x[cols])
+                for x in (self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.acc)
+            )
+        ncol = T.shape[0]
         if out is None:
-            out = np.empty((nt, self.ncol)) if record else np.empty((1, 1))
-        status = np.zeros(self.ncol, np.int64)
-        fail = np.full(self.ncol, -1, np.int64)
-        nb = -(-self.ncol // _k.LANES)
+            out = np.empty((nt, ncol)) if record else np.empty((1, 1))
+        status = np.zeros(ncol, np.int64)
+        fail = np.full(ncol, -1, np.int64)
+        nb = -(-ncol // _k.LANES)
         kern = _k.run_columns if nb >= 2 * numba.get_num_threads() else _k.run_columns_serial
         kern(
-            self.T,
-            self.m,
-            self.b0,
-            self.b3,
-            self.e0,
-            self.e1,
-            self.rock,
+            T,
+            m,
+            b0,
+            b3,
+            e0,
+            e1,
+            rock,
             self.ccoef,
             float(self.pset.c_t_min),
             self.rdz,
@@ -566,12 +574,16 @@ class ColumnSolver:
             fidx,
             out,
             record,
-            self.acc,
+            acc,
             status,
             fail,
         )
+        if cols is not None:
+            self.T[cols] = T
+            self.acc[cols] = acc
         if np.any(status != _k.OK):
             c = int(np.flatnonzero(status != _k.OK)[0])
+            c = c if cols is None else int(cols[c])
             k = int(fail[c])
             t0 = t_offset + times[k] if k >= 0 else t_offset
             what = (
@@ -602,6 +614,22 @@ class ColumnSolver:
         self._run(times, a, np.arange(self.ncol, dtype=np.int64), False, self.time_s)
         self.time_s += float(duration_s)
         return self.T[:, 0].copy()
+
+    def redo_columns(self, cols, start, absorbed_start, absorbed_end, duration_s: float) -> np.ndarray:
+        """Advance again the columns ``cols`` (int array) of the step just taken, from ``start`` (the
+        :meth:`state` taken before it) with other forcing [W m-2] (``cols``-long arrays). The clock and the
+        other columns are untouched. Returns the surface T [K] of those columns."""
+        cols = np.asarray(cols, np.int64)
+        T0, acc0, _ = self._snap if self._snap is not None and start is self._snap[0] else (start, None, None)
+        self.T[cols] = T0[cols]
+        if acc0 is not None:
+            self.acc[cols] = acc0[cols]
+        a = np.empty((2, len(cols)))
+        a[0] = absorbed_start
+        a[1] = absorbed_end
+        times = np.array([0.0, float(duration_s)])
+        self._run(times, a, np.arange(len(cols), dtype=np.int64), False, self.time_s - duration_s, cols=cols)
+        return self.T[cols, 0].copy()
 
     def run_series(self, times_s, absorbed, record: bool = True, out=None):
         """Run through forcing samples from the current state (taken to be at ``times_s[0]``).

@@ -345,3 +345,64 @@ def test_hayne2017_equator(tmp_path):
     assert abs(noon - 385.0) < 5.0, noon
     assert abs(midnight - 101.0) < 5.0, midnight
     assert abs(night_min - 95.0) < 5.0, night_min
+
+
+def _implicit_run(stepper, t, solar, iterations=10):
+    """Reference for the coupled step: the IR at each step's end iterated to the fixed point
+    ir1 = F e(T1(ir1)) (a fully implicit exchange term), from the stepper's solver state."""
+    solver = stepper.solver
+    T = [solver.surface_temperature]
+    ir = stepper.ir(T[0])
+    for k in range(len(t) - 1):
+        a_k = stepper.absorbed(solar[k], ir)
+        start = solver.state()
+        ir1 = ir
+        for _ in range(iterations):
+            solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), t[k + 1] - t[k])
+            ir1 = stepper.ir(solver.surface_temperature)
+            solver.set_state(start)
+        T.append(solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), t[k + 1] - t[k]))
+        ir = ir1
+    return np.array(T)
+
+
+@pytest.fixture(scope="module")
+def ir_scheme_runs(tmp_path_factory):
+    """A 300-facet crater at 85 S over 20 days (sunrise and sunset on its walls every day) stepped by
+    each IR scheme and by the implicit reference, from the same equilibrium start."""
+    tmp = tmp_path_factory.mktemp("ir_schemes")
+    case = config.load_case(small_case(tmp, facets=300, end="2019-01-21", spinup="fixed", spinup_days=0.0))
+    fc = simulate.compute_forcing(case, simulate.Timer())
+    _, solar = fc.split(fc.solar)
+    t = simulate.seconds_since(fc.times, fc.times[0])
+    nf = fc.mesh.n_facets
+    out = {}
+    for scheme in ("extrapolated", "predictor", "implicit"):
+        solver = thermal.ColumnSolver(["1300/1800"] * nf)
+        solver.set_equilibrium(solar)
+        stepper = simulate.CoupledStepper(
+            solver, fc.F, 0.12, 0.98, ir_scheme="predictor" if scheme == "implicit" else scheme
+        )
+        if scheme == "implicit":
+            out[scheme] = _implicit_run(stepper, t, solar)
+        else:
+            out[scheme] = stepper.run(t, solar)[0]
+            out[scheme + "_redone"] = stepper.redone / max(stepper.stepped, 1)
+    out["solar"] = solar
+    return out
+
+
+def test_extrapolated_ir_matches_implicit_reference(ir_scheme_runs):
+    """The default coupled step (IR at the step's end extrapolated from the exact IR of the two samples
+    before, columns whose IR it missed taken again) against the fully implicit exchange. Measured here:
+    at night (no sunlight on the facet) 0.004 K at most, the predictor-corrector 0.001 K; over all
+    samples 0.26 K at most (sunrise on the walls) and 0.008 K mean, the predictor-corrector 0.59 K and
+    0.015 K. Bounds: the 0.05 K night tolerance of the coupled-run checks (issue 13), and no worse
+    than the predictor-corrector over all samples."""
+    r = ir_scheme_runs
+    night = r["solar"] == 0.0
+    err = {s: np.abs(r[s] - r["implicit"]) for s in ("extrapolated", "predictor")}
+    assert err["extrapolated"][night].max() <= 0.05
+    assert err["extrapolated"].max() <= err["predictor"].max()
+    assert err["extrapolated"].mean() <= err["predictor"].mean()
+    assert 0.0 < r["extrapolated_redone"] < 0.5  # the acceptance test does take some columns again

@@ -364,3 +364,25 @@ def test_adaptive_refinement_at_sunset():
     # (not bitwise: vectorised and scalar code round differently; a different refinement decision
     # would show as ~0.1 K)
     np.testing.assert_allclose(s.run_series(t, Qm)[:, 9], runs["on"], rtol=0, atol=1e-6)
+
+
+def test_redo_columns_is_the_step_with_the_other_forcing():
+    """ColumnSolver.redo_columns (the coupled step's second try for some columns): the same state and
+    energy accumulators as one step taken with the new forcing for those columns from the start."""
+    n = 7
+    a0 = np.linspace(0.0, 300.0, n)
+    a1, b1 = np.linspace(5.0, 250.0, n), np.linspace(20.0, 40.0, n)
+    cols = np.array([1, 4, 6])
+    ref_end = a1.copy()
+    ref_end[cols] = b1[cols]
+    s, ref = th.ColumnSolver(["1300/1800"] * n), th.ColumnSolver(["1300/1800"] * n)
+    for x in (s, ref):
+        x.set_uniform(150.0)
+    start = s.state()
+    s.advance(a0, a1, 14400.0)
+    T_cols = s.redo_columns(cols, start, a0[cols], b1[cols], 14400.0)
+    ref.advance(a0, ref_end, 14400.0)
+    np.testing.assert_array_equal(s.T, ref.T)
+    np.testing.assert_array_equal(T_cols, ref.T[cols, 0])
+    np.testing.assert_array_equal(s.acc, ref.acc)
+    assert s.time_s == ref.time_s
