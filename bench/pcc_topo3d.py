@@ -42,7 +42,7 @@ from tests.terrains import pcc_topo81  # noqa: E402
 
 LUNAR_DAYS = 12
 SYNODIC_DAYS = 29.530589
-PCC_PIXELS = 81 * 81
+PCC_PIXELS = 79 * 79  # the 81 x 81 grid's interior: the pixels cratersQ_moon computes (6,241)
 
 CASE = """
 name = "pcc_topo81"

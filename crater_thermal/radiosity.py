@@ -36,8 +36,12 @@ from crater_thermal.vfoperator import SparseViewFactors, ViewFactorOperator, as_
 DEFAULT_BOUNCES = 3
 
 
-#: Relative change (max norm) at which the iterative scattering solve stops.
-ITERATIVE_RTOL = 1e-9
+#: Relative change (max norm) at which the iterative scattering solve stops. The error left is about the
+#: last change times q / (1 - q), q = max(A rowsum) ~ 0.06-0.12 per product: ~1e-7 of the largest
+#: exitance, a thousand times below the compressed operator's own product error (~1e-4). Measured on the
+#: 12,800-facet topo81 terrain over two months: 2.4e-7 W m-2 from the 1e-9 solve (largest 1,114 W m-2),
+#: 31 % fewer products.
+ITERATIVE_RTOL = 1e-6
 #: Iteration cap of the iterative solves.
 ITERATIVE_MAX = 500
 #: Right-hand sides per block of the iterative scattering solve (memory: a few (nf, k) arrays).

@@ -2,15 +2,19 @@
 
 Coupled step (one flux step, ``t_k -> t_k+1``)
     Solar fluxes are known at every sample in advance (ephemeris -> direct -> scattered). The IR
-    a facet receives depends on every facet's temperature, so each step is a predictor-corrector:
+    a facet receives depends on every facet's temperature; the absorbed flux is linear in time within
+    a step, and its IR part at ``t_k+1`` comes from (``[steps] ir_coupling``, :class:`CoupledStepper`):
 
-    1. predictor: conduct with IR held at ``ir_k`` (from ``T_k``) -> ``T*``;
-    2. ``ir_k+1 = F (eps sigma T*^4)``;
-    3. corrector: from the same start, conduct with absorbed flux linear from sample k to k+1,
-       using ``ir_k+1`` -> ``T_k+1``.
+    * ``extrapolated`` (default): ``ir_k+1`` extrapolated linearly from the exact products
+      ``F (eps sigma T^4)`` at ``t_k`` and ``t_k-1``; one conduction solve; then the exact product of
+      the new temperatures, and the columns where it differs from ``ir_k+1`` by more than
+      :data:`IR_DEFECT_W_M2` (or :data:`IR_DEFECT_REL` of their absorbed flux) take the step again
+      with it. The first step of a sequence is a predictor-corrector step.
+    * ``predictor``: conduct with IR held at ``ir_k`` -> ``T*``; ``ir_k+1 = F (eps sigma T*^4)``;
+      from the same start, conduct again with ``ir_k+1`` at the end.
 
-    The saved ``ir_incident`` samples are exactly the ones the corrector used, so replaying the
-    nominal profile from the saved fluxes (linear between samples) reproduces the run.
+    Either way the saved ``ir_incident`` samples are exactly the ones the steps used, so replaying
+    the nominal profile from the saved fluxes (linear between samples) reproduces the run.
 Start of the recorded period
     ``periodic`` (default): the state at the start of the record is the periodic steady state of the
     forcing over the spin-up window that precedes it (``spinup_years``, default one year): the column
