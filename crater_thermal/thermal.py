@@ -582,13 +582,13 @@ class ColumnSolver:
             self.T[cols] = T
             self.acc[cols] = acc
         if np.any(status != _k.OK):
-            c = int(np.flatnonzero(status != _k.OK)[0])
-            c = c if cols is None else int(cols[c])
-            k = int(fail[c])
+            j = int(np.flatnonzero(status != _k.OK)[0])  # in the columns run
+            c = j if cols is None else int(cols[j])  # in the solver
+            k = int(fail[j])
             t0 = t_offset + times[k] if k >= 0 else t_offset
             what = (
                 "the Newton iteration for the surface temperature did not converge"
-                if status[c] == _k.NEWTON_FAILED
+                if status[j] == _k.NEWTON_FAILED
                 else "non-finite forcing or temperature (NaN/inf, or T outside 0-1e5 K)"
             )
             n_bad = int(np.count_nonzero(status != _k.OK))

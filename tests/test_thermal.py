@@ -386,3 +386,14 @@ def test_redo_columns_is_the_step_with_the_other_forcing():
     np.testing.assert_array_equal(T_cols, ref.T[cols, 0])
     np.testing.assert_array_equal(s.acc, ref.acc)
     assert s.time_s == ref.time_s
+
+
+def test_redo_columns_failure_names_the_solver_column():
+    """A failure while a subset of columns is taken again names the column of the solver, not its
+    position in the subset."""
+    s = th.ColumnSolver(["1300/1800"] * 7)
+    s.set_uniform(150.0)
+    start = s.state()
+    s.advance(np.full(7, 10.0), np.full(7, 10.0), 14400.0)
+    with pytest.raises(SolverError, match=r"column 4 .*t=0 s"):
+        s.redo_columns(np.array([1, 4, 6]), start, np.full(3, 10.0), np.array([10.0, np.nan, 10.0]), 14400.0)
