@@ -15,8 +15,9 @@ before it, 4-hour flux steps. Measured in one process:
 Prints one JSON object on its last stdout line and writes bench/results/site.json (``--out`` to change).
 Usage: ``python bench/site.py [--facets 20000] [--record-days 365] [--spinup-days 365.25]
 [--sun-method rays|horizon] [--compare] [--terrain site|crater] [--out PATH]``. With ``--terrain crater`` the DEM is
-the generator's 10 km crater rasterized (25 m pixels) and meshed out to its rim: ``--compare`` then times the DEM
-path and the generator path on the same terrain.
+the generator's 10 km crater rasterized (25 m pixels) and meshed out to the generator mesh's outer edge (rim
+plus outer flank, 7.64 km): ``--compare`` then times the DEM path and the generator path on the same terrain
+and area.
 """
 
 from __future__ import annotations
@@ -94,7 +95,8 @@ def main() -> None:
         default="site",
         choices=("site", "crater"),
         help="site: the 30 km rough synthetic site; crater: the generator's 10 km crater rasterized into a DEM "
-        "(25 m pixels) and meshed out to its rim, so that --compare times the two paths on the same terrain",
+        "(25 m pixels) and meshed out to the generator mesh's outer edge, so that --compare times the two paths "
+        "on the same terrain",
     )
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "site.json")
     args = ap.parse_args()
@@ -117,11 +119,16 @@ def main() -> None:
         os.environ.setdefault("CRATER_THERMAL_CACHE", str(tmp / "cache"))  # a cold cache: every stage is paid
         radius_km = RADIUS_KM
         if args.terrain == "crater":
-            radius_km = 5.0  # the rim of the 10 km crater
+            # out to where the generator's mesh ends (the outer rim flank), so that both paths mesh the
+            # same terrain over the same area
+            radius_km = 5.0 + geometry.crater_dimensions(10.0)["rim_width"]
             H = radius_km * 1e3 * math.sqrt(4.0 * math.pi / math.sqrt(3.0) / args.facets)
-            result["description"] = f"the 10 km Table 7.1 crater as a DEM (25 m pixels) at {LAT} deg, {LON} deg"
+            result["description"] = (
+                f"the 10 km Table 7.1 crater as a DEM (25 m pixels) at {LAT} deg, {LON} deg, meshed to "
+                f"{radius_km:.2f} km (the generator mesh's outer edge)"
+            )
             result["resolution_m"] = round(H, 1)
-            z, tr, wkt = terrain.synthetic_heights(LAT, LON, 14.0, 25.0, craters=[(10.0, 0.0, 0.0)])
+            z, tr, wkt = terrain.synthetic_heights(LAT, LON, 2 * radius_km + 2.0, 25.0, craters=[(10.0, 0.0, 0.0)])
         else:
             z, tr, wkt = terrain.synthetic_heights(
                 LAT, LON, 40.0, 100.0, craters=[(10.0, 0.0, 0.0), (4.0, 8.0, -6.0)], roughness_m=15.0, seed=1
