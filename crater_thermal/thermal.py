@@ -618,12 +618,14 @@ class ColumnSolver:
     def redo_columns(self, cols, start, absorbed_start, absorbed_end, duration_s: float) -> np.ndarray:
         """Advance again the columns ``cols`` (int array) of the step just taken, from ``start`` (the
         :meth:`state` taken before it) with other forcing [W m-2] (``cols``-long arrays). The clock and the
-        other columns are untouched. Returns the surface T [K] of those columns."""
+        other columns are untouched; those columns' energy accumulators are rewound with their state.
+        Returns the surface T [K] of those columns."""
+        if self._snap is None or start is not self._snap[0]:
+            raise SolverError("redo_columns: start must be the array returned by the latest state()")
         cols = np.asarray(cols, np.int64)
-        T0, acc0, _ = self._snap if self._snap is not None and start is self._snap[0] else (start, None, None)
+        T0, acc0, _ = self._snap
         self.T[cols] = T0[cols]
-        if acc0 is not None:
-            self.acc[cols] = acc0[cols]
+        self.acc[cols] = acc0[cols]
         a = np.empty((2, len(cols)))
         a[0] = absorbed_start
         a[1] = absorbed_end

@@ -397,3 +397,6 @@ def test_redo_columns_failure_names_the_solver_column():
     s.advance(np.full(7, 10.0), np.full(7, 10.0), 14400.0)
     with pytest.raises(SolverError, match=r"column 4 .*t=0 s"):
         s.redo_columns(np.array([1, 4, 6]), start, np.full(3, 10.0), np.array([10.0, np.nan, 10.0]), 14400.0)
+    # only from the snapshot the step was taken from (its energy accumulators are rewound with it)
+    with pytest.raises(SolverError, match="latest state"):
+        s.redo_columns(np.array([1]), start.copy(), np.full(1, 10.0), np.full(1, 10.0), 14400.0)
