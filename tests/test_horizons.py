@@ -188,6 +188,30 @@ def test_rough_site_default_azimuths():
     assert diff.max() < 3.0
 
 
+@pytest.mark.parametrize("which", ["crater", "rough", "dem"])
+def test_hierarchical_map_matches_full_bisection(which, tmp_path):
+    # horizon_map predicts most azimuths from their neighbours and re-brackets outward where the
+    # prediction misses; on a height field the blocked/free boundary is unique, so every facet and
+    # azimuth must land within the final bracket (180 / 2^15 deg) of a full bisection of [-90, 90] deg
+    if which == "crater":
+        mesh = crater_mesh(10.0, 3000)
+    elif which == "rough":
+        mesh = rough_site(3000)
+    else:  # a DEM lattice: the 10 km crater rasterized and meshed by mesh dem (curvature included)
+        from crater_thermal import terrain
+
+        z, tr, wkt = terrain.synthetic_heights(-87.0, 45.0, 18.0, 50.0, craters=[(10.0, 0.0, 0.0)])
+        dem = terrain.write_geotiff(tmp_path / "c.tif", z, tr, wkt)
+        mesh = terrain.site_mesh(dem, -87.0, 45.0, 7.6, 250.0)
+    tr = RayTracer(mesh)
+    idx = np.sort(np.random.default_rng(3).choice(mesh.n_facets, 250, replace=False))
+    az = np.arange(720) * (2.0 * math.pi / 720)
+    fast = horizons._trace_hierarchical(tr, idx, 720, horizons.DEFAULT_TOLERANCE_DEG, horizons.CHUNK_RAYS)
+    full = horizons.trace_horizons(tr, idx, az, horizons.DEFAULT_TOLERANCE_DEG)
+    final_deg = 180.0 / 2**15
+    assert np.degrees(np.abs(fast - full)).max() <= final_deg * (1.0 + 1e-6)
+
+
 def test_point_sun_horizon_equals_point_sun_rays():
     # a point Sun is lit exactly when it is above the traced horizon: the two methods differ only on
     # steps where the Sun is within the horizon tolerance (0.005 deg) or interpolation error of it
