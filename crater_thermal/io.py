@@ -464,6 +464,12 @@ def write_steady(
 
 
 #: Attributes of the run dataset's (time, facet) variables (shared by the in-memory and streamed writers).
+#: Storage type of run.nc's (time, facet) series (fluxes, surface temperature). float32 keeps 7
+#: significant digits: 1e-4 W m-2 at 1,000 W m-2, 1e-5 K at 300 K, far below the model's accuracy;
+#: against float64 it halves the file (measured after zlib: 0.24-0.33 of the float64 bytes instead of
+#: 0.61-0.71) and the time spent compressing it. The run steps in float64 (its block store too); a replay
+#: of the nominal profile from these series reproduces the run's temperatures to ~1e-5 K.
+RUN_SERIES_DTYPE = "f4"
 RUN_SERIES_ATTRS = {
     "solar_incident": {"units": "W m-2", "long_name": "direct + scattered shortwave irradiance"},
     "ir_incident": {"units": "W m-2", "long_name": "longwave irradiance from the terrain"},
