@@ -170,3 +170,22 @@ def test_downward_mesh_refused_then_flipped(tmp_path):
     )
     mesh = case_mesh(loads_case(text, base_dir=tmp_path))
     assert mesh.normals[:, 2].min() > 0.0
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(mesh=terrains(), cliff=st.booleans(), step=st.floats(0.1, 200.0))
+def test_horizon_map_matches_full_bisection(mesh, cliff, step):
+    """The horizon map's predicted brackets (grown outward where they miss) give, on any height field,
+    the horizon of a full bisection of [-90, 90] deg to within the final bracket (180 / 2^15 deg):
+    flat and tilted plains (every horizon at the plane), bowls, mounds, uneven spacing, a cliff."""
+    from crater_thermal import horizons
+
+    if cliff:
+        mesh = terrace_mesh(6, 5, step)
+    tracer = RayTracer(mesh, n_threads=1)
+    idx = np.arange(min(mesh.n_facets, 60))
+    n_az = 256  # coarse level every 8th azimuth, then three predicted levels
+    fast = horizons._trace_hierarchical(tracer, idx, n_az, horizons.DEFAULT_TOLERANCE_DEG, horizons.CHUNK_RAYS)
+    full = horizons.trace_horizons(tracer, idx, np.arange(n_az) * (2.0 * np.pi / n_az), horizons.DEFAULT_TOLERANCE_DEG)
+    assert np.all(np.isfinite(fast))
+    assert np.degrees(np.abs(fast - full)).max() <= 180.0 / 2**15 * (1.0 + 1e-6)
