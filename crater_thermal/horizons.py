@@ -400,11 +400,10 @@ def _expand_brackets(tracer, org, sa, ca, lo, hi, below, above, margin: float) -
         d = np.empty((act.size, 3), dtype=np.float32)
         kern.elevation_directions(cand, sa[act], ca[act], d)
         blocked = tracer.run_raw(np.ascontiguousarray(org[act]), d) != -1
-        # a blocked ray below (or a free one above) closes the bracket; otherwise it moves the near end
-        lo[act[down & blocked]] = cand[down & blocked]
-        hi[act[down & ~blocked]] = cand[down & ~blocked]
-        hi[act[~down & ~blocked]] = cand[~down & ~blocked]
-        lo[act[~down & blocked]] = cand[~down & blocked]
+        # a blocked ray is a new lower end, a free one a new upper end; a blocked ray below (or a free
+        # one above) closes the bracket, otherwise the search goes on from the moved near end
+        lo[act[blocked]] = cand[blocked]
+        hi[act[~blocked]] = cand[~blocked]
         open_ = np.where(down, ~blocked, blocked)
         act, down = act[open_], down[open_]
         step *= BRACKET_GROWTH
