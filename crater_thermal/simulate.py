@@ -1098,8 +1098,7 @@ def run_case(
             ]
             if incidence:
                 series.append(("spinup_solar_absorbed", "spinup_time", ns, lambda a, b: store.read("absorbed", a, b)))
-        # float32 series (RUN_SERIES_DTYPE): 7 significant digits, far below the model's accuracy, and
-        # half the bytes to compress and store
+        # stored as io.RUN_SERIES_DTYPE (float32; precision and sizes documented there)
         variables = {
             name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}), io.RUN_SERIES_DTYPE)
             for name, dim, n, _ in series
