@@ -12,9 +12,18 @@ before it, 4-hour flux steps. Measured in one process:
 * ``per_facet``: with ``--compare``, the same period for the idealized crater generator at the same facet
   count, and the ratio site / crater of the run time per facet (issue 9: must not be slower per facet).
 
+``--roughness-m`` sets the site's RMS roughness (default 15 m; 0 gives the same craters on smooth ground).
+
+``--operator-only`` runs no year: it builds the compressed view-factor operator of the site and of the
+generator crater at the same facet count, at each ``--tolerances`` value (default 1e-3 and 1e-2), and
+reports what it stores (entries, mean far-block rank, bytes), its build time and the time of one product
+with 1 and with 8 right-hand sides (median of repeats), so that the radiative coupling's share of the
+per-facet cost can be read per terrain (default output bench/results/site_operator.json).
+
 Prints one JSON object on its last stdout line and writes bench/results/site.json (``--out`` to change).
 Usage: ``python bench/site.py [--facets 20000] [--record-days 365] [--spinup-days 365.25]
-[--sun-method rays|horizon] [--compare] [--terrain site|crater] [--out PATH]``. With ``--terrain crater`` the DEM is
+[--sun-method rays|horizon] [--compare] [--terrain site|crater] [--roughness-m 15]
+[--operator-only [--tolerances 1e-3 1e-2]] [--out PATH]``. With ``--terrain crater`` the DEM is
 the generator's 10 km crater rasterized (25 m pixels) and meshed out to the generator mesh's outer edge (rim
 plus outer flank, 7.64 km): ``--compare`` then times the DEM path and the generator path on the same terrain
 and area.
@@ -83,6 +92,46 @@ def _run(tmp: Path, name: str, crater: str, end: str, spinup_days: float, sun_me
     return res
 
 
+def _operator_stats(mesh, tolerances) -> list[dict]:
+    """Compressed operator of ``mesh`` at each tolerance: what it stores and what a product costs [s]."""
+    from crater_thermal import vfoperator
+    from crater_thermal.raytrace import RayTracer
+
+    tracer = RayTracer(mesh)
+    rng = np.random.default_rng(0)
+    x1 = rng.random(mesh.n_facets)
+    x8 = rng.random((mesh.n_facets, 8))
+    out = []
+    for tol in tolerances:
+        t = time.perf_counter()
+        op = vfoperator.compressed_view_factors(mesh, tracer, tolerance=tol)
+        build = time.perf_counter() - t
+        times = {}
+        for name, x, reps in (("product_1rhs_s", x1, 40), ("product_8rhs_s", x8, 10)):
+            op @ x  # first call: thread pool, work split
+            samples = []
+            for _ in range(reps):
+                t = time.perf_counter()
+                op @ x
+                samples.append(time.perf_counter() - t)
+            times[name] = float(np.median(samples))
+        st = op.stats
+        out.append(
+            {
+                "tolerance": tol,
+                "build_s": round(build, 2),
+                "stored_entries": int(st["lowrank_numbers"] + st["sparse_pairs"]),
+                "lowrank_numbers": int(st["lowrank_numbers"]),
+                "sparse_pairs": int(st["sparse_pairs"]),
+                "lowrank_blocks": int(st["lowrank_blocks"]),
+                "mean_rank": round(float(st["mean_rank"]), 2),
+                "MB": round(op.nbytes / 1e6, 1),
+                **{k: round(v, 5) for k, v in times.items()},
+            }
+        )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--facets", type=int, default=20_000)
@@ -98,15 +147,20 @@ def main() -> None:
         "(25 m pixels) and meshed out to the generator mesh's outer edge, so that --compare times the two paths "
         "on the same terrain",
     )
-    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "site.json")
+    ap.add_argument("--roughness-m", type=float, default=15.0, help="site's RMS roughness [m]")
+    ap.add_argument("--operator-only", action="store_true", help="compare the view-factor operators only")
+    ap.add_argument("--tolerances", type=float, nargs="+", default=[1e-3, 1e-2])
+    ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    if args.out is None:
+        args.out = REPO / "bench" / "results" / ("site_operator.json" if args.operator_only else "site.json")
     os.environ.setdefault("CRATER_THERMAL_QUIET", "1")
     end = str(np.datetime64("2019-01-01T00:00:00") + np.timedelta64(int(round(args.record_days * 86400)), "s"))
     # resolution for ~facets over the 15 km disk: n ~ 7.26 (R / H)^2 (terrain's equilateral lattice)
     H = RADIUS_KM * 1e3 * math.sqrt(4.0 * math.pi / math.sqrt(3.0) / args.facets)
     result = {
         "description": f"synthetic site at {LAT} deg, {LON} deg: 30 km across (radius {RADIUS_KM} km), "
-        "100 m DEM pixels, 10 km and 4 km craters, 15 m RMS roughness",
+        f"100 m DEM pixels, 10 km and 4 km craters, {args.roughness_m:g} m RMS roughness",
         "resolution_m": round(H, 1),
         "record_days": args.record_days,
         "spinup_days": args.spinup_days,
@@ -131,9 +185,33 @@ def main() -> None:
             z, tr, wkt = terrain.synthetic_heights(LAT, LON, 2 * radius_km + 2.0, 25.0, craters=[(10.0, 0.0, 0.0)])
         else:
             z, tr, wkt = terrain.synthetic_heights(
-                LAT, LON, 40.0, 100.0, craters=[(10.0, 0.0, 0.0), (4.0, 8.0, -6.0)], roughness_m=15.0, seed=1
+                LAT,
+                LON,
+                40.0,
+                100.0,
+                craters=[(10.0, 0.0, 0.0), (4.0, 8.0, -6.0)],
+                roughness_m=args.roughness_m,
+                seed=1,
             )
         dem = terrain.write_geotiff(tmp / "site.tif", z, tr, wkt)
+        if args.operator_only:
+            mesh = terrain.site_mesh(dem, LAT, LON, radius_km, H)
+            gen = geometry.crater_mesh(10.0, mesh.n_facets)
+            _operator_stats(geometry.crater_mesh(10.0, 2000), args.tolerances[:1])  # numba warm-up
+            result["n_facets"] = mesh.n_facets
+            result["site"] = _operator_stats(mesh, args.tolerances)
+            result["crater"] = _operator_stats(gen, args.tolerances)
+            result["ratio_site_over_crater"] = [
+                {
+                    "tolerance": a["tolerance"],
+                    "stored_entries": round(a["stored_entries"] / b["stored_entries"], 2),
+                    "product_1rhs": round(a["product_1rhs_s"] / b["product_1rhs_s"], 2),
+                    "product_8rhs": round(a["product_8rhs_s"] / b["product_8rhs_s"], 2),
+                }
+                for a, b in zip(result["site"], result["crater"])
+            ]
+            _finish(result, args.out)
+            return
         # warm-up: numba compilation is not what we measure
         warm = 'kind = "dem"\ndem = "site.tif"\nradius_km = 2.0\nresolution_m = 400.0'
         _run(tmp, "warm", warm, "2019-01-02T00:00:00", 29.53, args.sun_method)
@@ -152,9 +230,13 @@ def main() -> None:
             result["per_facet_ratio_site_over_crater"] = round(
                 (site["total_s"] / site["n_facets"]) / (cr["total_s"] / cr["n_facets"]), 3
             )
+    _finish(result, args.out)
+
+
+def _finish(result: dict, out: Path) -> None:
     result["peak_rss_GB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 3)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result))
 
 
