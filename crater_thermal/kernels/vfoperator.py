@@ -108,7 +108,7 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
         for q in range(2 * r):
             for c in range(k):
                 tmp[q, c] = 0.0
-        # tmp[:r] = V^T x[c-range], tmp[r:2r] = U^T x[r-range]
+        # tmp[:r] = V^T x[c-range] first (the pass over U needs it)
         for jj in range(nn):
             j = c0[b] + jj
             base = vo + jj * r
@@ -116,6 +116,7 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
                 v = np.float64(V[base + q])
                 for c in range(k):
                     tmp[q, c] += v * x[j, c]
+        # one pass over U: tmp[r:2r] = U^T x[r-range] and y[r-range] += U tmp[:r]
         for ii in range(m):
             i = r0[b] + ii
             base = uo + ii * r
@@ -123,12 +124,6 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
                 u = np.float64(U[base + q])
                 for c in range(k):
                     tmp[r + q, c] += u * x[i, c]
-        for ii in range(m):
-            i = r0[b] + ii
-            base = uo + ii * r
-            for q in range(r):
-                u = np.float64(U[base + q])
-                for c in range(k):
                     y[i, c] += u * tmp[q, c]
         for jj in range(nn):
             j = c0[b] + jj
@@ -217,20 +212,68 @@ def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
             base = vo + jj * r
             for q in range(r):
                 tmp[q] += V[base + q] * xj
+        # one pass over U: tmp[r:] = U^T x[r-range] and y[r-range] += U tmp[:r]
         for ii in range(r1[b] - r0[b]):
-            xi = x[r0[b] + ii]
-            base = uo + ii * r
-            for q in range(r):
-                tmp[r + q] += U[base + q] * xi
-        for ii in range(r1[b] - r0[b]):
+            i = r0[b] + ii
+            xi = x[i]
             base = uo + ii * r
             acc = 0.0
             for q in range(r):
-                acc += U[base + q] * tmp[q]
-            y[r0[b] + ii] += acc
+                u = np.float64(U[base + q])
+                acc += u * tmp[q]
+                tmp[r + q] += u * xi
+            y[i] += acc
         for jj in range(c1[b] - c0[b]):
             base = vo + jj * r
             acc = 0.0
             for q in range(r):
                 acc += V[base + q] * tmp[r + q]
             y[c0[b] + jj] += acc
+
+
+@njit(nogil=True, cache=True)
+def recompress(U, V, R, budget):
+    """Shortest truncated SVD of a cross approximation ``U V^T`` whose exact error stays in budget.
+
+    ``U`` (m, r), ``V`` (n, r) C-contiguous float64: the factors of :func:`aca_full` for a block ``M``;
+    ``R`` (m, n): its residual ``M - U V^T``; ``budget``: the allowed ``||M - M~||_F^2`` [same units^2].
+    With ``U V^T = sum_l s_l a_l b_l^T`` (SVD through the QR factors of U and V), keeping the first k
+    terms leaves the error ``R + sum_{l>=k} s_l a_l b_l^T`` whose squared norm is exactly
+    ``||R||^2 + sum_{l>=k} s_l (s_l + 2 a_l^T R b_l)``.  Returns ``(k, A_k diag(s_k), B_k)``; k = r with
+    the factors unchanged when no term can be dropped.
+    """
+    m, r = U.shape
+    n = V.shape[0]
+    if r <= 1:
+        return r, U, V
+    Qu, Ru = np.linalg.qr(U)
+    Qv, Rv = np.linalg.qr(V)
+    W, sv, Zt = np.linalg.svd(np.ascontiguousarray(Ru) @ np.ascontiguousarray(Rv.T))
+    A = np.ascontiguousarray(Qu) @ np.ascontiguousarray(W)
+    B = np.ascontiguousarray(Qv) @ np.ascontiguousarray(Zt.T)
+    RB = R @ B
+    e2 = 0.0
+    for i in range(m):
+        for j in range(n):
+            e2 += R[i, j] * R[i, j]
+    # err2 after keeping k terms, from k = r down to 0; keep the smallest k within budget
+    best = r
+    acc = e2
+    for k in range(r - 1, 0, -1):
+        cross = 0.0
+        for i in range(m):
+            cross += A[i, k] * RB[i, k]
+        acc += sv[k] * (sv[k] + 2.0 * cross)
+        if acc <= budget:
+            best = k
+    if best >= r:
+        return r, U, V
+    Uk = np.empty((m, best))
+    Vk = np.empty((n, best))
+    for i in range(m):
+        for q in range(best):
+            Uk[i, q] = A[i, q] * sv[q]
+    for j in range(n):
+        for q in range(best):
+            Vk[j, q] = B[j, q]
+    return best, Uk, Vk
