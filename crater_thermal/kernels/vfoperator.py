@@ -108,7 +108,8 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
         for q in range(2 * r):
             for c in range(k):
                 tmp[q, c] = 0.0
-        # tmp[:r] = V^T x[c-range] first (the pass over U needs it)
+        # tmp[:r] = V^T x[c-range], tmp[r:2r] = U^T x[r-range] (two passes over U: merging them into one
+        # was slower with 8 right-hand sides, measured)
         for jj in range(nn):
             j = c0[b] + jj
             base = vo + jj * r
@@ -116,7 +117,6 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
                 v = np.float64(V[base + q])
                 for c in range(k):
                     tmp[q, c] += v * x[j, c]
-        # one pass over U: tmp[r:2r] = U^T x[r-range] and y[r-range] += U tmp[:r]
         for ii in range(m):
             i = r0[b] + ii
             base = uo + ii * r
@@ -124,6 +124,12 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
                 u = np.float64(U[base + q])
                 for c in range(k):
                     tmp[r + q, c] += u * x[i, c]
+        for ii in range(m):
+            i = r0[b] + ii
+            base = uo + ii * r
+            for q in range(r):
+                u = np.float64(U[base + q])
+                for c in range(k):
                     y[i, c] += u * tmp[q, c]
         for jj in range(nn):
             j = c0[b] + jj
