@@ -42,11 +42,13 @@ scaled to ``D G D`` with ``d_i = min(1, 1 / rowsum_i)``, which keeps the symmetr
 
 Cost: memory and product cost grow like the number of stored entries: near blocks O(N * LEAF_SIZE),
 far blocks O(N log N * rank) when visibility is smooth.  On crater terrain occlusion raises the ranks
-with block size (mean rank 8 at 10k facets, 19 at 100k), and blocks above MAX_BLOCK_ENTRIES are split:
-measured memory 8.8 MB at 10k, 103 MB at 50k, 381 MB at 100k (exact matrix: 53 MB, 982 MB, ~3.5 GB),
-i.e. ~N^1.7-1.9 at these sizes (bench/results/viewfactor_operator.json); the build evaluates every facing pair once
-(rays like the exact matrix, O(N^2) time, but never more than one block of entries in memory per
-thread) plus the cross approximation (O(entries * rank)).  Products run in numba
+with block size (mean rank 7 at 10k facets, 17 at 100k, after recompression), and blocks above
+MAX_BLOCK_ENTRIES are split: measured memory 8.3 MB at 10k, 29 MB at 25k, 329 MB at 100k (exact
+matrix: 53 MB, 284 MB, ~3.5 GB), i.e. ~N^1.75 from 25k to 100k
+(``bench/results/viewfactor_operator_c2.json``; before recompression 8.8, 32 and 381 MB,
+``viewfactor_operator.json``); the build evaluates every facing pair once (rays like the exact matrix,
+O(N^2) time, but never more than one block of entries in memory per thread) plus the cross
+approximation and its recompression (O(entries * rank)).  Products run in numba
 (:mod:`crater_thermal.kernels.vfoperator`), one pass over the stored entries per product, for any
 number of right-hand sides at once, split between :data:`PRODUCT_THREADS` threads (rows of the sparse
 part and runs of low-rank blocks balanced by stored entries, each thread adding into its own array).
