@@ -47,6 +47,13 @@ ITERATIVE_MAX = 500
 #: Right-hand sides per block of the iterative scattering solve (memory: a few (nf, k) arrays).
 ITERATIVE_BLOCK = 64
 
+#: How the linear systems (scattered sunlight, radiative equilibrium) are solved: "auto" as a run does it,
+#: by operator (:func:`resolve_solver`: direct with the exact matrix, iterative with the compressed
+#: operator), "direct" (LU; the exact matrix only), "iterative" (fixed point / GMRES; any operator).
+SOLVERS = ("auto", "direct", "iterative")
+#: Relative residual at which the GMRES solve of the radiative equilibrium stops.
+GMRES_RTOL = 1e-10
+
 #: Above this fill fraction (and below DENSE_MAX_FACETS) linear systems are solved densely.
 DENSE_FILL = 0.1
 DENSE_MAX_FACETS = 8000
@@ -58,16 +65,29 @@ class _Factorised:
     def __init__(self, F: sp.csr_matrix, c: np.ndarray):
         nf = F.shape[0]
         self.dense = nf <= DENSE_MAX_FACETS and F.nnz > DENSE_FILL * nf * nf
-        if self.dense:
-            import scipy.linalg as sla
+        try:
+            if self.dense:
+                import scipy.linalg as sla
 
-            M = -(c[:, None] * F.toarray())
-            M[np.diag_indices(nf)] += 1.0
-            self._lu = sla.lu_factor(M, check_finite=False)
-            self._sla = sla
-        else:
-            M = sp.identity(nf, format="csc") - sp.diags(c) @ F
-            self._lu = spla.splu(sp.csc_matrix(M))
+                M = -(c[:, None] * F.toarray())
+                M[np.diag_indices(nf)] += 1.0
+                self._lu = sla.lu_factor(M, check_finite=False)
+                self._sla = sla
+            else:
+                M = sp.identity(nf, format="csc") - sp.diags(c) @ F
+                self._lu = spla.splu(sp.csc_matrix(M))
+        except MemoryError:
+            # the sparse LU's fill-in grows far faster than F's non-zeros (30,752 facets: > 24 GB, issue 20)
+            raise ConfigError(
+                f"not enough memory for the direct (LU) solve of {nf} facets ({F.nnz} view factors); the "
+                "iterative solver needs only a few vectors (steady: --solver iterative, or the compressed "
+                "view-factor operator: --view-factors compressed)"
+            ) from None
+
+    @property
+    def description(self) -> str:
+        """How the system is solved, for a dataset attribute."""
+        return "LU (dense LAPACK)" if self.dense else "LU (sparse SuperLU)"
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         if self.dense:
@@ -96,6 +116,42 @@ def _as_sparse(F) -> sp.csr_matrix:
     if F.shape[0] != F.shape[1]:
         raise ConfigError(f"view-factor matrix has shape {F.shape}; expected square (nf, nf)")
     return F
+
+
+def operator_kind(F) -> str:
+    """``"exact"`` for an exact view-factor matrix (sparse or dense), ``"compressed"`` for any other operator."""
+    return "exact" if isinstance(_as_operator(F), SparseViewFactors) else "compressed"
+
+
+def resolve_solver(solver: str, view_factors: str) -> str:
+    """``"direct"`` or ``"iterative"``: how the linear systems are solved with a view-factor operator.
+
+    Parameters
+    ----------
+    solver : {"auto", "direct", "iterative"}
+        ``"auto"``: direct (LU) with the exact matrix, iterative with the compressed operator, as a run
+        does (so the facet count that picks the operator, ``vfoperator.AUTO_COMPRESSED_MIN_FACETS``,
+        picks the solver too).
+    view_factors : {"exact", "compressed"}
+        The operator's kind (a resolved ``vfoperator.resolve_method``, or :func:`operator_kind`).
+
+    Raises
+    ------
+    ConfigError
+        An unknown name, or ``"direct"`` with the compressed operator (it has no matrix to factorise).
+    """
+    if solver not in SOLVERS:
+        raise ConfigError(f"solver = {solver!r}; allowed: {', '.join(SOLVERS)}")
+    if view_factors not in ("exact", "compressed"):
+        raise ConfigError(f"view-factor kind = {view_factors!r}; expected 'exact' or 'compressed'")
+    if solver == "auto":
+        return "direct" if view_factors == "exact" else "iterative"
+    if solver == "direct" and view_factors == "compressed":
+        raise ConfigError(
+            "solver = 'direct' needs the exact view-factor matrix (the compressed operator has no matrix to "
+            "factorise); use solver 'iterative' or exact view factors"
+        )
+    return solver
 
 
 def check_per_facet(name: str, value, nf: int, lo: float, hi: float, hi_open: bool) -> np.ndarray:
@@ -131,9 +187,13 @@ class ScatteringSolver:
         ``"bounces"`` keeps ``n_bounces`` reflections (thesis: 3).
     n_bounces : int
         Number of reflections for ``"bounces"`` (>= 0; 0 = no scattering).
+    solver : {"auto", "direct", "iterative"}
+        How ``"exact"`` is solved (:func:`resolve_solver`): ``"auto"`` by the operator (LU for the exact
+        matrix, the fixed point for the compressed operator, as above); ``"iterative"`` also runs the
+        fixed point on an exact matrix (no factorisation: memory of a few vectors).
     """
 
-    def __init__(self, F, albedo=ALBEDO, method: str = "exact", n_bounces: int = DEFAULT_BOUNCES):
+    def __init__(self, F, albedo=ALBEDO, method: str = "exact", n_bounces: int = DEFAULT_BOUNCES, solver: str = "auto"):
         self.F = _as_operator(F)
         nf = self.F.shape[0]
         self.albedo = check_per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
@@ -143,11 +203,25 @@ class ScatteringSolver:
             raise ConfigError(f"n_bounces = {n_bounces!r} must be an integer in [0, 1000]")
         self.method = method
         self.n_bounces = int(n_bounces)
+        #: "direct" or "iterative" (how ``"exact"`` is solved; see :func:`resolve_solver`)
+        self.solver = resolve_solver(solver, operator_kind(self.F))
         self._lu = None
         #: iterations of the last iterative solve (0 for LU / bounces)
         self.iterations = 0
-        if method == "exact" and nf and isinstance(self.F, SparseViewFactors):
+        if method == "exact" and nf and self.solver == "direct":
             self._lu = _Factorised(self.F.matrix, self.albedo)
+
+    @property
+    def description(self) -> str:
+        """How the scattered sunlight was computed (after a solve), for a dataset attribute."""
+        if self.method == "bounces":
+            return f"{self.n_bounces} bounces"
+        if self._lu is not None:
+            return f"(I - A F) B = A E by {self._lu.description}"
+        return (
+            f"(I - A F) B = A E by the fixed point B <- A E + A F B to {ITERATIVE_RTOL:g} relative change "
+            f"({self.iterations} products)"
+        )
 
     @property
     def n_facets(self) -> int:
@@ -255,39 +329,57 @@ def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
     return np.maximum(np.asarray(F.matvec(np.ascontiguousarray(flat.T))).T.reshape(T.shape), 0.0)
 
 
-def equilibrium_temperature(F, solar_incident: np.ndarray, albedo=ALBEDO, emissivity=EMISSIVITY) -> np.ndarray:
+def equilibrium_temperature(
+    F, solar_incident: np.ndarray, albedo=ALBEDO, emissivity=EMISSIVITY, solver: str = "auto"
+) -> np.ndarray:
     """Radiative-equilibrium surface temperature (no conduction) [K].
 
     Solves ``(I - eps F) u = (1 - A) Q`` for ``u = eps sigma T^4``: directly (LU) with an exact matrix,
-    by GMRES (relative residual 1e-10) with a compressed operator.
+    by GMRES (relative residual :data:`GMRES_RTOL`) with a compressed operator (``solver="auto"``, see
+    :func:`resolve_solver`; ``"iterative"`` runs GMRES on an exact matrix too).
 
     Parameters
     ----------
     F : (nf, nf) view factors [-] (matrix or vfoperator.ViewFactorOperator)
     solar_incident : (nf,) float [W m-2]
     albedo, emissivity : float or (nf,) float [-]
+    solver : {"auto", "direct", "iterative"}
 
     Returns
     -------
     T : (nf,) float [K]
     """
+    return _equilibrium(F, solar_incident, albedo, emissivity, solver)[0]
+
+
+def _equilibrium(F, solar_incident, albedo, emissivity, solver: str) -> tuple[np.ndarray, str]:
+    """:func:`equilibrium_temperature` and how it was solved (a dataset attribute's text)."""
     op = _as_operator(F)
     nf = op.shape[0]
     A = check_per_facet("albedo", albedo, nf, 0.0, 1.0, hi_open=True)
     eps = check_per_facet("emissivity", emissivity, nf, 0.0, 1.0, hi_open=False)
     if np.any(eps <= 0):
         raise ConfigError("emissivity = 0 is outside (0, 1] for a radiative equilibrium")
+    kind = resolve_solver(solver, operator_kind(op))
     Q = np.asarray(solar_incident, dtype=float)
     rhs = (1.0 - A) * Q
-    if isinstance(op, SparseViewFactors):
-        u = _Factorised(op.matrix, eps).solve(rhs)
+    if kind == "direct":
+        lu = _Factorised(op.matrix, eps)
+        u, how = lu.solve(rhs), f"(I - eps F) u = (1 - A) Q by {lu.description}"
     else:
-        M = spla.LinearOperator((nf, nf), matvec=lambda x: x - eps * op.matvec(np.ravel(x)), dtype=float)
-        u, info = spla.gmres(M, rhs, x0=rhs, rtol=1e-10, atol=0.0, restart=50, maxiter=ITERATIVE_MAX)
+        products = [0]
+
+        def matvec(x):
+            products[0] += 1
+            return x - eps * op.matvec(np.ravel(x))
+
+        M = spla.LinearOperator((nf, nf), matvec=matvec, dtype=float)
+        u, info = spla.gmres(M, rhs, x0=rhs, rtol=GMRES_RTOL, atol=0.0, restart=50, maxiter=ITERATIVE_MAX)
         if info != 0:
             raise SolverError(f"radiative equilibrium: GMRES did not converge (info {info})")
+        how = f"(I - eps F) u = (1 - A) Q by GMRES to relative residual {GMRES_RTOL:g} ({products[0]} products)"
     u = np.maximum(u, 0.0)  # round-off only: every term is non-negative
-    return (u / (eps * SIGMA)) ** 0.25
+    return (u / (eps * SIGMA)) ** 0.25, how
 
 
 def steady_state(
@@ -302,13 +394,14 @@ def steady_state(
     disk=None,
     method: str = "exact",
     n_bounces: int = DEFAULT_BOUNCES,
+    solver: str = "auto",
 ) -> dict:
     """Radiative equilibrium of a crater under a fixed Sun (no conduction).
 
     Parameters
     ----------
     mesh : geometry.Mesh
-    F : (nf, nf) view factors [-]
+    F : (nf, nf) view factors [-], or a vfoperator.ViewFactorOperator (exact or compressed)
     tracer : raytrace.RayTracer
     sun_dir : (3,) float [unit]
         Direction toward the Sun (crater frame: x east, y north, z up).
@@ -319,25 +412,57 @@ def steady_state(
         ``None`` = point Sun.
     method, n_bounces :
         Scattering method (see :class:`ScatteringSolver`).
+    solver : {"auto", "direct", "iterative"}
+        How the scattering and the equilibrium systems are solved (:func:`resolve_solver`).
 
     Returns
     -------
     dict of (nf,) float arrays: ``surface_temperature`` [K], ``solar_direct``,
     ``solar_incident``, ``ir_incident`` [W m-2].
     """
+    return steady_solution(
+        mesh, F, tracer, sun_dir, sun_distance_m, albedo, emissivity, solar_constant, disk, method, n_bounces, solver
+    )[0]
+
+
+def steady_solution(
+    mesh,
+    F,
+    tracer,
+    sun_dir,
+    sun_distance_m: float = AU,
+    albedo=ALBEDO,
+    emissivity=EMISSIVITY,
+    solar_constant: float = SOLAR_CONSTANT,
+    disk=None,
+    method: str = "exact",
+    n_bounces: int = DEFAULT_BOUNCES,
+    solver: str = "auto",
+) -> tuple[dict, dict]:
+    """:func:`steady_state` (same parameters) and how it was solved.
+
+    Returns
+    -------
+    results : dict
+        As :func:`steady_state`.
+    methods : dict of str
+        ``solver`` ("direct" or "iterative"), ``scattering_solve`` and ``ir_solve`` (the system each
+        solved and how, with the number of operator products of an iterative solve).
+    """
     from crater_thermal.illumination import direct_irradiance
 
     s = np.asarray(sun_dir, dtype=float).reshape(1, 3)
     E = direct_irradiance(mesh, tracer, s, np.array([float(sun_distance_m)]), solar_constant, disk=disk)[0]
-    solver = ScatteringSolver(F, albedo, method=method, n_bounces=n_bounces)
-    Q = solver.solar_incident(E)
-    T = equilibrium_temperature(F, Q, albedo, emissivity)
-    return {
+    scat = ScatteringSolver(F, albedo, method=method, n_bounces=n_bounces, solver=solver)
+    Q = scat.solar_incident(E)
+    T, ir_how = _equilibrium(F, Q, albedo, emissivity, scat.solver)
+    results = {
         "surface_temperature": T,
         "solar_direct": E,
         "solar_incident": Q,
         "ir_incident": ir_incident(F, T, emissivity),
     }
+    return results, {"solver": scat.solver, "scattering_solve": scat.description, "ir_solve": ir_how}
 
 
 # --------------------------------------------------------------------- Ingersoll bowl
