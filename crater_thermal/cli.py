@@ -8,7 +8,10 @@ Exit codes, never a traceback:
 * 3 (``internal error: ...``, one line asking for a bug report): an
   :class:`~crater_thermal.errors.InternalError` (including a failed solver) or any other unexpected
   exception; ``CRATER_THERMAL_TRACEBACK=1`` shows the traceback instead;
-* 130: interrupted.
+* 130 / 143 (``error: interrupted (SIGINT|SIGTERM) ...``, one line): stopped by Ctrl-C or SIGTERM; no
+  output is damaged, and where a checkpoint is kept the line says how to resume.
+
+Help text is printed as plain text (no rich markup), so units in brackets (``[km]``) are shown as written.
 """
 
 from __future__ import annotations
@@ -20,18 +23,31 @@ from typing import List, Optional
 
 import typer
 
-from crater_thermal.errors import CraterThermalError, InternalError
+from crater_thermal.errors import CraterThermalError, InternalError, Interrupted
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
     help="Thermal environment of lunar polar craters: meshes, fluxes, temperatures, reports.",
 )
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from crater_thermal import __version__
+
+        typer.echo(f"crater-thermal {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: bool = typer.Option(
+        False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
     """Thermal environment of lunar polar craters."""
 
 
@@ -51,7 +67,9 @@ def version() -> None:
 
 # ---------------------------------------------------------------- mesh (geometry)
 
-mesh_app = typer.Typer(no_args_is_help=True, help="Make crater meshes (idealized Table 7.1 crater, Ingersoll bowl).")
+mesh_app = typer.Typer(
+    no_args_is_help=True, rich_markup_mode=None, help="Make crater meshes (idealized Table 7.1 crater, Ingersoll bowl)."
+)
 app.add_typer(mesh_app, name="mesh")
 
 
@@ -138,7 +156,9 @@ def mesh_dem(
 
 # ---------------------------------------------------------------- dem (synthetic sites)
 
-dem_app = typer.Typer(no_args_is_help=True, help="Digital elevation models: synthetic polar sites.")
+dem_app = typer.Typer(
+    no_args_is_help=True, rich_markup_mode=None, help="Digital elevation models: synthetic polar sites."
+)
 app.add_typer(dem_app, name="dem")
 
 
@@ -210,6 +230,23 @@ def steady(
     n_rings: int = typer.Option(4, "--sun-rings", help="Rings of the sampled solar disk (1 + 3n(n-1) patches)."),
     scattering: str = typer.Option("exact", "--scattering", help="exact | bounces."),
     n_bounces: int = typer.Option(3, "--bounces", help="Reflections kept with --scattering bounces."),
+    view_factors: str = typer.Option(
+        "auto",
+        "--view-factors",
+        help="auto | exact | compressed: exact sparse matrix or compressed operator (auto: by facet count, as "
+        "a run chooses).",
+    ),
+    view_factor_tolerance: Optional[float] = typer.Option(
+        None,
+        "--view-factor-tolerance",
+        help="Compressed operator: relative Frobenius error per far block, (0, 0.1] (default: a case file's).",
+    ),
+    solver: str = typer.Option(
+        "auto",
+        "--solver",
+        help="auto | direct | iterative: LU, or fixed point (scattering) and GMRES (infrared) (auto: LU with "
+        "exact view factors, iterative with the compressed operator).",
+    ),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Folder caching view factors by mesh hash."),
     flip: bool = typer.Option(False, "--flip", help="Reverse every facet's winding (normals pointing down)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output netCDF file."),
@@ -231,6 +268,9 @@ def steady(
         n_rings=n_rings,
         method=scattering,
         n_bounces=n_bounces,
+        view_factors=view_factors,
+        tolerance=view_factor_tolerance,
+        solver=solver,
         cache_dir=cache_dir,
         overwrite=overwrite,
         flip=flip,
@@ -242,21 +282,34 @@ def steady(
 # ---------------------------------------------------------------- run / replay (simulate)
 
 
+_PROGRESS_HELP = (
+    "Progress on stderr: a bar on a terminal, elsewhere (a log, a batch job) a line at most every 30 s with "
+    "the time left. Default: on; --quiet (or CRATER_THERMAL_QUIET=1) for none."
+)
+
+
 @app.command()
 def run(
     case: Path = typer.Argument(..., help="Case file (TOML), see cases/README.md."),
     output: Path = typer.Option(..., "-o", "--output", help="Run dataset to write (netCDF)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the checkpoint beside OUTPUT."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
-    progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help="Progress bar (default: on a terminal)."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""
     from crater_thermal import config, simulate
+    from crater_thermal.errors import Interrupted
     from crater_thermal.progress import reporter
 
-    path = simulate.run_case(
-        config.load_case(case), output, resume=resume, overwrite=overwrite, progress=reporter(progress)
-    )
+    try:
+        path = simulate.run_case(
+            config.load_case(case), output, resume=resume, overwrite=overwrite, progress=reporter(progress)
+        )
+    except Interrupted as exc:
+        ckpt = Path(simulate.checkpoint_path(output))
+        if ckpt.exists():
+            exc.hint = f"checkpoint {ckpt} kept: continue with `crater-thermal run {case} -o {output} --resume`"
+        raise
     typer.echo(f"wrote {path}")
 
 
@@ -286,7 +339,7 @@ def replay(
     allow_inverted: bool = typer.Option(False, "--allow-inverted", help="Allow top density > bottom density."),
     output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
-    progress: Optional[bool] = typer.Option(None, "--progress/--quiet"),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
     from crater_thermal import simulate
@@ -318,7 +371,7 @@ def sweep(
         None, "--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786."
     ),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local processes (default: cores)."),
-    progress: Optional[bool] = typer.Option(None, "--progress/--quiet"),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Run many cases and their replays; a restarted sweep skips finished cases."""
     from crater_thermal import sweep as sweep_mod
@@ -368,7 +421,7 @@ def report(
     ),
     min_dark_hours: float = typer.Option(24.0, "--min-dark-hours", help="Darkness before a facet's night [h]."),
 ) -> None:
-    """Figures (thesis Figs. 7.4-7.9), detection statistics, report.html and summary.json."""
+    """Report of a run and its replay: figures as thesis 7.4-7.9, detection statistics, report.html, summary.json."""
     from crater_thermal import instrument as ins
     from crater_thermal.errors import ConfigError
     from crater_thermal.report import make_report
@@ -443,25 +496,95 @@ def show(
             typer.echo(res[key])
 
 
-def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"warning: {' '.join(str(message).split())}", file=sys.stderr if file is None else file)
+# ---------------------------------------------------------------- cache
+
+cache_app = typer.Typer(
+    no_args_is_help=True,
+    rich_markup_mode=None,
+    help="The cache of view factors and horizon maps ($CRATER_THERMAL_CACHE or ~/.cache/crater_thermal).",
+)
+app.add_typer(cache_app, name="cache")
+
+
+def _size(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000.0
+    return ""  # pragma: no cover
+
+
+@cache_app.command("info")
+def cache_info() -> None:
+    """Where the cache is and what it holds (files and sizes per kind); deleting it is always safe."""
+    from crater_thermal import cache
+
+    i = cache.info()
+    where = i["root"] + ("" if i["exists"] else " (not created yet)")
+    typer.echo(f"cache {where}: {i['files']} files, {_size(i['bytes'])}")
+    for kind, k in i["kinds"].items():
+        typer.echo(f"  {kind}: {k['files']} files, {_size(k['bytes'])}")
+
+
+@cache_app.command("clear")
+def cache_clear(
+    kind: Optional[str] = typer.Option(None, "--kind", help="Clear only this kind: viewfactors | horizons."),
+) -> None:
+    """Delete the cached entries (recomputed when next needed); nothing else in the folder is touched."""
+    from crater_thermal import cache
+
+    r = cache.clear(kind)
+    typer.echo(f"removed {r['files']} files, {_size(r['bytes'])} from {cache.root()}")
+
+
+# ---------------------------------------------------------------- entry point
+
+
+def _install_signal_handlers() -> None:
+    """SIGINT and SIGTERM raise :class:`~crater_thermal.errors.Interrupted` in the main thread, so that every
+    writer cleans up (temporary files removed, locks released, existing outputs untouched). A second
+    signal during that clean-up ends the process at once with the same exit code."""
+    import signal
+
+    def handler(signum, frame):
+        if getattr(handler, "fired", False):
+            print(f"error: interrupted again ({signal.Signals(signum).name}); exiting at once", file=sys.stderr)
+            os._exit(128 + signum)
+        handler.fired = True
+        raise Interrupted(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            signal.signal(sig, handler)
+        except (ValueError, OSError):  # not the main thread (an embedding program): leave its handlers
+            pass
+
+
+def _interrupted(code: int, name: str, hint: str = "") -> None:
+    tail = f"; {hint}" if hint else "; no output was written or changed"
+    print(f"error: interrupted ({name}){tail}", file=sys.stderr)
+    sys.exit(code)
 
 
 def main(argv: Optional[List[str]] = None) -> None:
     """Console-script entry point."""
     import warnings
 
-    warnings.showwarning = _one_line_warning
+    from crater_thermal.progress import one_line_warning
+
+    warnings.showwarning = one_line_warning
+    _install_signal_handlers()
     try:
-        app(args=argv, standalone_mode=False)
+        rc = app(args=argv, standalone_mode=False)
+    except Interrupted as exc:
+        _interrupted(exc.exit_code, exc.signal_name, exc.hint)
     except CraterThermalError as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         sys.exit(2)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except (typer.Abort, KeyboardInterrupt):
-        print("error: interrupted", file=sys.stderr)
-        sys.exit(130)
+        _interrupted(130, "SIGINT")
     except Exception as exc:
         if hasattr(exc, "show") and hasattr(exc, "exit_code"):  # usage errors from typer's bundled click
             exc.show()
@@ -480,6 +603,11 @@ def main(argv: Optional[List[str]] = None) -> None:
             file=sys.stderr,
         )
         sys.exit(3)
+    # typer returns the code of an Exit raised inside a command (its KeyboardInterrupt handler returns 130)
+    if isinstance(rc, int) and not isinstance(rc, bool) and rc != 0:
+        if rc == 130:
+            _interrupted(130, "SIGINT")
+        sys.exit(rc)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -53,6 +53,10 @@ class OutputExistsError(CraterThermalError):
     """An output exists and ``--overwrite`` was not given."""
 
 
+class OutputLockedError(CraterThermalError):
+    """Another live process is writing the same output (its lock file is beside the output)."""
+
+
 class MissingExtraError(CraterThermalError):
     """An optional dependency (a package extra such as ``viz`` or ``distributed``) is not installed."""
 
@@ -70,3 +74,33 @@ class SolverError(InternalError):
 
     An internal failure (exit code 3): user input is validated before it reaches the solver.
     """
+
+
+class Interrupted(BaseException):
+    """The command was stopped by a signal: SIGINT (Ctrl-C, exit code 130) or SIGTERM (exit code 143).
+
+    A ``BaseException`` like ``KeyboardInterrupt``, so that no ``except Exception`` swallows it, but a
+    class of its own, so that nothing mistakes it for a finished command. Raised in the main thread by
+    the handlers the command line installs; every writer then removes its temporary files and leaves
+    existing outputs untouched. ``hint`` (set by a command on its way out) tells how to resume.
+    """
+
+    def __init__(self, signum: int, hint: str = ""):
+        super().__init__(signum)
+        self.signum = int(signum)
+        self.hint = hint
+
+    @property
+    def exit_code(self) -> int:
+        """128 + the signal number (the shell's convention): 130 for SIGINT, 143 for SIGTERM."""
+        return 128 + self.signum
+
+    @property
+    def signal_name(self) -> str:
+        """``SIGINT``, ``SIGTERM``, ..."""
+        import signal
+
+        try:
+            return signal.Signals(self.signum).name
+        except ValueError:
+            return f"signal {self.signum}"

@@ -78,6 +78,7 @@ Cache: with ``cache_dir`` the map is stored as ``horizons_<mesh.hash>_<version, 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -321,7 +322,10 @@ def horizon_map(
     elev.setflags(write=False)
     build_s = time.perf_counter() - t0
     if path is not None:
-        io.save_npz_atomic(path, elevation=elev, mesh_hash=np.array(mesh.hash), version=np.array(HORIZON_VERSION))
+        try:
+            io.save_npz_atomic(path, elevation=elev, mesh_hash=np.array(mesh.hash), version=np.array(HORIZON_VERSION))
+        except OSError as exc:  # a full or read-only cache costs the next run time, never this run
+            warnings.warn(f"horizon map not cached in {path.parent} ({exc.strerror or exc})", stacklevel=2)
     return HorizonMap(elev, mesh.hash, tol, build_s)
 
 

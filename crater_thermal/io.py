@@ -26,13 +26,17 @@ import json
 import os
 import secrets
 import shutil
+import socket
+import sys
+import time
+import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
 from crater_thermal import __version__
-from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
+from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError, OutputLockedError
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -48,7 +52,7 @@ _ENCODING = {"zlib": True, "complevel": 1}
 # ----------------------------------------------------------------------------- writing
 
 
-def check_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False) -> Path:
+def check_output(path: str | os.PathLike, overwrite: bool = False, folder: bool = False, inputs: Iterable = ()) -> Path:
     """Check an output path before any work (nothing is created): refuse it if it exists (unless
     ``overwrite``) or has the wrong kind.
 
@@ -60,6 +64,9 @@ def check_output(path: str | os.PathLike, overwrite: bool = False, folder: bool 
         Allow replacing an existing output.
     folder : bool
         The output is a folder (a file output must not be a folder, and the reverse).
+    inputs : iterable of path-like
+        The command's input files: the output may be none of them, even with ``overwrite``
+        (see :func:`refuse_input_as_output`).
 
     Returns
     -------
@@ -73,6 +80,7 @@ def check_output(path: str | os.PathLike, overwrite: bool = False, folder: bool 
         ``path`` is a folder where a file is written (or the reverse), or its parent is a file.
     """
     path = Path(path)
+    refuse_input_as_output(path, inputs)
     if path.is_dir() and not folder:
         raise ConfigError(f"output {path} is a folder; give a file name (e.g. {path / 'out.nc'})")
     if path.exists() and folder and not path.is_dir():
@@ -82,6 +90,166 @@ def check_output(path: str | os.PathLike, overwrite: bool = False, folder: bool 
     if path.parent.exists() and not path.parent.is_dir():
         raise ConfigError(f"output {path}: {path.parent} is a file, not a folder")
     return path
+
+
+def refuse_input_as_output(output: str | os.PathLike, inputs: Iterable) -> None:
+    """Refuse an output that is one of the command's inputs, or (a folder output) holds one.
+
+    Files are compared as the operating system sees them (device and inode, ``os.path.samefile``), so
+    another spelling of the same file (``./run.nc``, a symbolic or hard link) is caught too. Applies
+    even with ``--overwrite``: replacing an input with the result destroys the input.
+
+    Parameters
+    ----------
+    output : path-like
+        The file or folder about to be written.
+    inputs : iterable of path-like or None
+        The files the command reads (``None`` entries are skipped; inputs that do not exist are
+        left to the readers' own errors).
+
+    Raises
+    ------
+    ConfigError
+        ``output`` is, or contains, one of ``inputs``.
+    """
+    output = Path(output)
+    if not os.path.lexists(output):
+        return
+    for inp in inputs:
+        if inp is None or not os.path.exists(inp):
+            continue
+        inp = Path(inp)
+        if os.path.samefile(output, inp):
+            raise ConfigError(
+                f"output {output} is the input {inp}; write to another file (an output never replaces an input, "
+                "even with --overwrite)"
+            )
+        if output.is_dir() and not output.is_symlink():
+            parent = inp.resolve().parent
+            if any(os.path.samefile(output, p) for p in (parent, *parent.parents) if p.exists()):
+                raise ConfigError(
+                    f"output folder {output} holds the input {inp}; write to another folder (an output never "
+                    "replaces an input, even with --overwrite)"
+                )
+
+
+def lock_path(output: str | os.PathLike) -> Path:
+    """The lock file of an output: ``OUT.lock`` beside it (a folder output ``report/`` -> ``report.lock``)."""
+    output = Path(output)
+    return output.with_name(output.name.rstrip("/") + ".lock")
+
+
+def _process_start(pid: int) -> str:
+    """Start time of process ``pid`` in clock ticks since boot (Linux ``/proc``), or '' where unknown."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return ""
+
+
+def _alive(pid: int, start: str) -> bool:
+    """Whether process ``pid`` runs on this host (and, where known, is the one that started at ``start``)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    except OSError:
+        return False
+    return not start or not _process_start(pid) or _process_start(pid) == start
+
+
+@contextlib.contextmanager
+def output_lock(output: str | os.PathLike) -> Iterator[Path]:
+    """Hold the lock of an output for the block: one writer per output.
+
+    The lock is a small JSON file beside the output (:func:`lock_path`) naming the holder's process id,
+    host, start time and command line, created atomically (``O_EXCL``). A second process asking for
+    the same output while the holder lives is refused at once; a lock whose process is gone (killed,
+    or the machine restarted) is taken over with a one-line warning. The lock is removed when the
+    block ends, whether it ends normally, by an error or by an interruption.
+
+    Raises
+    ------
+    OutputLockedError
+        A live process (on this host, or any process on another host) holds the lock.
+    ConfigError
+        The lock cannot be created (the output's folder cannot be made or written).
+    """
+    lock = lock_path(output)
+    me = {
+        "pid": os.getpid(),
+        "host": socket.gethostname(),
+        "process_start": _process_start(os.getpid()),
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "command": " ".join(sys.argv),
+    }
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the folder of output {output}: {exc.strerror or exc}") from None
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            _take_over_if_stale(lock, output, me["host"])
+            continue
+        except OSError as exc:
+            raise ConfigError(f"cannot create the lock {lock} of output {output}: {exc.strerror or exc}") from None
+        with os.fdopen(fd, "w") as f:
+            json.dump(me, f)
+        break
+    else:  # pragma: no cover - three stale locks replaced by others in a row
+        raise OutputLockedError(f"output {output}: its lock {lock} keeps being taken by other processes; try again")
+    try:
+        yield lock
+    finally:
+        try:
+            with open(lock) as f:
+                mine = json.load(f).get("pid") == me["pid"]
+        except (OSError, ValueError):
+            mine = False
+        if mine:
+            with contextlib.suppress(OSError):
+                lock.unlink()
+
+
+def _take_over_if_stale(lock: Path, output, host: str) -> None:
+    """Remove ``lock`` if its process is gone (with a warning); refuse if it lives."""
+    try:
+        with open(lock) as f:
+            holder = json.load(f)
+        pid, holder_host = int(holder["pid"]), str(holder["host"])
+    except FileNotFoundError:
+        return  # released meanwhile: try again
+    except (OSError, ValueError, KeyError, TypeError):
+        holder, pid, holder_host = {}, -1, host  # unreadable (a crash while writing it): stale
+        if time.time() - _mtime(lock) < 5.0:  # or being written right now
+            raise OutputLockedError(
+                f"output {output} is locked by another process ({lock} is being written); try again in a moment"
+            ) from None
+    if holder_host != host:
+        raise OutputLockedError(
+            f"output {output} is being written by process {pid} on host {holder_host} (lock {lock}); wait for it, "
+            "or delete the lock if that process is gone"
+        )
+    if pid > 0 and _alive(pid, str(holder.get("process_start", ""))):
+        raise OutputLockedError(
+            f"output {output} is being written by process {pid} (since {holder.get('started_utc', '?')}, lock "
+            f"{lock}); wait for it to finish or stop it, or write to another output"
+        )
+    warnings.warn(f"taking over the stale lock {lock} of process {pid}, which is no longer running", stacklevel=3)
+    with contextlib.suppress(FileNotFoundError):
+        lock.unlink()
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return 0.0
 
 
 def _temporary_sibling(path: Path, folder: bool) -> Path:

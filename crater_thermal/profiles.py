@@ -166,7 +166,7 @@ def check_profile(p: Profile, allow_inverted: bool = False) -> Profile:
     if not allow_inverted and np.any(np.diff(dens) < 0):
         raise ProfileError(
             f"profile {p.label!r}: density decreases with depth ({dens.tolist()} kg/m3);"
-            " allowed: top <= bottom (pass allow_inverted=True to accept)"
+            " allowed: top <= bottom (replay --allow-inverted, or allow_inverted=True in Python, accepts it)"
         )
     return p
 

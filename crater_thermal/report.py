@@ -1073,12 +1073,13 @@ def _as_list(x) -> list:
 _MEMBERS = ("report.html", "summary.json", "figures")
 
 
-def _refuse_existing(out_dir: Path, overwrite: bool) -> None:
-    """Refuse an existing report (any of :data:`_MEMBERS`) unless ``overwrite``, before any work."""
+def _refuse_existing(out_dir: Path, overwrite: bool, inputs=()) -> None:
+    """Refuse an existing report (any of :data:`_MEMBERS`) unless ``overwrite``, or one that would replace
+    one of the ``inputs`` (even with ``overwrite``), before any work."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"report folder {out_dir} is a file; give a folder name")
     for name in _MEMBERS:
-        ctio.check_output(out_dir / name, overwrite, folder=name == "figures")
+        ctio.check_output(out_dir / name, overwrite, folder=name == "figures", inputs=inputs)
 
 
 def sweep_pairs(folder) -> Tuple[List[Path], List[Path]]:
@@ -1149,7 +1150,43 @@ def make_report(
         ``out_dir/report.html`` exists and ``overwrite`` is False.
     """
     out_dir = Path(out_dir)
-    _refuse_existing(out_dir, overwrite)
+    inputs = [p for p in _as_list(run_ds) + _as_list(replay_ds) if isinstance(p, (str, os.PathLike))]
+    _refuse_existing(out_dir, overwrite, inputs)
+    created = not out_dir.exists()
+    try:
+        with ctio.output_lock(out_dir):
+            return _locked_report(
+                run_ds,
+                replay_ds,
+                out_dir,
+                overwrite,
+                progress,
+                instruments,
+                threshold_K,
+                observation,
+                snapshots,
+                night_definition,
+                min_dark_hours,
+            )
+    except BaseException:
+        if created and out_dir.is_dir() and not any(out_dir.iterdir()):
+            out_dir.rmdir()  # an interrupted or failed report leaves no empty folder behind
+        raise
+
+
+def _locked_report(
+    run_ds,
+    replay_ds,
+    out_dir,
+    overwrite,
+    progress,
+    instruments,
+    threshold_K,
+    observation,
+    snapshots,
+    night_definition,
+    min_dark_hours,
+) -> Path:
     instruments = list(ins.PRESETS.values()) if instruments is None else list(instruments)
     if not instruments:
         raise ConfigError("need at least one instrument")

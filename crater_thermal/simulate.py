@@ -26,7 +26,7 @@ Start of the recorded period
 from __future__ import annotations
 
 import contextlib
-import os
+import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,8 +34,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from crater_thermal import cache
 from crater_thermal.constants import SIGMA
-from crater_thermal.errors import ConfigError, FluxFileError
+from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 
 # ----------------------------------------------------------------------------- memory budget
 
@@ -527,7 +528,40 @@ def replay_file(
     """
     from crater_thermal import io
 
-    io.check_output(output, overwrite)  # fail before any work
+    io.check_output(output, overwrite, inputs=[flux_path])  # fail before any work
+    with io.output_lock(output):
+        return _replay_file(
+            flux_path,
+            labels,
+            density_grid=density_grid,
+            initial_temperature=initial_temperature,
+            fixed_spinup=fixed_spinup,
+            property_set=property_set,
+            allow_inverted=allow_inverted,
+            output=output,
+            overwrite=overwrite,
+            progress=progress,
+            chunk_mb=chunk_mb,
+        )
+
+
+def _replay_file(
+    flux_path,
+    labels,
+    *,
+    density_grid,
+    initial_temperature,
+    fixed_spinup,
+    property_set,
+    allow_inverted,
+    output,
+    overwrite,
+    progress,
+    chunk_mb,
+):
+    from crater_thermal import io
+
+    io.check_output(output, overwrite, inputs=[flux_path])  # again, under the lock
     if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
         raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
     profiles = resolve_profiles(labels, density_grid, allow_inverted)
@@ -561,10 +595,9 @@ def replay_file(
     return Path(output)
 
 
-def _view_factor_cache_dir() -> str:
-    """Folder for cached view-factor matrices (``CRATER_THERMAL_CACHE`` or ~/.cache/crater_thermal)."""
-    base = os.environ.get("CRATER_THERMAL_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "crater_thermal")
-    return os.path.join(base, "viewfactors")
+def _view_factor_cache_dir():
+    """Folder for cached view-factor matrices (see :mod:`crater_thermal.cache`), or None when unwritable."""
+    return cache.folder("viewfactors")
 
 
 @dataclass
@@ -666,9 +699,9 @@ def case_sun(case, timer: Timer):
     return spin_times, times, sun_dirs, sun_dist
 
 
-def _horizon_cache_dir() -> str:
-    """Folder for cached horizon maps (next to the view factors)."""
-    return os.path.join(os.path.dirname(_view_factor_cache_dir()), "horizons")
+def _horizon_cache_dir():
+    """Folder for cached horizon maps (see :mod:`crater_thermal.cache`), or None when unwritable."""
+    return cache.folder("horizons")
 
 
 class Sunlight:
@@ -893,10 +926,38 @@ def run_case(
     """
     from pathlib import Path
 
-    from crater_thermal import io, thermal
+    from crater_thermal import io
 
     out_path = Path(out_path)
+    io.refuse_input_as_output(out_path, case_inputs(case))
+    with io.output_lock(out_path):
+        try:
+            return _run_case(case, out_path, resume=resume, overwrite=overwrite, progress=progress, timer=timer)
+        except BaseException:  # failed or interrupted: the scratch store is kept only for a checkpoint
+            if not Path(checkpoint_path(out_path)).exists():
+                shutil.rmtree(_scratch_path(out_path), ignore_errors=True)
+            raise
+
+
+def case_inputs(case) -> list:
+    """The files a case reads: the case file itself, its mesh or its DEM (absent ones left out)."""
+    c = case.crater
+    return [p for p in (getattr(case, "path", None), getattr(c, "mesh", None), getattr(c, "dem", None)) if p]
+
+
+def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer):
+    from pathlib import Path
+
+    from crater_thermal import io, thermal
+
     ckpt_path = Path(checkpoint_path(out_path))
+    if ckpt_path.exists() and not resume:
+        if not overwrite:
+            raise OutputExistsError(
+                f"{ckpt_path} holds an unfinished run of output {out_path}: pass --resume to continue it, or "
+                "--overwrite to discard it and start again"
+            )
+        ckpt_path.unlink()
     fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():

@@ -35,8 +35,12 @@ def case_outputs(case_path, out_dir) -> tuple[Path, Path]:
 
 def run_one(case_path: str, out_dir: str) -> dict:
     """Run one case and its replays; skip the parts already written. Returns a summary dict."""
-    from crater_thermal import config, simulate
+    import warnings
 
+    from crater_thermal import config, simulate
+    from crater_thermal.progress import one_line_warning
+
+    warnings.showwarning = one_line_warning  # a worker's warnings read as the command's own: one line each
     t0 = time.perf_counter()
     case = config.load_case(case_path)
     run_nc, replay_nc = case_outputs(case_path, out_dir)

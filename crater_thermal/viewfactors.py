@@ -42,6 +42,7 @@ same mesh.
 
 from __future__ import annotations
 
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
@@ -183,6 +184,13 @@ def _load_cached(path: Path, mesh: Mesh):
 
 
 def _save_cached(path: Path, F: sp.csr_matrix, mesh: Mesh) -> None:
+    try:
+        _write_cache(path, F, mesh)
+    except OSError as exc:  # a full or read-only cache costs the next run time, never this run
+        warnings.warn(f"view factors not cached in {path.parent} ({exc.strerror or exc})", stacklevel=2)
+
+
+def _write_cache(path: Path, F: sp.csr_matrix, mesh: Mesh) -> None:
     io.save_npz_atomic(
         path,
         data=F.data,

@@ -11,13 +11,42 @@ from crater_thermal import progress, simulate, thermal
 PACKAGE = Path(__file__).resolve().parents[1] / "crater_thermal"
 
 
-def test_enabled_flag_wins_and_ci_is_quiet(monkeypatch):
+def test_enabled_flag_wins_quiet_env_silences_ci_gets_lines(monkeypatch):
+    monkeypatch.delenv("CRATER_THERMAL_QUIET", raising=False)
     monkeypatch.setenv("CI", "1")
+    assert progress.enabled(None) is True  # a CI log gets progress lines, not silence
+    assert progress._on_terminal() is False  # ... as lines, never a bar
+    monkeypatch.setenv("CRATER_THERMAL_QUIET", "1")
     assert progress.enabled(None) is False
     assert progress.enabled(True) is True
     monkeypatch.delenv("CI")
-    monkeypatch.delenv("CRATER_THERMAL_QUIET", raising=False)
+    monkeypatch.delenv("CRATER_THERMAL_QUIET")
     assert progress.enabled(False) is False
+
+
+def test_line_progress_at_most_one_line_per_interval_with_eta():
+    """100 work units, one per second of a fake clock, lines at most every 30 s: 3 lines and a closing one."""
+    import io as stdio
+
+    now = [0.0]
+    out = stdio.StringIO()
+    lines = progress.LineProgress("record", 30.0, clock=lambda: now[0], stream=out)
+    for k in range(1, 101):
+        now[0] = float(k)
+        lines(k, 100)
+    lines.close()
+    text = out.getvalue().splitlines()
+    assert text[:3] == [
+        "progress: record: 30/100 (30 %), 30 s elapsed, eta 1 min 10 s",
+        "progress: record: 60/100 (60 %), 1 min 0 s elapsed, eta 40 s",
+        "progress: record: 90/100 (90 %), 1 min 30 s elapsed, eta 10 s",
+    ]
+    assert text[3:] == ["progress: record: done in 1 min 40 s"]
+    quiet = stdio.StringIO()  # a stage shorter than the interval prints nothing at all
+    short = progress.LineProgress("short", 30.0, clock=lambda: 0.0, stream=quiet)
+    short(1, 1)
+    short.close()
+    assert quiet.getvalue() == ""
 
 
 def test_bar_and_reporter():

@@ -201,7 +201,8 @@ def test_cli_report_quiet_when_not_a_terminal(files, tmp_path):
     d, _, _ = files
     out = cli("report", d / "run.nc", d / "replay.nc", "-o", tmp_path / "r", "--no-snapshots")
     assert out.returncode == 0, out.stderr
-    assert out.stderr == ""  # no progress bar on a pipe
+    # no progress bar on a pipe: at most plain progress lines (one per 30 s of a stage)
+    assert all(line.startswith("progress: ") for line in out.stderr.splitlines()), out.stderr
     assert (tmp_path / "r" / "report.html").is_file()
 
 
