@@ -64,7 +64,7 @@ def steady_file(
     method: str = "exact",
     n_bounces: int = radiosity.DEFAULT_BOUNCES,
     view_factors: str = "auto",
-    tolerance: float = vfoperator.DEFAULT_TOLERANCE,
+    tolerance: float | None = None,
     solver: str = "auto",
     cache_dir=None,
     overwrite: bool = False,
@@ -76,10 +76,11 @@ def steady_file(
     All inputs are checked before any work (ConfigError / MeshError / OutputExistsError).
     Angles in degrees (``sun_elevation_deg`` in [-90, 90], ``sun_azimuth_deg`` from north, clockwise),
     ``albedo`` and ``emissivity`` [-], ``solar_constant`` [W m-2] at 1 au.
-    ``method``, ``n_bounces``: the scattering (:class:`crater_thermal.radiosity.ScatteringSolver`);
-    ``view_factors`` ("auto" | "exact" | "compressed"), ``tolerance`` [-] (compressed operator: relative
-    Frobenius error per far block, in (0, 0.1]) and ``solver`` ("auto" | "direct" | "iterative"): see
-    :func:`choose_methods`. ``cache_dir``: folder caching the exact matrix by mesh hash.
+    ``method``, ``n_bounces``: the scattering (:class:`crater_thermal.radiosity.ScatteringSolver`).
+    ``view_factors`` ("auto" | "exact" | "compressed") and ``solver`` ("auto" | "direct" | "iterative"):
+    see :func:`choose_methods`. ``tolerance`` [-]: the compressed operator's relative Frobenius error per
+    far block, in (0, 0.1] (None: ``vfoperator.DEFAULT_TOLERANCE``, a case file's default).
+    ``cache_dir``: folder caching the exact matrix by mesh hash.
     ``flip`` reverses the mesh's winding (see :func:`crater_thermal.geometry.load_mesh`);
     ``progress``: a bar for the view factors (default: only on a terminal).
 
@@ -96,6 +97,8 @@ def steady_file(
         raise ConfigError(f"solar_constant = {solar_constant!r} W m-2 must be finite and >= 0")
     if method not in radiosity.SCATTERING_METHODS:
         raise ConfigError(f"scattering method = {method!r}; allowed: {', '.join(radiosity.SCATTERING_METHODS)}")
+    if tolerance is None:
+        tolerance = vfoperator.DEFAULT_TOLERANCE
     tol = float(tolerance) if isinstance(tolerance, (int, float, np.number)) else float("nan")
     if not 0.0 < tol <= 0.1:  # the range vfoperator.compressed_view_factors accepts, checked before any work
         raise ConfigError(f"view-factor tolerance = {tolerance!r} is outside (0, 0.1]")
