@@ -5,11 +5,10 @@ Where
     ``$CRATER_THERMAL_CACHE`` if set, else ``~/.cache/crater_thermal`` (``$XDG_CACHE_HOME/crater_thermal``
     where ``XDG_CACHE_HOME`` is set). One sub-folder per kind of entry (:data:`KINDS`).
 What
-    ``viewfactors/``: the exact sparse view-factor matrices and the compressed operators (``.npz``,
-    from ~1 MB for the 502-facet crater to a few hundred MB at 100k facets); ``horizons/``: horizon
-    maps (``.npz``, ~3 KB per facet at the default 360 azimuths). Each file name holds the mesh hash
-    and the version of the algorithm that made it, so a changed mesh or algorithm never reads a stale
-    entry.
+    ``viewfactors/``: exact sparse view-factor matrices (``.npz``; the compressed operator of a large
+    mesh is rebuilt each run, not cached); ``horizons/``: horizon maps (``.npz``, float32, 4 bytes per
+    facet and azimuth). Each file name holds the mesh hash and the version of the algorithm that made
+    it, so a changed mesh or algorithm never reads a stale entry.
 Deleting it
     is always safe: every entry is recomputed when next needed (``crater-thermal cache clear``).
 Unwritable
