@@ -375,8 +375,14 @@ def sweep(
 ) -> None:
     """Run many cases and their replays; a restarted sweep skips finished cases."""
     from crater_thermal import sweep as sweep_mod
+    from crater_thermal.errors import Interrupted
 
-    for r in sweep_mod.sweep(cases, output, scheduler=scheduler, workers=workers, progress=progress):
+    try:
+        results = sweep_mod.sweep(cases, output, scheduler=scheduler, workers=workers, progress=progress)
+    except Interrupted as exc:
+        exc.hint = "run the same sweep command again to finish it (finished cases are skipped, runs resume)"
+        raise
+    for r in results:
         state = "skipped (already done)" if r["skipped"] else f"done in {r['seconds']:.1f} s"
         typer.echo(f"{Path(r['case']).stem}: {state}")
 

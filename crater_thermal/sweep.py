@@ -41,6 +41,8 @@ def run_one(case_path: str, out_dir: str) -> dict:
     from crater_thermal.progress import one_line_warning
 
     warnings.showwarning = one_line_warning  # a worker's warnings read as the command's own: one line each
+    if multiprocessing.parent_process() is not None:  # a local worker: SIGTERM from the sweep cleans up
+        _clean_exit_on_sigterm()
     t0 = time.perf_counter()
     case = config.load_case(case_path)
     run_nc, replay_nc = case_outputs(case_path, out_dir)
@@ -121,12 +123,17 @@ def sweep(
                         report(len(results), len(paths))
             else:
                 spawn = multiprocessing.get_context("spawn")
-                with ProcessPoolExecutor(max_workers=n, mp_context=spawn) as pool:
+                pool = ProcessPoolExecutor(max_workers=n, mp_context=spawn)
+                try:
                     futs = [pool.submit(run_one, p, str(out_dir)) for p in paths]
                     for fut in as_completed(futs):
                         results.append(fut.result())
                         if report is not None:
                             report(len(results), len(paths))
+                except BaseException:  # interrupted or failed: stop the workers now, each cleaning up
+                    _stop_workers(pool)
+                    raise
+                pool.shutdown()
     return sorted(results, key=lambda r: paths.index(r["case"]))
 
 
@@ -152,3 +159,30 @@ def _connect(scheduler: str):
             f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
             "(dask scheduler) or leave out --scheduler to run on local processes"
         ) from None
+
+
+def _clean_exit_on_sigterm() -> None:
+    """In a worker process: SIGTERM raises :class:`~crater_thermal.errors.Interrupted`, so that the case's
+    writers remove their temporaries and release their locks (a checkpoint stays for the restart)."""
+    import signal
+
+    from crater_thermal.errors import Interrupted
+
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    try:
+        signal.signal(signal.SIGTERM, handler)
+    except (ValueError, OSError):  # not the main thread
+        pass
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Cancel the queued cases and send SIGTERM to the running workers, then wait for them to exit."""
+    procs = list(getattr(pool, "_processes", {}).values())  # no public handle on the worker processes
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in procs:
+        proc.join(timeout=30)

@@ -321,6 +321,10 @@ def show(
     -------
     dict with ``time`` (ISO of the shown sample), ``screenshot``, ``animation`` (paths or None), ``n_frames``.
     """
+    inputs = [p for p in (run_path, replay) if isinstance(p, (str, os.PathLike))]
+    for out in (screenshot, animate):
+        if out:
+            ctio.refuse_input_as_output(out, inputs)
     opened = []
     try:
         if isinstance(run_path, (str, os.PathLike)):
