@@ -17,6 +17,7 @@ import numpy as np
 __all__ = [
     "CRATER_KINDS",
     "HEIGHT_KINDS",
+    "LENGTH_UNITS",
     "SPINUP_MODES",
     "SPINUP_IR_METHODS",
     "IR_COUPLING_SCHEMES",
@@ -38,8 +39,12 @@ __all__ = [
 #: Terrain kinds (simulate.case_mesh; geometry or terrain builds each): idealized crater, flat plain, mesh
 #: file, a site of a digital elevation model.
 CRATER_KINDS = ("crater", "flat", "mesh", "dem")
-#: How DEM pixel values are read (terrain): auto-detect, height above the reference sphere, radius.
-HEIGHT_KINDS = ("auto", "height", "radius")
+#: How DEM pixel values are read (terrain): auto-detect (height or radius), height above the reference
+#: sphere, radius from the Moon's centre, or "tangent": the coordinate along the up axis of a Cartesian
+#: frame tangent to the sphere at the projection's origin (curvature applied; never auto-detected).
+HEIGHT_KINDS = ("auto", "height", "radius", "tangent")
+#: Length units a DEM's x/y coordinates or pixel values may be declared in (terrain overrides).
+LENGTH_UNITS = ("m", "km")
 #: Spin-up procedures (simulate.run_case).
 SPINUP_MODES = ("periodic", "fixed")
 #: IR exchange during a periodic spin-up: "coupled" (every step, as the record), "lagged" (each window

@@ -4,23 +4,53 @@ This is the only module that imports ``rasterio`` and ``pyproj``.
 
 Reading
 -------
-Any raster GDAL reads goes through ``rasterio``: GeoTIFF, and the LOLA polar products distributed as
-PDS3 ``.IMG`` with a detached ``.LBL`` (GDAL's PDS driver; open the ``.LBL`` or the ``.IMG``). The
-raster must carry a projected coordinate reference system (CRS) on the Moon (a body of radius
-1737.4 km, within 1 %); its sphere is the *reference sphere* of the site, of radius
-``reference_radius_m`` (the CRS's semi-major axis; 1,737,400 m for every LOLA and IAU 2015 lunar CRS).
+Any raster GDAL reads goes through ``rasterio``: GeoTIFF, the LOLA polar products distributed as
+PDS3 ``.IMG`` with a detached ``.LBL`` (GDAL's PDS driver; open the ``.LBL`` or the ``.IMG``), and
+GMT/COARDS netCDF grids (``.grd``, ``.nc``; GDAL's netCDF driver). The raster must carry a projected
+coordinate reference system (CRS) on the Moon (a body of radius 1737.4 km, within 1 %); its sphere is
+the *reference sphere* of the site, of radius ``reference_radius_m`` (the CRS's semi-major axis;
+1,737,400 m for every LOLA and IAU 2015 lunar CRS).
 
 Heights. A pixel value ``v`` becomes ``v * scale + offset`` with the band's scale and offset (GDAL
 reads ``SCALING_FACTOR`` and ``OFFSET`` from a PDS3 label, ``scale_factor``/``add_offset`` from
-GeoTIFF tags), times 1000 if the band's unit is km. Two conventions exist and both are handled:
+GeoTIFF tags), times 1000 if the band's unit is km. Three conventions exist and all are handled:
 
 * ``"height"``: the value is the height above the reference sphere [m];
 * ``"radius"``: the value is the distance from the Moon's centre [m] (LOLA's polar LDEM products:
-  ``DN * 0.5 m + 1,737,400 m``); the height is ``radius - reference_radius_m``.
+  ``DN * 0.5 m + 1,737,400 m``); the height is ``radius - reference_radius_m``;
+* ``"tangent"`` (curvature applied): the value ``z`` is the coordinate of the point along the up axis of
+  a Cartesian frame tangent to the reference sphere at the projection's origin (the pole of a polar
+  stereographic CRS), the point lying in the direction its map x/y give: ``z = (R + h) cos(theta) - R``
+  with ``theta`` the angle between the point and the origin seen from the Moon's centre, hence
+  ``h = (R + z) / cos(theta) - R``, about ``z + r**2 / (2 R)`` at a distance ``r`` from the origin
+  (5.6 km at 140 km, where the approximation is within 10 m for |z| <= 5 km). python-flux's LOLA grids
+  are of this kind.
 
 ``height_kind="auto"`` (the default) takes ``"radius"`` when the median valid value in the site
 exceeds half the reference radius (a height of > 868 km is impossible on the Moon) and ``"height"``
-otherwise; the choice is recorded in the mesh metadata.
+otherwise (never ``"tangent"``: such a file must be declared); the choice is recorded in the mesh
+metadata.
+
+Overrides: saying what the file does not
+-----------------------------------------
+Real files often lack or misstate their metadata. :func:`open_dem` (and :func:`site_mesh`,
+``mesh dem``, the ``[crater]`` keys of a case) take
+
+* ``crs``: the CRS to use instead of the file's (or where it has none): a PROJ string, WKT, or an
+  authority code such as ``IAU_2015:30135`` (the Moon's south polar stereographic, R = 1737.4 km);
+* ``xy_units`` (``"m"`` or ``"km"``): the unit of the raster's x/y coordinates (its geotransform),
+  whatever the CRS says; the geotransform is converted to the CRS's unit;
+* ``z_units`` (``"m"`` or ``"km"``): the unit of the pixel values (after scale and offset), whatever
+  the band's unit tag says;
+* ``height_kind`` (above).
+
+A file is refused with a one-line :class:`DEMError` that names these overrides (:data:`OVERRIDES_HINT`)
+when its metadata cannot be right: no CRS; a geographic or non-lunar CRS (an Earth ellipsoid, a sphere
+of 1.7 km: a radius in km written as metres); a polar projection of the other hemisphere than the site;
+a site centre outside the raster, with the diagnosis when it would lie inside with the x/y read as km
+(or as m); heights that only make sense in km (all within +-11, the Moon's relief in km, and a relief
+below 1e-3 of the site's width; or values of 1737 +- 11: radii in km). The last two checks are
+heuristics: an explicit ``z_units`` turns them off.
 
 Meshing
 -------
@@ -50,7 +80,8 @@ The site is the disk of (geodesic) radius ``radius_km`` about the centre (``cent
   mesh (PLY header) into ``run.nc`` (the per-facet ``inner`` flag).
 
 Limits (checked before anything is read or written, one-line :class:`DEMError`): the raster must have
-a CRS and a geotransform, the CRS must be projected, on the Moon, and undistorted at the site (scale
+a CRS (its own or ``crs``) and a geotransform, the CRS must be projected, on the Moon, polar in the site's
+hemisphere if polar at all, and undistorted at the site (scale
 within 10 % of true: a non-polar projection far from its centre is refused), the whole site must lie
 inside the raster and on valid (non-nodata) pixels, the resolution must lie between a tenth of the DEM
 pixel and a third of the radius, and the estimated mesh (facets and memory, :func:`estimate_site`)
@@ -60,7 +91,7 @@ must stay within ``max_facets`` (default :data:`MAX_FACETS`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -74,6 +105,8 @@ __all__ = [
     "MAX_FACETS",
     "MESH_BYTES_PER_FACET",
     "HEIGHT_KINDS",
+    "LENGTH_UNITS",
+    "OVERRIDES_HINT",
     "open_dem",
     "estimate_site",
     "site_mesh",
@@ -98,6 +131,23 @@ MESH_BYTES_PER_FACET = 400.0
 #: (value + index), with ~12 % of pairs visible on rough terrain; shown in the size estimate only.
 VIEW_FACTOR_BYTES_PER_PAIR = 12.0
 HEIGHT_KINDS = choices.HEIGHT_KINDS
+#: Units the overrides ``xy_units`` / ``z_units`` may name, and their size [m].
+LENGTH_UNITS = choices.LENGTH_UNITS
+_UNIT_M = {"m": 1.0, "km": 1000.0}
+#: Named by every refusal of a file's metadata: how to say what the file does not.
+OVERRIDES_HINT = (
+    "say what the file does not with mesh dem --crs CRS, --xy-units m|km, --z-units m|km, "
+    "--height-kind auto|height|radius|tangent (case file: crater.crs, crater.xy_units, crater.z_units, "
+    "crater.height_kind)"
+)
+#: Largest |height| on the Moon [km], rounded up (LOLA: -9.1 km in Antoniadi, +10.8 km near Engel'gardt):
+#: pixel values all within this bound, read as metres, are suspected to be km.
+_MOON_RELIEF_KM = 11.0
+#: Relief of a site below this fraction of its width [m/m] is implausibly flat for lunar terrain: with
+#: values within +-11, such heights are taken for km read as metres (0.06 deg mean slope).
+_MIN_RELIEF_PER_WIDTH = 1e-3
+#: Largest angle [deg] between a site and the origin of a "tangent" (curvature-applied) height frame.
+_MAX_TANGENT_ANGLE_DEG = 30.0
 #: Lunar reference radius [m] (IAU 2015 sphere; LOLA products) and the 1 % tolerance of a DEM's CRS.
 MOON_RADIUS_M = 1_737_400.0
 _BODY_TOLERANCE = 0.01
@@ -220,18 +270,22 @@ def polar_crs(lat_deg: float):
 
 @dataclass(frozen=True)
 class DEMInfo:
-    """What a DEM file says about itself (nothing is read from the pixels).
+    """What a DEM file says about itself, with the caller's overrides applied (nothing is read from the pixels).
 
     path : Path
-    crs_wkt : str  the raster's CRS (WKT)
-    transform : tuple of 6 float  affine pixel -> map (a, b, c, d, e, f), map units per pixel
+    crs_wkt : str  the CRS used (WKT): the file's, or the ``crs`` override
+    transform : tuple of 6 float  affine pixel -> map (a, b, c, d, e, f) [CRS units per pixel], after
+        ``xy_units``
     width, height : int [pixels]
     nodata : float or None  raw nodata value
     scale, offset : float  value = raw * scale + offset (before the unit factor)
-    unit_factor : float  1 for metres, 1000 for km
+    unit_factor : float  1 for metres, 1000 for km (the band's unit tag, or ``z_units``)
     reference_radius_m : float [m]  semi-major axis of the CRS's body
     pixel_m : float [m]  nominal pixel size (map units times the CRS's linear unit)
     driver : str
+    origin_lat_deg, origin_lon_deg : float [deg]  the projection's origin (where map x, y = false
+        easting, northing; the pole of a polar stereographic CRS): the tangent point of "tangent" heights
+    overrides : dict  the overrides given (``crs``, ``xy_units``, ``z_units``), for the mesh metadata
     """
 
     path: Path
@@ -246,32 +300,100 @@ class DEMInfo:
     reference_radius_m: float
     pixel_m: float
     driver: str
+    origin_lat_deg: float = float("nan")
+    origin_lon_deg: float = float("nan")
+    overrides: dict = field(default_factory=dict)
 
     @property
     def name(self) -> str:
         return self.path.name
 
 
-def open_dem(path) -> DEMInfo:
-    """Open a DEM and check its georeferencing (header only).
+def _parse_crs(text):
+    """A pyproj CRS from the ``crs`` override (PROJ string, WKT or authority code), or a one-line error."""
+    _, pyproj = _libs()
+    if not isinstance(text, str) or not text.strip():
+        raise ConfigError(f"crs = {text!r} must be a PROJ string, WKT or an authority code such as IAU_2015:30135")
+    try:
+        return pyproj.CRS.from_user_input(text.strip())
+    except pyproj.exceptions.CRSError as exc:
+        shown = text.strip() if len(text.strip()) <= 80 else text.strip()[:77] + "..."
+        reason = " ".join(str(exc).split())
+        raise DEMError(
+            f"crs = {shown!r} is not a coordinate reference system pyproj knows ({reason[:160]}): give a PROJ "
+            "string (+proj=stere +lat_0=-90 +lon_0=0 +R=1737400), WKT, or an authority code such as "
+            "IAU_2015:30135 (Moon south polar stereographic) or IAU_2015:30130 (north)"
+        ) from None
+
+
+def _axis_metres(pcrs) -> float:
+    """Size of the CRS's linear unit [m] (1 for metres, 1000 for km)."""
+    return float(pcrs.axis_info[0].unit_conversion_factor) if pcrs.axis_info else 1.0
+
+
+def _projection_origin(pcrs) -> tuple[float, float]:
+    """(lat_deg, lon_deg) of the point whose map coordinates are the false easting and northing."""
+    fe = fn = 0.0
+    try:
+        for prm in pcrs.coordinate_operation.params:
+            name = prm.name.lower()
+            if "easting" in name:
+                fe = float(prm.value) * float(prm.unit_conversion_factor)
+            elif "northing" in name:
+                fn = float(prm.value) * float(prm.unit_conversion_factor)
+        k = _axis_metres(pcrs)
+        lon, lat = _transformer(pcrs, pcrs.geodetic_crs).transform(fe / k, fn / k)
+        return float(lat), float(lon)
+    except Exception:  # pyproj raises several kinds on unusual CRSs; the origin is then unknown (NaN)
+        return float("nan"), float("nan")
+
+
+def _unit_override(name: str, value) -> Optional[str]:
+    if value is None:
+        return None
+    if value not in LENGTH_UNITS:
+        what = "x/y coordinates (geotransform)" if name == "xy_units" else "pixel values (heights)"
+        raise ConfigError(
+            f"{name} = {value!r} must be one of {', '.join(LENGTH_UNITS)}: the unit of the raster's {what}"
+        )
+    return value
+
+
+def open_dem(path, crs=None, xy_units: Optional[str] = None, z_units: Optional[str] = None) -> DEMInfo:
+    """Open a DEM and check its georeferencing (header only), with the caller's overrides.
 
     Parameters
     ----------
     path : path-like
-        GeoTIFF or any raster GDAL reads; for PDS3 products the ``.LBL`` (or the ``.IMG`` beside it).
+        GeoTIFF, GMT/COARDS netCDF grid, or any raster GDAL reads; for PDS3 products the ``.LBL`` (or the
+        ``.IMG`` beside it).
+    crs : str or None
+        CRS to use instead of the file's (PROJ string, WKT, or an authority code such as
+        ``IAU_2015:30135``); None: the file's.
+    xy_units : {"m", "km"} or None
+        Unit of the raster's x/y coordinates (its geotransform) [m or km]; None: the CRS's unit.
+    z_units : {"m", "km"} or None
+        Unit of the pixel values after scale and offset; None: the band's unit tag (metres if none).
 
     Raises
     ------
     DEMError
-        Missing/unreadable file; no CRS; no geotransform; geographic CRS (degrees); a CRS not on the Moon.
+        Missing/unreadable file; no CRS; no geotransform; geographic CRS (degrees); a CRS not on the Moon;
+        an unknown ``crs``. The message names the overrides (:data:`OVERRIDES_HINT`).
+    ConfigError
+        ``xy_units`` / ``z_units`` not one of :data:`LENGTH_UNITS`.
     """
     rasterio, pyproj = _libs()
+    xy_units = _unit_override("xy_units", xy_units)
+    z_units = _unit_override("z_units", z_units)
     p = Path(path)
     if not p.is_file():
         raise DEMError(f"DEM file {str(p)!r} does not exist")
+    given = crs is not None
+    pcrs = _parse_crs(crs) if given else None
     try:
         with rasterio.open(p) as src:
-            crs, tr = src.crs, src.transform
+            file_crs, tr = src.crs, src.transform
             width, height, driver = src.width, src.height, src.driver
             nodata = src.nodata
             scale = float(src.scales[0]) if src.scales and src.scales[0] is not None else 1.0
@@ -282,28 +404,40 @@ def open_dem(path) -> DEMInfo:
         raise DEMError(f"cannot read DEM {str(p)!r}: {' '.join(str(exc).split())}") from None
     if count < 1:
         raise DEMError(f"DEM {p.name!r} has no raster band")
-    if crs is None or not crs.to_wkt():
-        raise DEMError(
-            f"DEM {p.name!r} has no coordinate reference system (no CRS in the file or its label): "
-            "cannot place it on the Moon; assign one, e.g. gdal_edit.py -a_srs IAU_2015:30135"
-        )
+    if not given:
+        if file_crs is None or not file_crs.to_wkt():
+            raise DEMError(
+                f"DEM {p.name!r} has no coordinate reference system (no CRS in the file or its label): "
+                "cannot place it on the Moon; give one with --crs (crater.crs), e.g. IAU_2015:30135 for "
+                f"south polar stereographic, and --xy-units/--z-units km if its x/y or heights are km; {OVERRIDES_HINT}"
+            )
+        pcrs = pyproj.CRS.from_wkt(file_crs.to_wkt())
+    whose = f"crs = {crs!r}" if given else f"DEM {p.name!r} CRS"
     if tr.is_identity:
         raise DEMError(f"DEM {p.name!r} has no geotransform (pixel to map coordinates): cannot locate its pixels")
-    pcrs = pyproj.CRS.from_wkt(crs.to_wkt())
     if pcrs.is_geographic or not pcrs.is_projected:
         raise DEMError(
-            f"DEM {p.name!r} has a geographic CRS ({pcrs.name}, degrees): meshing needs a projected "
-            "CRS in metres, e.g. lunar polar stereographic IAU_2015:30135"
+            f"{whose} is a geographic CRS ({pcrs.name}, degrees): meshing needs a projected CRS, e.g. lunar "
+            f"polar stereographic IAU_2015:30135; {OVERRIDES_HINT}"
         )
     a = float(pcrs.ellipsoid.semi_major_metre) if pcrs.ellipsoid else float("nan")
     if not (abs(a - MOON_RADIUS_M) <= _BODY_TOLERANCE * MOON_RADIUS_M):
+        hint = " (a radius in km given as metres?)" if abs(a - MOON_RADIUS_M / 1e3) <= _BODY_TOLERANCE * a else ""
         raise DEMError(
-            f"DEM {p.name!r} CRS ({pcrs.name}) is on a body of radius {a / 1e3:.1f} km, "
-            f"not the Moon ({MOON_RADIUS_M / 1e3:.1f} km)"
+            f"{whose} ({pcrs.name}) is on a body of radius {a / 1e3:.4g} km{hint}, not the Moon "
+            f"({MOON_RADIUS_M / 1e3:.1f} km); if the file's CRS is wrong, {OVERRIDES_HINT}, e.g. --crs IAU_2015:30135"
         )
-    ufac = pcrs.axis_info[0].unit_conversion_factor if pcrs.axis_info else 1.0
-    unit_l = unit.strip().lower()
-    unit_factor = 1000.0 if unit_l in ("km", "kilometer", "kilometers", "kilometre", "kilometres") else 1.0
+    crs_m = _axis_metres(pcrs)
+    if xy_units is not None:
+        k = _UNIT_M[xy_units] / crs_m
+        tr = rasterio.Affine(tr.a * k, tr.b * k, tr.c * k, tr.d * k, tr.e * k, tr.f * k)
+    if z_units is not None:
+        unit_factor = _UNIT_M[z_units]
+    else:
+        unit_l = unit.strip().lower()
+        unit_factor = 1000.0 if unit_l in ("km", "kilometer", "kilometers", "kilometre", "kilometres") else 1.0
+    o_lat, o_lon = _projection_origin(pcrs)
+    overrides = {k: v for k, v in (("crs", crs), ("xy_units", xy_units), ("z_units", z_units)) if v is not None}
     return DEMInfo(
         path=p.resolve(),
         crs_wkt=pcrs.to_wkt(),
@@ -315,8 +449,11 @@ def open_dem(path) -> DEMInfo:
         offset=offset,
         unit_factor=unit_factor,
         reference_radius_m=a,
-        pixel_m=float(math.sqrt(abs(tr.a * tr.e - tr.b * tr.d))) * ufac,
+        pixel_m=float(math.sqrt(abs(tr.a * tr.e - tr.b * tr.d))) * crs_m,
         driver=str(driver),
+        origin_lat_deg=o_lat,
+        origin_lon_deg=o_lon,
+        overrides=overrides,
     )
 
 
@@ -378,6 +515,33 @@ def _aeqd(geodetic_crs, lat_deg: float, lon_deg: float):
     return ProjectedCRS(conversion=conv, geodetic_crs=geodetic_crs)
 
 
+def _outside_diagnosis(info: DEMInfo, crs, aeqd) -> str:
+    """Why the site centre may fall off the raster: its map x, y against the raster's extent, and whether it
+    would fall inside with the raster's x/y read in km (or in m) instead; ends with the overrides."""
+    rasterio, _ = _libs()
+    tr = rasterio.Affine(*info.transform)
+    x, y = (float(v) for v in _transformer(aeqd, crs).transform(0.0, 0.0))
+    unit = _axis_metres(crs)
+    corners = [tr @ (c, r) for c, r in ((0, 0), (info.width, 0), (0, info.height), (info.width, info.height))]
+    xs, ys = [c[0] for c in corners], [c[1] for c in corners]
+
+    def inside(k: float) -> bool:  # raster coordinates scaled by k
+        return min(xs) * k <= x <= max(xs) * k and min(ys) * k <= y <= max(ys) * k
+
+    km = unit / 1e3
+    text = (
+        f"the centre is at map x, y = {x * km:.6g}, {y * km:.6g} km, the raster ({info.width} x {info.height} "
+        f"pixels of {info.pixel_m:g} m) spans x {min(xs) * km:.6g} to {max(xs) * km:.6g} km, y "
+        f"{min(ys) * km:.6g} to {max(ys) * km:.6g} km"
+    )
+    if "xy_units" not in info.overrides:
+        if inside(1000.0):
+            text += "; it would contain the centre with its x/y in km, not m: pass --xy-units km (crater.xy_units)"
+        elif inside(1e-3):
+            text += "; it would contain the centre with its x/y in m, not km: pass --xy-units m (crater.xy_units)"
+    return f"{text}; move the site, or if the file's metadata is wrong, {OVERRIDES_HINT}"
+
+
 def _footprint_check(info: DEMInfo, crs, aeqd, radius_m: float, margin_m: float, what: str) -> None:
     """Refuse a site (disk of ``radius_m``, plus the resampling grid's ``margin_m``, in the aeqd plane) that
     reaches beyond the raster's pixel centres."""
@@ -395,9 +559,7 @@ def _footprint_check(info: DEMInfo, crs, aeqd, radius_m: float, margin_m: float,
     inside = (col >= 0.5) & (col <= info.width - 0.5) & (row >= 0.5) & (row <= info.height - 0.5)
     inside &= np.isfinite(col) & np.isfinite(row)
     if not inside[0].all():
-        raise DEMError(
-            f"site centre lies outside DEM {info.name!r} ({info.width} x {info.height} pixels of {info.pixel_m:g} m)"
-        )
+        raise DEMError(f"site centre lies outside DEM {info.name!r}: {_outside_diagnosis(info, crs, aeqd)}")
     if not inside.all():
         ok = np.all(inside, axis=1)
         fit = max(0.0, radii[np.argmin(ok) - 1] - margin_m)
@@ -413,13 +575,21 @@ def _check_site(
     """All checks that need no pixel: distortion, resolutions, size, footprint."""
     _, pyproj = _libs()
     crs = pyproj.CRS.from_wkt(info.crs_wkt)
+    o_lat = info.origin_lat_deg
+    if abs(o_lat) > 89.0 and lat * o_lat < 0.0:
+        pole, other = ("north", "south") if o_lat > 0 else ("south", "north")
+        raise DEMError(
+            f"DEM {info.name!r} CRS ({crs.name}) is a {pole}-polar projection (origin at lat {o_lat:g}), but "
+            f"the site is at lat {lat:g}: a {other}-polar grid labelled with the wrong pole? pass --crs "
+            f"{'IAU_2015:30135' if lat < 0 else 'IAU_2015:30130'} (crater.crs); {OVERRIDES_HINT}"
+        )
     h, k = _scale_factors(crs, lat, lon)
     if not (abs(h - 1.0) <= MAX_SCALE_DISTORTION and abs(k - 1.0) <= MAX_SCALE_DISTORTION):
         raise DEMError(
             f"DEM {info.name!r} CRS ({crs.name}) is not a projection for a site at lat {lat:g}, "
             f"lon {lon:g}: its map scale there is {h:.3g} x {k:.3g} (more than "
             f"{MAX_SCALE_DISTORTION:.0%} off; a non-polar projection far from its centre): use a polar "
-            "stereographic DEM"
+            f"stereographic DEM, or if the file's CRS is wrong, {OVERRIDES_HINT}"
         )
     ground_px = info.pixel_m / math.sqrt(h * k)
     if H < ground_px / 10.0:
@@ -473,30 +643,33 @@ def _resample(
     """Raw DEM values (scale/offset applied, metres) on a regular aeqd grid of pixel centres.
 
     The grid's pixel (i, j) (row i from the top) is centred at ``(x0 + j dx, y0 - i dy)``. Bilinear
-    resampling by GDAL; nodata and points off the raster come back as NaN.
+    resampling by GDAL (a warped virtual raster of the file, streamed, with the CRS and geotransform of
+    ``info``: the overrides apply); nodata and points off the raster come back as NaN.
     """
     rasterio, _ = _libs()
     from rasterio.enums import Resampling
-    from rasterio.warp import reproject
+    from rasterio.vrt import WarpedVRT
 
-    dst = np.full((ny, nx), np.nan, dtype=np.float64)
     dst_tr = rasterio.Affine(dx, 0.0, x0 - 0.5 * dx, 0.0, -dy, y0 + 0.5 * dy)
+    nodata = {} if info.nodata is None else {"src_nodata": info.nodata}
     with rasterio.open(info.path) as src:
-        reproject(
-            source=rasterio.band(src, 1),
-            destination=dst,
-            src_transform=src.transform,
-            src_crs=src.crs,
-            src_nodata=info.nodata,
-            dst_transform=dst_tr,
-            dst_crs=rasterio.crs.CRS.from_wkt(aeqd.to_wkt()),
-            dst_nodata=np.nan,
+        with WarpedVRT(
+            src,
+            src_crs=rasterio.crs.CRS.from_wkt(info.crs_wkt),
+            src_transform=rasterio.Affine(*info.transform),
+            crs=rasterio.crs.CRS.from_wkt(aeqd.to_wkt()),
+            transform=dst_tr,
+            width=nx,
+            height=ny,
             resampling=Resampling.bilinear,
-            init_dest_nodata=True,
+            nodata=np.nan,
+            dtype="float64",
             XSCALE=1,
             YSCALE=1,
+            **nodata,
             **warp_options,
-        )
+        ) as vrt:
+            dst = vrt.read(1)
     return (dst * info.scale + info.offset) * info.unit_factor
 
 
@@ -546,6 +719,52 @@ def _heights_at(info: DEMInfo, aeqd, H: float, R: float, lattice_idx: np.ndarray
 # ---------------------------------------------------------------------------------------- meshing
 
 
+def _check_height_units(info: DEMInfo, raw: np.ndarray, width_m: float) -> None:
+    """Refuse pixel values that only make sense in km (heights or radii read as metres); see the module
+    docstring. Skipped when ``z_units`` was given."""
+    if "z_units" in info.overrides or info.unit_factor != 1.0 or raw.size == 0:
+        return
+    lo, hi = float(np.min(raw)), float(np.max(raw))
+    r_km = info.reference_radius_m / 1e3
+    if max(abs(lo), abs(hi)) <= _MOON_RELIEF_KM and 0.0 < hi - lo < _MIN_RELIEF_PER_WIDTH * width_m:
+        what = f"span only {hi - lo:.3g} m ({lo:.4g} to {hi:.4g}) over a site {width_m / 1e3:g} km wide"
+        guess = "heights in km read as metres"
+    elif abs(lo - r_km) <= _MOON_RELIEF_KM and abs(hi - r_km) <= _MOON_RELIEF_KM:
+        what = f"lie between {lo:.6g} and {hi:.6g}"
+        guess = f"radii in km (the Moon's is {r_km:g} km) read as metres"
+    else:
+        return
+    raise DEMError(
+        f"DEM {info.name!r} values {what}: they look like {guess}; pass --z-units km (crater.z_units = "
+        f'"km"), or --z-units m if they really are metres; {OVERRIDES_HINT}'
+    )
+
+
+def _tangent_to_height(z: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray, info: DEMInfo) -> np.ndarray:
+    """Heights above the reference sphere [m] of "tangent" (curvature-applied) values ``z`` [m].
+
+    ``z = (R + h) cos(theta) - R``: the coordinate along the up axis of the frame tangent to the sphere at
+    the projection's origin of the point in the direction (lat_deg, lon_deg) [deg], ``theta`` its angle
+    from the origin at the Moon's centre; returns ``h = (R + z) / cos(theta) - R``.
+    """
+    R = info.reference_radius_m
+    if not (math.isfinite(info.origin_lat_deg) and math.isfinite(info.origin_lon_deg)):
+        raise DEMError(
+            f"height_kind = 'tangent' needs the projection's origin, and the CRS of DEM {info.name!r} has none "
+            f"that pyproj can compute; {OVERRIDES_HINT}"
+        )
+    u0 = _unit_vectors(np.array(info.origin_lat_deg), np.array(info.origin_lon_deg))
+    cos_t = _unit_vectors(np.asarray(lat_deg, float), np.asarray(lon_deg, float)) @ u0
+    worst = float(np.degrees(np.arccos(np.clip(np.min(cos_t), -1.0, 1.0))))
+    if worst > _MAX_TANGENT_ANGLE_DEG:
+        raise DEMError(
+            f"height_kind = 'tangent': the site reaches {worst:.3g} deg from the projection's origin (lat "
+            f"{info.origin_lat_deg:g}, lon {info.origin_lon_deg:g}) of DEM {info.name!r}, more than "
+            f"{_MAX_TANGENT_ANGLE_DEG:g} deg: not a curvature-applied grid about that origin; {OVERRIDES_HINT}"
+        )
+    return (R + np.asarray(z, float)) / cos_t - R
+
+
 def site_mesh(
     path,
     center_lat_deg: float,
@@ -557,13 +776,17 @@ def site_mesh(
     height_kind: str = "auto",
     max_facets: int = MAX_FACETS,
     progress: Optional[Callable[[str], None]] = None,
+    crs: Optional[str] = None,
+    xy_units: Optional[str] = None,
+    z_units: Optional[str] = None,
 ):
     """Mesh a site of a DEM (see the module docstring for the construction and the frame).
 
     Parameters
     ----------
     path : path-like
-        DEM (GeoTIFF, PDS3 .LBL/.IMG, any GDAL raster) with a projected lunar CRS.
+        DEM (GeoTIFF, PDS3 .LBL/.IMG, GMT/COARDS netCDF .grd, any GDAL raster) with a projected lunar CRS
+        (its own, or ``crs``).
     center_lat_deg, center_lon_deg : float [deg]
         Site centre, planetocentric latitude and east longitude.
     radius_km : float [km]
@@ -574,24 +797,29 @@ def site_mesh(
     outer_radius_km, outer_resolution_m : float or None [km], [m]
         Optional coarser ring (shadows and radiation from distant terrain) out to ``outer_radius_km``
         (> radius_km) at ``outer_resolution_m`` (>= resolution_m; default 4 x resolution_m).
-    height_kind : {"auto", "height", "radius"}
+    height_kind : {"auto", "height", "radius", "tangent"}
         How to read the pixel values (see the module docstring).
     max_facets : int
         Refuse sites estimated above this many facets.
     progress : callable(str) or None
         Called with a short message at each stage.
+    crs, xy_units, z_units : str or None
+        Overrides of the file's metadata (see :func:`open_dem`): CRS (PROJ/WKT/authority code), unit of
+        the x/y coordinates and of the pixel values ("m" or "km").
 
     Returns
     -------
     geometry.Mesh
         ``meta``: kind "dem", dem_source (file name), dem_path, crs_wkt, crs_name, center_lat_deg,
         center_lon_deg, reference_radius_m, radius_km, resolution_m, outer_radius_km, outer_resolution_m,
-        height_kind, height_scale, height_offset, dem_pixel_m, n_facets, n_inner, n_vertices, frame.
+        height_kind, height_scale, height_offset, dem_pixel_m, dem_overrides (the overrides given),
+        n_facets, n_inner, n_vertices, frame; with height_kind "tangent" also tangent_origin_lat_deg,
+        tangent_origin_lon_deg.
 
     Raises
     ------
     DEMError, ConfigError
-        See the module docstring ("Limits"); nothing is written.
+        See the module docstring ("Limits", "Overrides"); nothing is written.
     """
     from scipy.spatial import Delaunay
 
@@ -610,7 +838,7 @@ def site_mesh(
             raise ConfigError(f"outer_radius_km = {outer_radius_km!r} must exceed radius_km = {radius_km!r}")
     elif outer_resolution_m is not None:
         raise ConfigError("outer_resolution_m needs outer_radius_km")
-    info = open_dem(path)
+    info = open_dem(path, crs=crs, xy_units=xy_units, z_units=z_units)
     if resolution_m is None:
         H = max(info.pixel_m, R * math.sqrt(_FACETS_PER_DISK / 10_000.0))
     else:
@@ -650,12 +878,19 @@ def site_mesh(
     kind = height_kind
     if kind == "auto":
         kind = "radius" if float(np.median(raw)) > 0.5 * info.reference_radius_m else "height"
+    _check_height_units(info, raw, 2.0 * (R2 if R2 is not None else R))
+    lon_n, lat_n = (np.asarray(v) for v in _transformer(aeqd, crs.geodetic_crs).transform(xy[:, 0], xy[:, 1]))
     Rref = info.reference_radius_m
-    heights = raw - Rref if kind == "radius" else raw
+    if kind == "radius":
+        heights = raw - Rref
+    elif kind == "tangent":
+        heights = _tangent_to_height(raw, lat_n, lon_n, info)
+    else:
+        heights = raw
     if np.abs(heights).max() > 0.02 * Rref:
         raise DEMError(
             f"DEM {info.name!r} heights reach {np.abs(heights).max() / 1e3:.0f} km from the reference "
-            f"sphere (read as {kind!r}): wrong height_kind, scale or offset?"
+            f"sphere (read as {kind!r}): wrong height_kind, z_units, scale or offset? {OVERRIDES_HINT}"
         )
 
     say("triangulating")
@@ -673,9 +908,8 @@ def site_mesh(
     n_inner = int(inner.sum())
 
     say("placing vertices on the Moon")
-    lon_n, lat_n = _transformer(aeqd, crs.geodetic_crs).transform(xy[:, 0], xy[:, 1])
     meta0 = {"center_lat_deg": lat, "center_lon_deg": lon, "reference_radius_m": Rref}
-    V = geographic_to_local(np.asarray(lat_n), np.asarray(lon_n), heights, meta0)
+    V = geographic_to_local(lat_n, lon_n, heights, meta0)
     meta = {
         "kind": "dem",
         "dem_source": info.name,
@@ -692,11 +926,15 @@ def site_mesh(
         "height_offset": info.offset * info.unit_factor,
         "dem_pixel_m": info.pixel_m,
         "dem_ground_pixel_m": plan["ground_pixel_m"],
+        "dem_overrides": dict(info.overrides),
         "n_facets": int(len(F)),
         "n_inner": n_inner,
         "n_vertices": int(len(V)),
         "frame": "ENU at the centre, origin on the reference sphere; true 3-D positions; inner facets first",
     }
+    if kind == "tangent":
+        meta["tangent_origin_lat_deg"] = info.origin_lat_deg
+        meta["tangent_origin_lon_deg"] = info.origin_lon_deg
     say(f"{len(F)} facets ({n_inner} inner)")
     return Mesh(V, F, meta)
 
@@ -704,13 +942,22 @@ def site_mesh(
 # ------------------------------------------------------------------------- reading heights (tests)
 
 
-def read_heights(path, height_kind: str = "auto") -> tuple[np.ndarray, DEMInfo, str]:
+def read_heights(
+    path,
+    height_kind: str = "auto",
+    crs: Optional[str] = None,
+    xy_units: Optional[str] = None,
+    z_units: Optional[str] = None,
+) -> tuple[np.ndarray, DEMInfo, str]:
     """The whole raster as heights above the reference sphere [m] (NaN at nodata); for small files.
 
-    Returns (heights (rows, cols), info, the height kind used).
+    ``height_kind`` and the overrides ``crs``, ``xy_units``, ``z_units`` as in :func:`site_mesh`.
+    Returns (heights (rows, cols) [m], info, the height kind used).
     """
     rasterio, _ = _libs()
-    info = open_dem(path)
+    if height_kind not in HEIGHT_KINDS:
+        raise ConfigError(f"height_kind = {height_kind!r} must be one of {', '.join(HEIGHT_KINDS)}")
+    info = open_dem(path, crs=crs, xy_units=xy_units, z_units=z_units)
     if info.width * info.height > 50_000_000:
         raise DEMError(f"DEM {info.name!r} is too large to read whole ({info.width} x {info.height}); mesh a site")
     with rasterio.open(info.path) as src:
@@ -719,7 +966,18 @@ def read_heights(path, height_kind: str = "auto") -> tuple[np.ndarray, DEMInfo, 
     kind = height_kind
     if kind == "auto":
         kind = "radius" if float(np.nanmedian(v)) > 0.5 * info.reference_radius_m else "height"
-    return (v - info.reference_radius_m if kind == "radius" else v), info, kind
+    if kind == "radius":
+        return v - info.reference_radius_m, info, kind
+    if kind == "tangent":
+        _, pyproj = _libs()
+        pcrs = pyproj.CRS.from_wkt(info.crs_wkt)
+        tr = rasterio.Affine(*info.transform)
+        cols, rows = np.meshgrid(np.arange(info.width) + 0.5, np.arange(info.height) + 0.5)
+        x = tr.a * cols + tr.b * rows + tr.c
+        y = tr.d * cols + tr.e * rows + tr.f
+        lon, lat = _transformer(pcrs, pcrs.geodetic_crs).transform(x, y)
+        return _tangent_to_height(v, np.asarray(lat), np.asarray(lon), info), info, kind
+    return v, info, kind
 
 
 # ------------------------------------------------------------------------- synthetic polar sites
@@ -772,7 +1030,11 @@ def synthetic_heights(
         Pixel size (map units of the polar stereographic CRS, true at the pole).
     craters : sequence of (diameter_km, x_km, y_km)
         Idealized craters (thesis Table 7.1 profile, D <= 15 km) centred at offsets (x, y) [km] from the
-        raster centre in the map's projected coordinates.
+        raster centre in the map's projected coordinates. A crater may reach beyond the raster's edge
+        (only its part on the raster is drawn), but its centre must lie on the raster (|x|, |y| <= half
+        the raster's side) and its rim crest must cross the raster (a raster lying wholly inside the rim
+        would show only floor and wall): otherwise :class:`ConfigError`, naming the crater and the
+        raster's extent.
     roughness_m : float [m]
         RMS height of a self-affine background (Hurst exponent ``hurst``; lunar terrain ~0.9).
     seed : int
@@ -806,11 +1068,32 @@ def synthetic_heights(
     z = _fractal(n, n, px, rough, hurst, rng)
     h_scale, k_scale = _scale_factors(crs, lat, lon)
     ground = 1.0 / math.sqrt(h_scale * k_scale)  # ground metres per map metre at the site
+    half = 0.5 * n * px  # [map m] from the raster centre to its edges
     for spec in craters:
-        d_km, cx, cy = (tuple(spec) + (0.0, 0.0))[:3]
+        d_km, cx, cy = (float(v) for v in (tuple(spec) + (0.0, 0.0))[:3])
         r = np.hypot(X - (x_c + cx * 1e3), Y - (y_c + cy * 1e3)) * ground
-        z = z + _crater_relief(float(d_km), r)
+        z = z + _crater_relief(d_km, r)  # checks the diameter first
+        _check_crater_on_raster(d_km, cx, cy, half, ground)
     return z.astype(np.float32), (px, 0.0, x0, 0.0, -px, y0), crs.to_wkt()
+
+
+def _check_crater_on_raster(d_km: float, cx_km: float, cy_km: float, half_m: float, ground: float) -> None:
+    """Refuse a crater of diameter ``d_km`` [km] at map offset (cx_km, cy_km) [km] whose centre is off a
+    raster of half side ``half_m`` [map m], or whose rim crest (radius D/2 [m] on the ground, ``ground``
+    ground metres per map metre) lies wholly outside it."""
+    name = f"crater {d_km:g}@{cx_km:g},{cy_km:g} (D_KM@X_KM,Y_KM)"
+    extent = f"the raster spans x and y from {-half_m / 1e3:g} to {half_m / 1e3:g} km about its centre"
+    if not (abs(cx_km * 1e3) <= half_m and abs(cy_km * 1e3) <= half_m):
+        raise ConfigError(
+            f"{name}: its centre lies off the raster ({extent}); move the crater onto it or enlarge size_km (--size-km)"
+        )
+    rim_map_m = 0.5 * d_km * 1e3 / ground
+    farthest = math.hypot(half_m + abs(cx_km) * 1e3, half_m + abs(cy_km) * 1e3)
+    if farthest < rim_map_m:
+        raise ConfigError(
+            f"{name}: its rim (radius {0.5 * d_km:g} km) lies wholly outside the raster ({extent}), which would "
+            "show only the crater's floor and wall; enlarge size_km (--size-km) or make the crater smaller"
+        )
 
 
 def _write_atomic(files: dict, overwrite: bool) -> list[Path]:
