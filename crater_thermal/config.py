@@ -86,6 +86,7 @@ __all__ = [
     "loads_case",
     "dump_toml",
     "schema_markdown",
+    "check_site_centre",
     "CRATER_KINDS",
     "SPINUP_MODES",
     "PROPERTY_SETS",
@@ -357,9 +358,41 @@ SCHEMA: Tuple[Key, ...] = (
         "height_kind",
         "choice",
         "auto",
-        "DEM values are heights above the reference sphere or radii "
-        "from the Moon's centre (LOLA: radius = DN·0.5 m + 1737.4 km); auto: radius if > half the radius",
+        "DEM values are heights above the reference sphere, radii "
+        "from the Moon's centre (LOLA: radius = DN·0.5 m + 1737.4 km), or tangent: curvature applied, z in a "
+        "Cartesian frame tangent at the projection's origin (python-flux's LOLA `.grd`: ≈ height − r²/2R); "
+        "auto: radius if > half the radius, else height",
         choices=choices.HEIGHT_KINDS,
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "crs",
+        "str",
+        None,
+        "CRS of the DEM instead of the file's (a file with none or a wrong one): PROJ string, WKT or "
+        'authority code, e.g. `"IAU_2015:30135"` (Moon south polar stereographic, R = 1737.4 km)',
+        default_doc="the file's",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "xy_units",
+        "choice",
+        None,
+        "unit of the DEM's x/y coordinates (geotransform), whatever its CRS says",
+        choices=choices.LENGTH_UNITS,
+        default_doc="the CRS's",
+        only=("kind", ("dem",)),
+    ),
+    K(
+        "crater",
+        "z_units",
+        "choice",
+        None,
+        "unit of the DEM's pixel values (after scale/offset), whatever its band says",
+        choices=choices.LENGTH_UNITS,
+        default_doc="the band's unit (m if none)",
         only=("kind", ("dem",)),
     ),
     K(
@@ -766,7 +799,8 @@ class Crater:
     mesh : Path or None  absolute path of the mesh file (kind "mesh"); flip : bool  reverse its winding
     dem : Path or None  absolute path of the DEM (kind "dem"); center_lat_deg, center_lon_deg [deg] (None:
         the location), radius_km [km], resolution_m [m], outer_radius_km [km], outer_resolution_m [m],
-        height_kind, max_facets: the site mesh (terrain.site_mesh)
+        height_kind, max_facets: the site mesh (terrain.site_mesh); crs (str or None), xy_units, z_units
+        ("m" | "km" or None): overrides of the DEM file's metadata (terrain.open_dem)
     """
 
     @property
@@ -1047,6 +1081,8 @@ class _Section:
 
     def choice(self, k, options, default):
         v = self.string(k, default)
+        if v is None and default is None and not self.has(k):
+            return None  # an optional choice left out
         if v not in options:
             self.fail(f"{self.key(k)} = {v!r} is not allowed; allowed: {', '.join(repr(o) for o in options)}")
         return v
@@ -1230,17 +1266,64 @@ def _check_period(v: _Values, sec: _Section) -> None:
 _SECTION_CHECKS: dict = {"sun": _check_sun, "period": _check_period}
 
 
+def check_site_centre(
+    where: str,
+    source: str,
+    site_lat_deg: Optional[float],
+    site_lon_deg: Optional[float],
+    lat_deg: float,
+    lon_deg: float,
+    fix: str,
+) -> None:
+    """Refuse a site (a DEM site's centre) that is not centred on the case's location.
+
+    The site's frame (east/north/up at its centre) is the frame of the Sun vectors, computed at
+    ``location``: a site made for another centre would be lit from the wrong directions.
+
+    Parameters
+    ----------
+    where : str
+        Prefix of the message (the case file, or the mesh file).
+    source : str
+        Prefix of the key names in the message (``"crater."`` gives ``crater.center_lat_deg``).
+    site_lat_deg, site_lon_deg : float or None [deg]
+        The site's centre (None: not given, nothing to check).
+    lat_deg, lon_deg : float [deg]
+        ``location.lat_deg``, ``location.lon_deg``.
+    fix : str
+        How to fix it, ending the message.
+
+    Raises
+    ------
+    ConfigError
+        One line naming both values; longitudes are compared modulo 360 deg, to 1e-9 deg.
+    """
+    for axis, v, loc in (("lat", site_lat_deg, lat_deg), ("lon", site_lon_deg, lon_deg)):
+        if v is None:
+            continue
+        d = float(v) - float(loc)
+        if axis == "lon":
+            d = (d + 180.0) % 360.0 - 180.0
+        if abs(d) > 1e-9:
+            raise ConfigError(
+                f"{where}: {source}center_{axis}_deg = {float(v):g} differs from location.{axis}_deg = "
+                f"{float(loc):g}; the site's frame is the location's ({fix})"
+            )
+
+
 def _check_case(case: Case, where: str) -> None:
     """Checks across sections: a DEM site is centred on the location; the period covers a flux step and lies
     inside the ephemeris."""
     if case.crater.kind == "dem":
-        for key, loc_key in (("center_lat_deg", "lat_deg"), ("center_lon_deg", "lon_deg")):
-            v, loc = getattr(case.crater, key), getattr(case.location, loc_key)
-            if v is not None and abs(v - loc) > 1e-9:
-                raise ConfigError(
-                    f"{where}: crater.{key} = {v:g} differs from location.{loc_key} = {loc:g}; the "
-                    "site's frame is the location's (give one of them, or the same value)"
-                )
+        check_site_centre(
+            where,
+            "crater.",
+            case.crater.center_lat_deg,
+            case.crater.center_lon_deg,
+            case.location.lat_deg,
+            case.location.lon_deg,
+            "give one of them, or the same value",
+        )
         if case.crater.outer_resolution_m is not None and case.crater.outer_radius_km is None:
             raise ConfigError(f"{where}: crater.outer_resolution_m needs crater.outer_radius_km")
         if case.crater.outer_radius_km is not None and case.crater.outer_radius_km <= case.crater.radius_km:

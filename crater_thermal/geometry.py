@@ -809,7 +809,35 @@ def check_upward(mesh: Mesh, source: str = "mesh") -> Mesh:
     return mesh
 
 
-def load_mesh(path: str | os.PathLike, flip: bool = False) -> Mesh:
+def _check_site_location(meta: dict, location: tuple[float, float], path: Path) -> None:
+    """A site mesh's recorded centre against the case's (lat_deg, lon_deg) location [deg]."""
+    from crater_thermal.config import check_site_centre
+
+    site = []
+    for key in ("center_lat_deg", "center_lon_deg"):
+        v = meta.get(key)
+        try:
+            site.append(None if v is None else float(v))
+        except (TypeError, ValueError):
+            raise MeshError(f"{path}: its metadata's {key} = {v!r} is not a number [deg]") from None
+    if site == [None, None]:
+        return
+    lat, lon = (float(x) for x in location)
+    check_site_centre(
+        str(path),
+        "the mesh metadata's ",
+        site[0],
+        site[1],
+        lat,
+        lon,
+        f"set [location] lat_deg = {site[0]:g}, lon_deg = {site[1]:g} for this mesh, or mesh the site again "
+        "about the location (mesh dem --center-lat/--center-lon)"
+        if None not in site
+        else "mesh the site again about the location (mesh dem --center-lat/--center-lon)",
+    )
+
+
+def load_mesh(path: str | os.PathLike, flip: bool = False, location: tuple[float, float] | None = None) -> Mesh:
     """Read a triangle mesh (any format trimesh reads: PLY, OBJ, STL, ...) and check it.
 
     Parameters
@@ -819,6 +847,10 @@ def load_mesh(path: str | os.PathLike, flip: bool = False) -> Mesh:
     flip : bool
         Reverse every facet's winding (for files whose normals point down); ``meta["flipped"]``
         records it.
+    location : (lat_deg, lon_deg) or None [deg]
+        The case's location, where the mesh will be lit. A mesh whose metadata records a site centre
+        (``center_lat_deg``, ``center_lon_deg``: a DEM site from ``mesh dem``, whose frame is the
+        east/north/up frame of that centre) must have been made for this location; None: not checked.
 
     Returns
     -------
@@ -831,6 +863,9 @@ def load_mesh(path: str | os.PathLike, flip: bool = False) -> Mesh:
     MeshError
         Unreadable file, non-finite vertices, degenerate or duplicate faces, inconsistent winding, a
         surface facing downward (:func:`check_upward`). (Closed / watertight meshes are not required.)
+    ConfigError
+        A site mesh made for another centre than ``location`` (:func:`crater_thermal.config.check_site_centre`,
+        the check a ``kind = "dem"`` case gets).
     """
     import trimesh
 
@@ -852,6 +887,8 @@ def load_mesh(path: str | os.PathLike, flip: bool = False) -> Mesh:
     _validate(V, F, str(p))
     meta = _read_meta_comment(p) or {"kind": "file"}
     meta["source"] = p.name
+    if location is not None:
+        _check_site_location(meta, location, p)
     if flip:
         F = F[:, [0, 2, 1]]
         meta["flipped"] = True

@@ -460,7 +460,8 @@ def case_mesh(case):
 
     c = case.crater
     if getattr(c, "mesh", None):
-        return geometry.load_mesh(c.mesh, flip=bool(getattr(c, "flip", False)))
+        location = (case.location.lat_deg, case.location.lon_deg)  # a DEM site mesh must be centred there
+        return geometry.load_mesh(c.mesh, flip=bool(getattr(c, "flip", False)), location=location)
     if getattr(c, "kind", "crater") == "flat":
         return geometry.flat_mesh()
     if getattr(c, "kind", "crater") == "dem":
@@ -476,6 +477,9 @@ def case_mesh(case):
             outer_resolution_m=c.outer_resolution_m,
             height_kind=c.height_kind,
             max_facets=c.max_facets,
+            crs=c.crs,
+            xy_units=c.xy_units,
+            z_units=c.z_units,
         )
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
