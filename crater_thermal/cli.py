@@ -110,7 +110,9 @@ def mesh_bowl(
 
 @mesh_app.command("dem")
 def mesh_dem(
-    dem: Path = typer.Argument(..., help="DEM: GeoTIFF, PDS3 .LBL/.IMG (LOLA LDEM_*), any GDAL raster, lunar CRS."),
+    dem: Path = typer.Argument(
+        ..., help="DEM: GeoTIFF, PDS3 .LBL/.IMG (LOLA LDEM_*), GMT netCDF .grd, any GDAL raster, lunar CRS."
+    ),
     center_lat: float = typer.Option(..., "--center-lat", help="Site centre, planetocentric latitude [deg]."),
     center_lon: float = typer.Option(..., "--center-lon", help="Site centre, east longitude [deg]."),
     radius_km: float = typer.Option(..., "--radius-km", help="Radius of the analysed (inner) region [km]."),
@@ -124,13 +126,32 @@ def mesh_dem(
         None, "--outer-resolution-m", help="Facet edge in the outer ring [m] (default 4x inner)."
     ),
     height_kind: str = typer.Option(
-        "auto", "--height-kind", help="auto | height (above the sphere) | radius (from the Moon's centre)."
+        "auto",
+        "--height-kind",
+        help="auto | height (above the sphere) | radius (from the Moon's centre) | tangent (curvature "
+        "applied: z in a frame tangent at the projection's origin, as python-flux's LOLA .grd).",
+    ),
+    crs: Optional[str] = typer.Option(
+        None,
+        "--crs",
+        help="CRS to use instead of the file's (none, or a wrong one): PROJ string, WKT, or a code such as "
+        "IAU_2015:30135 (Moon south polar stereographic).",
+    ),
+    xy_units: Optional[str] = typer.Option(
+        None, "--xy-units", help="m | km: unit of the DEM's x/y coordinates, whatever its CRS says."
+    ),
+    z_units: Optional[str] = typer.Option(
+        None, "--z-units", help="m | km: unit of the DEM's values (heights), whatever its band says."
     ),
     max_facets: int = typer.Option(2_000_000, "--max-facets", help="Refuse larger sites (estimated up front)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output mesh (.ply keeps the site metadata)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
 ) -> None:
-    """Mesh a site of a polar DEM: true 3-D positions in the centre's east/north/up frame [m]."""
+    """Mesh a site of a polar DEM: true 3-D positions in the centre's east/north/up frame [m].
+
+    Reads GeoTIFF, PDS3, GMT/COARDS netCDF (.grd) and any GDAL raster; --crs, --xy-units, --z-units and
+    --height-kind say what a file does not (e.g. a .grd in km without a CRS).
+    """
     from crater_thermal import geometry, terrain
     from crater_thermal.errors import OutputExistsError
 
@@ -146,6 +167,9 @@ def mesh_dem(
         outer_resolution_m=outer_resolution_m,
         height_kind=height_kind,
         max_facets=max_facets,
+        crs=crs,
+        xy_units=xy_units,
+        z_units=z_units,
     )
     geometry.save_mesh(m, output, overwrite=overwrite)
     typer.echo(

@@ -408,8 +408,8 @@ def open_dem(path, crs=None, xy_units: Optional[str] = None, z_units: Optional[s
         if file_crs is None or not file_crs.to_wkt():
             raise DEMError(
                 f"DEM {p.name!r} has no coordinate reference system (no CRS in the file or its label): "
-                "cannot place it on the Moon; give one with --crs (crater.crs), e.g. IAU_2015:30135 for "
-                f"south polar stereographic, and --xy-units/--z-units km if its x/y or heights are km; {OVERRIDES_HINT}"
+                "cannot place it on the Moon; give one, e.g. --crs IAU_2015:30135 (crater.crs) for a south "
+                f"polar stereographic grid; {OVERRIDES_HINT}"
             )
         pcrs = pyproj.CRS.from_wkt(file_crs.to_wkt())
     whose = f"crs = {crs!r}" if given else f"DEM {p.name!r} CRS"
@@ -425,7 +425,8 @@ def open_dem(path, crs=None, xy_units: Optional[str] = None, z_units: Optional[s
         hint = " (a radius in km given as metres?)" if abs(a - MOON_RADIUS_M / 1e3) <= _BODY_TOLERANCE * a else ""
         raise DEMError(
             f"{whose} ({pcrs.name}) is on a body of radius {a / 1e3:.4g} km{hint}, not the Moon "
-            f"({MOON_RADIUS_M / 1e3:.1f} km); if the file's CRS is wrong, {OVERRIDES_HINT}, e.g. --crs IAU_2015:30135"
+            f"({MOON_RADIUS_M / 1e3:.1f} km): give a lunar CRS, e.g. --crs IAU_2015:30135 (crater.crs); "
+            f"{OVERRIDES_HINT}"
         )
     crs_m = _axis_metres(pcrs)
     if xy_units is not None:
