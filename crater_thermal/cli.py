@@ -36,7 +36,7 @@ app = typer.Typer(
 
 def _print_version(value: bool) -> None:
     if value:
-        from crater_thermal import __version__
+        from crater_thermal._version import __version__
 
         typer.echo(f"crater-thermal {__version__}")
         raise typer.Exit()
@@ -60,7 +60,7 @@ def fail(message: str) -> None:
 @app.command()
 def version() -> None:
     """Print the crater_thermal version."""
-    from crater_thermal import __version__
+    from crater_thermal._version import __version__
 
     typer.echo(__version__)
 
@@ -321,20 +321,18 @@ def run(
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""
-    from crater_thermal import config, simulate
+    from crater_thermal import api, simulate
     from crater_thermal.errors import Interrupted
     from crater_thermal.progress import reporter
 
     try:
-        path = simulate.run_case(
-            config.load_case(case), output, resume=resume, overwrite=overwrite, progress=reporter(progress)
-        )
+        api.run(case, output, resume=resume, overwrite=overwrite, progress=reporter(progress)).close()
     except Interrupted as exc:
         ckpt = Path(simulate.checkpoint_path(output))
         if ckpt.exists():
             exc.hint = f"checkpoint {ckpt} kept: continue with `crater-thermal run {case} -o {output} --resume`"
         raise
-    typer.echo(f"wrote {path}")
+    typer.echo(f"wrote {output}")
 
 
 @app.command()
@@ -366,22 +364,22 @@ def replay(
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
-    from crater_thermal import simulate
+    from crater_thermal import api
     from crater_thermal.progress import reporter
 
-    path = simulate.replay_file(
+    api.replay(
         flux,
         profile,
         density_grid=density_grid,
-        initial_temperature=initial_temperature,
+        initial_temperature_K=initial_temperature,
         fixed_spinup=fixed_spinup,
         property_set=property_set,
         allow_inverted=allow_inverted,
-        output=output,
+        out=output,
         overwrite=overwrite,
         progress=reporter(progress),
-    )
-    typer.echo(f"wrote {path}")
+    ).close()
+    typer.echo(f"wrote {output}")
 
 
 # ---------------------------------------------------------------- sweep
@@ -398,11 +396,11 @@ def sweep(
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Run many cases and their replays; a restarted sweep skips finished cases."""
-    from crater_thermal import sweep as sweep_mod
+    from crater_thermal import api
     from crater_thermal.errors import Interrupted
 
     try:
-        results = sweep_mod.sweep(cases, output, scheduler=scheduler, workers=workers, progress=progress)
+        results = api.run_sweep(cases, output, scheduler=scheduler, workers=workers, progress=progress)
     except Interrupted as exc:
         exc.hint = "run the same sweep command again to finish it (finished cases are skipped, runs resume)"
         raise
@@ -450,11 +448,12 @@ def report(
         "facet_and_centre.",
     ),
     min_dark_hours: float = typer.Option(24.0, "--min-dark-hours", help="Darkness before a facet's night [h]."),
+    progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Report of a run and its replay: figures as thesis 7.4-7.9, detection statistics, report.html, summary.json."""
+    from crater_thermal import api
     from crater_thermal import instrument as ins
     from crater_thermal.errors import ConfigError
-    from crater_thermal.report import make_report
 
     insts = [ins.get_instrument(n) for n in instrument]
     if band_um is not None or netd_k is not None:
@@ -475,11 +474,12 @@ def report(
         natural_scatter_K=natural_scatter_k,
         false_alarm=false_alarm,
     )
-    path = make_report(
+    path = api.make_report(
         run,
         replay,
         out,
         overwrite=overwrite,
+        progress=progress,
         instruments=insts or None,
         observation=obs,
         snapshots=not no_snapshots,

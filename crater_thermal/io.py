@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
-from crater_thermal import __version__
+from crater_thermal._version import __version__
 from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError, OutputLockedError
 
 if TYPE_CHECKING:
@@ -844,6 +844,12 @@ def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
     _check_attr_range(ds, path, "albedo", 0.0, 1.0)
     _check_attr_range(ds, path, "emissivity", 1e-6, 1.0)
     return ds
+
+
+def open_written(path) -> xr.Dataset:
+    """Open a dataset crater_thermal has just written, lazily and without re-validating its values (a
+    100k-facet run is GBs; :func:`open_run` / :func:`open_replay` check files of unknown origin)."""
+    return _open(path, "output", load=False)
 
 
 def open_run(path, load: bool = True) -> xr.Dataset:

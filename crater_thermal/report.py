@@ -1221,6 +1221,37 @@ def _locked_report(
             ds.close()
 
 
+def summarize(
+    run_ds,
+    replay_ds,
+    instruments: Optional[Sequence[ins.Instrument]] = None,
+    observation: ins.Observation = ins.Observation(),
+    threshold_K: float = an.NATURAL_SCATTER_K,
+    night_definition: str = "facet",
+    min_dark_hours: float = an.MIN_DARK_HOURS,
+) -> dict:
+    """The numbers of a report (``summary.json``) for one run and its replay, without figures or files.
+
+    ``run_ds``, ``replay_ds``: datasets or paths. Returns the summary dictionary (temperatures [K],
+    differences [K], dwell times [s], as in ``summary.json``; ``figures`` is empty).
+    """
+    instruments = list(ins.PRESETS.values()) if instruments is None else list(instruments)
+    if not instruments:
+        raise ConfigError("need at least one instrument")
+    if night_definition not in an.NIGHT_DEFINITIONS:
+        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(an.NIGHT_DEFINITIONS)}")
+    opened = []
+    try:
+        run = _track(ctio.open_run(run_ds), opened) if isinstance(run_ds, (str, os.PathLike)) else run_ds
+        rep = _track(ctio.open_replay(replay_ds), opened) if isinstance(replay_ds, (str, os.PathLike)) else replay_ds
+        an.check_run(run, an.RUN_VARIABLES + ("solar_incident", "ir_incident"))
+        A = _Analysis(run, rep, threshold_K, night_definition=night_definition, min_dark_hours=min_dark_hours)
+        return _summary(A, [], instruments, observation, [], None)
+    finally:
+        for ds in opened:
+            ds.close()
+
+
 def _track(ds, opened: list):
     opened.append(ds)
     return ds

@@ -123,17 +123,16 @@ def sweep(
                         report(len(results), len(paths))
             else:
                 spawn = multiprocessing.get_context("spawn")
-                pool = ProcessPoolExecutor(max_workers=n, mp_context=spawn)
-                try:
-                    futs = [pool.submit(run_one, p, str(out_dir)) for p in paths]
-                    for fut in as_completed(futs):
-                        results.append(fut.result())
-                        if report is not None:
-                            report(len(results), len(paths))
-                except BaseException:  # interrupted or failed: stop the workers now, each cleaning up
-                    _stop_workers(pool)
-                    raise
-                pool.shutdown()
+                with ProcessPoolExecutor(max_workers=n, mp_context=spawn) as pool:
+                    try:
+                        futs = [pool.submit(run_one, p, str(out_dir)) for p in paths]
+                        for fut in as_completed(futs):
+                            results.append(fut.result())
+                            if report is not None:
+                                report(len(results), len(paths))
+                    except BaseException:  # interrupted or failed: stop the workers now, each cleaning up
+                        _stop_workers(pool)
+                        raise
     return sorted(results, key=lambda r: paths.index(r["case"]))
 
 

@@ -1,0 +1,370 @@
+"""The Python API: build a case, run it, replay it, analyse it and report it, from a script or a notebook.
+
+Everything the command line does goes through these functions (``crater_thermal.cli`` only parses
+arguments and prints). They are re-exported by the package::
+
+    import crater_thermal as ct
+
+    case = ct.load_case("cases/default.toml", {"period.end": "2019-02-01"})
+    run = ct.run(case)                                  # xarray.Dataset, fluxes and temperatures
+    rep = ct.replay(run, profiles=["800/1100", "rock"])  # the saved fluxes against other densities
+    res = ct.analyse(run, rep)                           # the report's numbers, without files
+    res.night_median_dT_K["floor"]                       # loose - nominal, night median [K]
+
+Units: SI inside (K, W m-2, m, s); named units in argument names (``lat_deg``, ``diameter_km``).
+Errors: invalid input raises a :class:`crater_thermal.errors.CraterThermalError` (the command line's
+exit code 2) before any work; a failure inside raises :class:`crater_thermal.errors.InternalError`
+(exit code 3). Progress: ``progress=True`` draws a bar on a terminal or in a notebook (plain lines in
+a log), ``None``/``False`` nothing, or pass your own reporter (see :func:`progress_callback`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional, Sequence, Union
+
+from crater_thermal import config, geometry, io, progress, simulate
+from crater_thermal.errors import ConfigError
+
+if TYPE_CHECKING:
+    from crater_thermal.config import Case
+    from crater_thermal.geometry import Mesh
+
+PathLike = Union[str, os.PathLike]
+#: An ``xarray.Dataset`` (only :mod:`crater_thermal.io` imports xarray).
+Dataset = Any
+
+
+# ----------------------------------------------------------------------------- cases
+
+
+def load_case(path: PathLike, overrides: Optional[Mapping[str, Any]] = None, name: Optional[str] = None) -> "Case":
+    """Read and validate a case file (TOML; keys in ``cases/README.md``), optionally with overrides.
+
+    Parameters
+    ----------
+    path : path-like
+        The case file.
+    overrides : mapping, optional
+        Dotted keys to change, e.g. ``{"location.lat_deg": -80.0, "period.end": "2019-03-01"}``;
+        a value of None restores a key's default. The result is validated again.
+    name : str, optional
+        A new case name (default: the file's).
+
+    Returns
+    -------
+    Case
+    """
+    case = config.load_case(path)
+    if overrides or name:
+        case = case.with_overrides(dict(overrides or {}), name=name)
+    return case
+
+
+def case_from_dict(sections: Mapping[str, Any], name: str = "case", base_dir: Optional[PathLike] = None) -> "Case":
+    """A validated case from a dictionary shaped like a case file.
+
+    ``{"crater": {"kind": "crater", "diameter_km": 2.0, "facets": 150}, "location": {"lat_deg": -85.0},
+    "period": {"start": "2019-01-01", "end": "2019-02-01"}}``. Relative paths (a mesh, a DEM) are
+    read from ``base_dir`` (default: the current folder).
+    """
+    raw = dict(sections)
+    raw.setdefault("name", name)
+    text = config.dump_toml(raw)
+    return config.loads_case(text, base_dir=Path(base_dir or os.getcwd()), name=raw["name"])
+
+
+# ----------------------------------------------------------------------------- meshes
+
+
+def mesh_crater(diameter_km: float = 10.0, facets: int = 502, surround_km: float = 0.0, wall: str = "thesis") -> "Mesh":
+    """The idealized simple crater of thesis Table 7.1 (rim diameter [km], exact facet count, optional flat
+    surround [km]); vertices in metres, x east, y north, z up, the rim plane at z = 0."""
+    return geometry.crater_mesh(diameter_km=diameter_km, n_facets=facets, surround_km=surround_km, wall=wall)
+
+
+def mesh_bowl(depth_to_diameter: float = 0.2, facets: int = 3000, diameter_m: float = 1000.0) -> "Mesh":
+    """Ingersoll et al. (1992)'s spherical-cap bowl: depth / diameter, exact facet count, rim diameter [m]."""
+    return geometry.bowl_mesh(depth_to_diameter=depth_to_diameter, n_facets=facets, diameter_m=diameter_m)
+
+
+def mesh_dem(dem: PathLike, center_lat_deg: float, center_lon_deg: float, radius_km: float, **options) -> "Mesh":
+    """A site of a polar DEM as a mesh in the centre's east/north/up frame [m].
+
+    ``options`` are those of ``crater-thermal mesh dem`` (see :func:`crater_thermal.terrain.site_mesh`):
+    ``resolution_m``, ``outer_radius_km``, ``outer_resolution_m``, ``height_kind``, ``max_facets`` and
+    the metadata overrides for files that lack or misstate it.
+    """
+    from crater_thermal import terrain
+
+    return terrain.site_mesh(dem, center_lat_deg, center_lon_deg, radius_km, **options)
+
+
+def load_mesh(path: PathLike, flip: bool = False) -> "Mesh":
+    """Read a mesh (.ply, .obj, .stl) [m]; ``flip`` reverses every facet's winding."""
+    return geometry.load_mesh(path, flip=flip)
+
+
+def save_mesh(mesh: "Mesh", path: PathLike, overwrite: bool = False) -> Path:
+    """Write a mesh (.ply keeps the site metadata, .obj, .stl) atomically; returns the path."""
+    return geometry.save_mesh(mesh, path, overwrite=overwrite)
+
+
+# ----------------------------------------------------------------------------- progress
+
+
+def progress_callback(fn: Callable[[str, int, int], None]) -> progress.Reporter:
+    """A progress reporter calling ``fn(stage, done, total)``: hook any display (a notebook widget, a log).
+
+    >>> rep = progress_callback(lambda stage, done, total: print(stage, done, total))  # doctest: +SKIP
+    >>> ct.run(case, progress=rep)                                                     # doctest: +SKIP
+    """
+
+    @contextlib.contextmanager
+    def stage(description: str):
+        yield lambda done, total: fn(description, done, total)
+
+    return stage
+
+
+def _reporter(p):
+    if p is None or p is False:
+        return None
+    if p is True:
+        return progress.reporter(True)
+    if callable(p):
+        return p
+    raise ConfigError(f"progress={p!r}: use True, False/None, or a reporter (see progress_callback)")
+
+
+# ----------------------------------------------------------------------------- running
+
+
+@contextlib.contextmanager
+def _scratch_folder():
+    folder = tempfile.mkdtemp(prefix="crater_thermal_")
+    try:
+        yield Path(folder)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _in_memory(path: Path, opener) -> Dataset:
+    ds = opener(path)
+    ds.load()  # in memory: the file can go
+    ds.close()
+    return ds
+
+
+def run(
+    case: Union["Case", PathLike],
+    out: Optional[PathLike] = None,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: Any = None,
+) -> Dataset:
+    """Run a case: sunlight, scattering, infrared exchange and conduction over the case's period.
+
+    Parameters
+    ----------
+    case : Case or path-like
+        A case (:func:`load_case`, :func:`case_from_dict`) or a case file.
+    out : path-like, optional
+        Write the run dataset there (netCDF, streamed block by block: memory stays bounded for any
+        run length), checkpointed for ``resume``. Without it the run goes to a temporary file and
+        comes back in memory (for runs that fit: time x facets x 4 series x 4 bytes).
+    resume : bool
+        Continue from the checkpoint beside ``out``.
+    overwrite : bool
+        Replace an existing ``out``.
+    progress : bool or reporter, optional
+
+    Returns
+    -------
+    xarray.Dataset
+        The run (schema in :mod:`crater_thermal.io`): opened lazily from ``out`` when given (close it,
+        or use it in a ``with`` block), in memory otherwise.
+    """
+    case = case if isinstance(case, config.Case) else config.load_case(case)
+    rep = _reporter(progress)
+    if out is None:
+        if resume:
+            raise ConfigError("resume needs out: the run's file and its checkpoint")
+        with _scratch_folder() as d:
+            path = simulate.run_case(case, d / "run.nc", progress=rep)
+            return _in_memory(path, io.open_run)
+    path = simulate.run_case(case, out, resume=resume, overwrite=overwrite, progress=rep)
+    return io.open_written(path)
+
+
+def replay(
+    run: Union[Dataset, PathLike],
+    profiles: Sequence[str] = (),
+    *,
+    density_grid: Optional[str] = None,
+    out: Optional[PathLike] = None,
+    overwrite: bool = False,
+    initial_temperature_K: Optional[float] = None,
+    fixed_spinup: bool = False,
+    property_set: Optional[str] = None,
+    allow_inverted: bool = False,
+    progress: Any = None,
+) -> Dataset:
+    """Replay a run's saved fluxes against other density profiles (the IR stays the run's, thesis 7.2).
+
+    Parameters
+    ----------
+    run : Dataset or path-like
+        A run (or any flux dataset with ``solar_incident`` and ``ir_incident`` [W m-2]).
+    profiles : sequence of str
+        ``"TOP/BOTTOM"`` densities [kg m-3] of the top 2 cm and below, ``"rock"``, ``"hayne2017"``.
+        Default (with no ``density_grid``): nominal, loose (800/1100) and rock.
+    density_grid : str, optional
+        ``"START:STOP:STEP"`` [kg m-3]: every top <= bottom pair of the grid.
+    out : path-like, optional
+        Write the replay there (netCDF); default: in memory.
+    initial_temperature_K, fixed_spinup :
+        The thesis's procedure instead of the periodic steady state (see ``crater-thermal replay``).
+    property_set : "apollo" | "hayne2017", optional
+        Default: the run's.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``surface_temperature(profile, time, facet)`` [K], lazily from ``out`` or in memory.
+    """
+    rep = _reporter(progress)
+    kw = dict(
+        density_grid=density_grid,
+        initial_temperature=initial_temperature_K,
+        fixed_spinup=fixed_spinup,
+        property_set=property_set,
+        allow_inverted=allow_inverted,
+        progress=rep,
+    )
+    with _scratch_folder() as d:
+        flux = _as_file(run, d / "flux.nc")
+        if out is None:
+            path = simulate.replay_file(flux, list(profiles), output=d / "replay.nc", **kw)
+            return _in_memory(path, io.open_replay)
+        path = simulate.replay_file(flux, list(profiles), output=out, overwrite=overwrite, **kw)
+    return io.open_written(path)
+
+
+def _as_file(ds_or_path, scratch: Path) -> Path:
+    """The file of a dataset: its own path, the file it was opened from, or a scratch copy."""
+    if isinstance(ds_or_path, (str, os.PathLike)):
+        return Path(ds_or_path)
+    source = ds_or_path.encoding.get("source")
+    if source and os.path.isfile(source):
+        return Path(source)
+    io.write_dataset_atomic(ds_or_path, scratch)
+    return scratch
+
+
+# ----------------------------------------------------------------------------- analysis and report
+
+
+@dataclass(frozen=True)
+class Results:
+    """The numbers of a report (:func:`analyse`): what the report and ``summary.json`` say.
+
+    Attributes
+    ----------
+    summary : dict
+        The whole ``summary.json`` content (keys documented in the report's docs).
+    nominal, loose : str
+        The nominal and loose profile labels (``loose`` None without a loose profile).
+    night_median_dT_K : dict
+        Region -> night median of loose - nominal surface temperature [K] (negative: loose is colder).
+    night_median_T_nominal_K : dict
+        Region -> night median of the nominal surface temperature [K].
+    """
+
+    summary: dict = field(repr=False)
+    nominal: str
+    loose: Optional[str]
+    night_median_dT_K: dict
+    night_median_T_nominal_K: dict
+
+    def __repr__(self) -> str:
+        lines = [f"Results(nominal={self.nominal!r}, loose={self.loose!r}; night median loose - nominal [K]:"]
+        for region, dT in self.night_median_dT_K.items():
+            lines.append(f"  {region}: {'n/a' if dT is None else format(dT, '+.2f')}")
+        return "\n".join(lines) + ")"
+
+
+def analyse(
+    run: Union[Dataset, PathLike],
+    replay: Union[Dataset, PathLike],
+    *,
+    instruments: Optional[Sequence[str]] = None,
+    natural_scatter_K: Optional[float] = None,
+    night: str = "facet",
+    min_dark_hours: Optional[float] = None,
+) -> Results:
+    """The report's numbers for a run and its replay, without writing anything.
+
+    ``instruments``: preset channel names (default: all presets); ``natural_scatter_K``: footprint-to-
+    footprint scatter of true temperatures [K] (default the report's); ``night``: the night definition
+    (``facet``, ``centre``, ``facet_and_centre``); ``min_dark_hours`` [h].
+    """
+    from crater_thermal import analysis as an
+    from crater_thermal import instrument as ins
+    from crater_thermal import report as rp
+
+    insts = None if instruments is None else [ins.get_instrument(n) for n in instruments]
+    obs = ins.Observation() if natural_scatter_K is None else ins.Observation(natural_scatter_K=natural_scatter_K)
+    s = rp.summarize(
+        run,
+        replay,
+        instruments=insts,
+        observation=obs,
+        night_definition=night,
+        min_dark_hours=an.MIN_DARK_HOURS if min_dark_hours is None else min_dark_hours,
+    )
+    loose = s.get("loose_profile")
+    return Results(
+        summary=s,
+        nominal=s.get("nominal_profile"),
+        loose=loose,
+        night_median_dT_K=dict(s.get("night_median_dT_K", {}).get(loose, {})) if loose else {},
+        night_median_T_nominal_K=dict(s.get("night_median_T_nominal_K", {})),
+    )
+
+
+def make_report(
+    run: Union[Dataset, PathLike, Sequence],
+    replay: Union[Dataset, PathLike, Sequence, None],
+    out_dir: PathLike,
+    *,
+    overwrite: bool = False,
+    progress: Any = None,
+    **options,
+) -> Path:
+    """Write ``report.html``, ``summary.json`` and ``figures/`` into ``out_dir``; returns report.html's path.
+
+    ``run``/``replay``: datasets or paths (lists for several latitudes; a sweep's output folder as
+    ``run`` with ``replay=None``). ``options``: those of :func:`crater_thermal.report.make_report`
+    (``instruments``, ``observation``, ``snapshots``, ``night_definition``, ``min_dark_hours``).
+    """
+    from crater_thermal import report as rp
+
+    flag = None if progress is None else bool(progress)
+    return rp.make_report(run, replay, out_dir, overwrite=overwrite, progress=flag, **options)
+
+
+def run_sweep(
+    cases: Sequence[PathLike], out_dir: PathLike, *, scheduler: Optional[str] = None, workers=None, progress=None
+):
+    """Run many case files and their replays into ``out_dir/CASE/`` (local processes or a dask scheduler);
+    returns one summary dict per case. A restarted sweep skips what is finished."""
+    from crater_thermal import sweep as sw
+
+    return sw.sweep(cases, out_dir, scheduler=scheduler, workers=workers, progress=progress)
