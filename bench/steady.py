@@ -2,13 +2,19 @@
 
 Run:  PYTHONPATH=$PWD .venv/bin/python bench/steady.py [--sizes 30752 100352] [--sun-elevation-deg 10]
                                                        [--view-factors auto] [--solver auto]
+                                                       [--terrain plain_bowl | crater_terrain]
 
 Terrain (the issue's case): a flat plain 20 km square with a spherical bowl crater 10 km across,
 depth/diameter 0.2, in its middle (``tests/terrains.spherical_bowl``), meshed as a height field of
 k x k cells, two triangles each (``tests/terrains.grid_mesh``): 30,752 facets is k = 124, 100,352 is
-k = 224. Before issue 20 ``steady`` ended on the 30,752-facet terrain in ``internal error: MemoryError``
-after ~70 s (the sparse LU of I - A F). The Sun is 10 deg high in the south (azimuth 180 deg), the
-default limb-darkened disk; albedo 0.12, emissivity 0.95.
+k = 224. Issue 20 reports that ``steady`` used to end on such a 30,752-facet terrain in ``internal
+error: MemoryError`` after ~70 s (the sparse LU of I - A F). The Sun is 10 deg high in the south
+(azimuth 180 deg), the default limb-darkened disk; albedo 0.12, emissivity 0.95.
+
+``--terrain crater_terrain``: the harder terrain of ``bench/viewfactor_operator.py`` instead (a paraboloid
+crater with a raised rim and 20 m Gaussian roughness everywhere, so that the plain's facets see each other
+too: at 100k facets its compressed operator takes 329 MB against the plain-with-bowl's 89 MB), for
+comparison with that benchmark's 100k operator build (peak RSS 1.27 GB).
 
 Each size runs the real command (``python -m crater_thermal steady MESH ... -o OUT``) in its own
 subprocess, from process start to the written file: wall time, CPU time (user + system, both cores) and
@@ -53,11 +59,20 @@ def plain_with_bowl(n_facets: int):
     return grid_mesh(x, x, spherical_bowl(np.hypot(X, Y), DIAMETER_M, DEPTH_TO_DIAMETER)), k
 
 
+def crater_terrain(n_facets: int):
+    """``bench/viewfactor_operator.terrain`` (rim, roughness) with about ``n_facets`` facets."""
+    sys.path.insert(0, str(REPO / "bench"))
+    from viewfactor_operator import terrain
+
+    k = max(2, int(round(math.sqrt(n_facets / 2.0))))
+    return terrain(n_facets), k
+
+
 def run_one(n_facets: int, args, workdir: Path) -> dict:
     """Mesh, then the ``steady`` command in a child process; its time, memory and what it wrote."""
     from crater_thermal.geometry import save_mesh
 
-    mesh, k = plain_with_bowl(n_facets)
+    mesh, k = plain_with_bowl(n_facets) if args.terrain == "plain_bowl" else crater_terrain(n_facets)
     mesh_path = workdir / f"plain_bowl_{mesh.n_facets}.ply"
     out = workdir / f"steady_{mesh.n_facets}.nc"
     save_mesh(mesh, mesh_path, overwrite=True)
@@ -112,6 +127,7 @@ def main() -> None:
     p.add_argument("--sun-elevation-deg", type=float, default=10.0)
     p.add_argument("--view-factors", default="auto")
     p.add_argument("--solver", default="auto")
+    p.add_argument("--terrain", choices=("plain_bowl", "crater_terrain"), default="plain_bowl")
     p.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "steady.json")
     args = p.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_steady_") as tmp:
@@ -121,6 +137,9 @@ def main() -> None:
         "terrain": (
             f"plain {SIZE_M / 1000:g} km square with a spherical bowl {DIAMETER_M / 1000:g} km across, "
             f"depth/diameter {DEPTH_TO_DIAMETER:g}, height field (tests/terrains.grid_mesh), 2 triangles per cell"
+            if args.terrain == "plain_bowl"
+            else "bench/viewfactor_operator.terrain: 20 km square, 10 km paraboloid crater 2 km deep, raised rim, "
+            "20 m Gaussian roughness, height field, 2 triangles per cell"
         ),
         "sun": f"elevation {args.sun_elevation_deg:g} deg, azimuth 180 deg, limb-darkened disk (default)",
         "requested": {"view_factors": args.view_factors, "solver": args.solver},
