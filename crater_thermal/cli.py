@@ -207,7 +207,8 @@ def dem_synth(
     crater: List[str] = typer.Option(
         [],
         "--crater",
-        help="D_KM[@X_KM,Y_KM]: idealized crater (Table 7.1), offset from the centre in map x, y [km]. Repeatable.",
+        help="D_KM[@X_KM,Y_KM]: idealized crater (Table 7.1), offset from the centre in map x, y [km]; its centre "
+        "must lie on the raster and its rim cross it (it may reach past the edge). Repeatable.",
     ),
     roughness: float = typer.Option(0.0, "--roughness", help="RMS height of the self-affine background [m]."),
     hurst: float = typer.Option(0.9, "--hurst", help="Hurst exponent of the background, [0, 1]."),
