@@ -50,7 +50,7 @@ SPINUP_MODES = ("periodic", "fixed")
 #: IR exchange during a periodic spin-up: "coupled" (every step, as the record), "lagged" (each window
 #: with the IR series of the previous one), "auto" (simulate.spinup_ir_method: lagged on large meshes).
 SPINUP_IR_METHODS = ("auto", "coupled", "lagged")
-#: How a coupled step gets the IR at its end (simulate.CoupledStepper): extrapolated from the exact IR of
+#: How a coupled step gets the IR at its end (radiosity.CoupledStepper): extrapolated from the exact IR of
 #: the two previous samples (one conduction solve per step), or predictor-corrector (two).
 IR_COUPLING_SCHEMES = ("extrapolated", "predictor")
 #: Thermophysical property sets (materials.PROPERTY_SETS has one PropertySet per name).

@@ -3,12 +3,13 @@
 Coupled step (one flux step, ``t_k -> t_k+1``)
     Solar fluxes are known at every sample in advance (ephemeris -> direct -> scattered). The IR
     a facet receives depends on every facet's temperature; the absorbed flux is linear in time within
-    a step, and its IR part at ``t_k+1`` comes from (``[steps] ir_coupling``, :class:`CoupledStepper`):
+    a step, and its IR part at ``t_k+1`` comes from (``[steps] ir_coupling``,
+    :class:`crater_thermal.radiosity.CoupledStepper`):
 
     * ``extrapolated`` (default): ``ir_k+1`` extrapolated linearly from the exact products
       ``F (eps sigma T^4)`` at ``t_k`` and ``t_k-1``; one conduction solve; then the exact product of
       the new temperatures, and the columns where it differs from ``ir_k+1`` by more than
-      :data:`IR_DEFECT_W_M2` (or :data:`IR_DEFECT_REL` of their absorbed flux) take the step again
+      :data:`~crater_thermal.radiosity.IR_DEFECT_W_M2` (or ``IR_DEFECT_REL`` of their absorbed flux) take the step again
       with it. The first step of a sequence is a predictor-corrector step.
     * ``predictor``: conduct with IR held at ``ir_k`` -> ``T*``; ``ir_k+1 = F (eps sigma T*^4)``;
       from the same start, conduct again with ``ir_k+1`` at the end.
@@ -34,7 +35,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from crater_thermal import cache
+from crater_thermal import cache, radiosity, sunlight
 from crater_thermal.constants import SIGMA
 from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 
@@ -59,7 +60,7 @@ def block_rows(n_cols: int, budget_bytes: float, n_buffers: int = _RUN_BUFFERS, 
 
 def chunk_bytes(case) -> float:
     """The case's memory budget for (time, facet) blocks [bytes] (``[output] chunk_mb``)."""
-    mb = getattr(case.output, "chunk_mb", None)
+    mb = case.output.chunk_mb
     return float(DEFAULT_CHUNK_MB if mb is None else mb) * 2**20
 
 
@@ -73,185 +74,6 @@ def _stage(progress, description: str):
     manager yielding a ``ProgressCallback``. None (or False) means no progress reporting.
     """
     return progress(description) if progress else contextlib.nullcontext(None)
-
-
-# ----------------------------------------------------------------------------- coupled stepping
-
-
-def emitted(T: np.ndarray, emissivity: float) -> np.ndarray:
-    """Emitted flux eps sigma T^4 [W m-2]."""
-    return emissivity * SIGMA * T**4
-
-
-#: The extrapolated IR scheme's acceptance test: a column whose absorbed IR at the end of the step differs
-#: from that of the new temperatures by more than max(IR_DEFECT_W_M2, IR_DEFECT_REL x its absorbed flux)
-#: takes the step again driven by the new temperatures' IR (CoupledStepper).
-IR_DEFECT_W_M2 = 0.01
-IR_DEFECT_REL = 1e-3
-
-
-@dataclass
-class CoupledStepper:
-    """Advance every facet's column one flux step at a time, with IR exchange between facets.
-
-    Within a step the absorbed flux varies linearly between its values at the two samples; the IR part
-    at the step's end depends on the temperatures being computed. Two ways to get it
-    (``ir_scheme``, ``[steps] ir_coupling``):
-
-    * ``"extrapolated"`` (default): the IR at the end of the step is extrapolated linearly in time from
-      the exact IR products F·e(T) at the two previous samples (clipped at 0); after the step the exact
-      product of the new temperatures is formed for the next extrapolation. One conduction solve and one
-      IR product per step. The extrapolation error is second order in the step (O(dt² d²IR/dt²)), does
-      not accumulate (every extrapolation is built from exact products), and the scheme is stable for
-      any view-factor row sum ≤ 1 (the error recurrence has roots of modulus √g, g < 1 the facet's
-      radiative gain). The first step of a sequence (no history yet) is a predictor-corrector step.
-    * ``"predictor"``: predictor-corrector: a predictor solve with the start-of-step IR held, the IR
-      product of its end temperatures, a corrector solve from the same start with that IR at the end.
-      Two conduction solves and one IR product per step.
-
-    Either way the IR returned for the end of the step is the one that drove it, so a replay of the
-    recorded series reproduces the run.
-
-    Parameters
-    ----------
-    solver : thermal.ColumnSolver with one column per facet.
-    F : vfoperator.ViewFactorOperator (or a sparse (nf, nf) matrix), or None for no exchange (flat ground).
-    albedo, emissivity : [-]
-    solar_is_absorbed : the sunlight rows handed to :meth:`step` are already the absorbed sunlight
-        [W m-2] (an incidence-dependent albedo, ``[surface] albedo_model``), not the incident one.
-    ir_scheme : "extrapolated" | "predictor" (above).
-    """
-
-    solver: object
-    F: object
-    albedo: float
-    emissivity: float
-    solar_is_absorbed: bool = False
-    ir_scheme: str = "extrapolated"
-    #: (surface T [K] the history belongs to, F·e(T) at it, F·e(T) one sample before, that step [s])
-    _history: tuple | None = field(default=None, repr=False)
-    #: column-steps taken by extrapolation, and those taken again (diagnostics)
-    stepped: int = 0
-    redone: int = 0
-
-    def ir(self, T_surface: np.ndarray) -> np.ndarray:
-        """IR irradiance [W m-2] on every facet from the others' emission."""
-        if self.F is None:
-            return np.zeros_like(T_surface)
-        ir = np.asarray(self.F @ emitted(T_surface, self.emissivity)).reshape(np.shape(T_surface))
-        # a compressed operator may leave round-off of either sign (~tolerance) where nothing is seen
-        return np.maximum(ir, 0.0)
-
-    def ir_rows(self, T_rows: np.ndarray) -> np.ndarray:
-        """IR irradiance [W m-2] (n, nf) of surface temperatures (n, nf): one product for all rows."""
-        if self.F is None:
-            return np.zeros_like(T_rows)
-        E = emitted(np.ascontiguousarray(np.asarray(T_rows, float).T), self.emissivity)
-        return np.maximum(np.asarray(self.F @ E).T, 0.0)
-
-    def absorbed(self, solar: np.ndarray, ir: np.ndarray) -> np.ndarray:
-        """Absorbed flux [W m-2] of sunlight rows (incident, or absorbed when ``solar_is_absorbed``) and IR."""
-        if self.solar_is_absorbed:
-            return solar + self.emissivity * ir
-        return (1.0 - self.albedo) * solar + self.emissivity * ir
-
-    # -- the extrapolation history (explicit, so that checkpoints can carry it)
-    def reset_history(self) -> None:
-        """Forget the IR history: the next step is a predictor-corrector step (a new sequence)."""
-        self._history = None
-
-    def history(self) -> dict | None:
-        """The IR history for a checkpoint: ``{"ir_now", "ir_before", "dt_before"}`` or None."""
-        if self._history is None or not self._history_valid():
-            return None
-        _, now, before, dt = self._history
-        return {"ir_now": now.copy(), "ir_before": before.copy(), "dt_before": float(dt)}
-
-    def set_history(self, h: dict | None) -> None:
-        """Restore :meth:`history` (after the solver's state is restored from the same checkpoint)."""
-        if h is None:
-            self._history = None
-            return
-        self._history = (
-            self.solver.surface_temperature,
-            np.asarray(h["ir_now"], float).copy(),
-            np.asarray(h["ir_before"], float).copy(),
-            float(h["dt_before"]),
-        )
-
-    def _history_valid(self) -> bool:
-        # valid only for the very state it was made at (a restored or reset state starts a new sequence)
-        T = self._history[0]
-        return np.array_equal(T, self.solver.T[:, 0])
-
-    def step(self, solar_k, solar_k1, ir_k, duration_s):
-        """One coupled step. Returns ``(T_surface_k1, ir_k1)``: ``ir_k1`` [W m-2] is the IR that drove
-        the step's end (pass it back as ``ir_k`` of the next step)."""
-        a_k = self.absorbed(solar_k, ir_k)
-        if self.F is None:
-            T1 = self.solver.advance(a_k, self.absorbed(solar_k1, ir_k), duration_s)
-            return T1, ir_k
-        if self.ir_scheme == "extrapolated" and self._history is not None and self._history_valid():
-            _, now, before, dt_before = self._history
-            ir_k1 = np.maximum(now + (now - before) * (duration_s / dt_before), 0.0)
-            start = self.solver.state()
-            a_k1 = self.absorbed(solar_k1, ir_k1)
-            T1 = self.solver.advance(a_k, a_k1, duration_s)
-            exact = self.ir(T1)
-            # where the extrapolation missed the IR of the new temperatures (sunrise or sunset on the
-            # terrain a facet sees), those columns take the step again driven by that IR
-            miss = np.flatnonzero(
-                self.emissivity * np.abs(exact - ir_k1) > np.maximum(IR_DEFECT_W_M2, IR_DEFECT_REL * np.abs(a_k1))
-            )
-            if miss.size:
-                ir_k1[miss] = exact[miss]
-                T1[miss] = self.solver.redo_columns(
-                    miss, start, a_k[miss], self.absorbed(solar_k1[miss], ir_k1[miss]), duration_s
-                )
-            self._history = (T1, exact, now, float(duration_s))
-            self.redone += miss.size
-            self.stepped += T1.size
-            return T1, ir_k1
-        now = self.ir(self.solver.T[:, 0]) if self.ir_scheme == "extrapolated" else None
-        start = self.solver.state()
-        T_pred = self.solver.advance(a_k, self.absorbed(solar_k1, ir_k), duration_s)
-        ir_k1 = self.ir(T_pred)
-        self.solver.set_state(start)
-        T1 = self.solver.advance(a_k, self.absorbed(solar_k1, ir_k1), duration_s)
-        if now is not None:
-            self._history = (T1, self.ir(T1), now, float(duration_s))
-        return T1, ir_k1
-
-    def run(
-        self,
-        times_s: np.ndarray,
-        solar: np.ndarray,
-        ir0: np.ndarray | None = None,
-        record: bool = True,
-        on_step: Callable | None = None,
-        first_step: int = 0,
-    ):
-        """Run over all samples from the solver's current state (at ``times_s[first_step]``).
-
-        Returns ``(T_surface (nt, nf), ir (nt, nf))`` when ``record``; else ``(None, ir_last)``.
-        """
-        nt, nf = solar.shape
-        T = self.solver.surface_temperature.copy()
-        ir = self.ir(T) if ir0 is None else ir0
-        out_T = out_ir = None
-        if record:
-            out_T = np.empty((nt, nf))
-            out_ir = np.empty((nt, nf))
-            out_T[first_step] = T
-            out_ir[first_step] = ir
-        for k in range(first_step, nt - 1):
-            T, ir = self.step(solar[k], solar[k + 1], ir, times_s[k + 1] - times_s[k])
-            if record:
-                out_T[k + 1] = T
-                out_ir[k + 1] = ir
-            if on_step is not None:
-                on_step(k + 1, T, ir)
-        return out_T, (out_ir if record else ir)
 
 
 # ----------------------------------------------------------------------------- replay
@@ -459,12 +281,12 @@ def case_mesh(case):
     from crater_thermal import geometry
 
     c = case.crater
-    if getattr(c, "mesh", None):
+    if c.mesh:
         location = (case.location.lat_deg, case.location.lon_deg)  # a DEM site mesh must be centred there
-        return geometry.load_mesh(c.mesh, flip=bool(getattr(c, "flip", False)), location=location)
-    if getattr(c, "kind", "crater") == "flat":
+        return geometry.load_mesh(c.mesh, flip=c.flip, location=location)
+    if c.kind == "flat":
         return geometry.flat_mesh()
-    if getattr(c, "kind", "crater") == "dem":
+    if c.kind == "dem":
         from crater_thermal import terrain
 
         return terrain.site_mesh(
@@ -651,9 +473,7 @@ def view_factor_settings(case) -> tuple[str, float]:
     """(method, tolerance) of a case's view factors: ``[radiation] view_factors`` and ``tolerance``."""
     from crater_thermal import vfoperator
 
-    rad = getattr(case, "radiation", None)
-    method = str(getattr(rad, "view_factors", "auto") or "auto")
-    tol = getattr(rad, "tolerance", None)
+    method, tol = case.radiation.view_factors, case.radiation.tolerance
     return method, float(vfoperator.DEFAULT_TOLERANCE if tol is None else tol)
 
 
@@ -666,7 +486,7 @@ def case_geometry(case, timer: Timer, progress=None):
         tracer = raytrace.RayTracer(mesh)
     with timer("viewfactors"):
         F = None
-        if getattr(case.crater, "kind", "crater") != "flat":
+        if case.crater.kind != "flat":
             method, tol = view_factor_settings(case)
             kind = vfoperator.resolve_method(method, mesh.n_facets)
             with _stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
@@ -703,114 +523,9 @@ def case_sun(case, timer: Timer):
     return spin_times, times, sun_dirs, sun_dist
 
 
-def _horizon_cache_dir():
-    """Folder for cached horizon maps (see :mod:`crater_thermal.cache`), or None when unwritable."""
-    return cache.folder("horizons")
-
-
-class Sunlight:
-    """Direct and scattered sunlight of a case for any range of samples, with the case's ``[sun]``
-    settings (``method`` "rays" or "horizon"): what is per mesh (the horizon map, the scattering
-    solver's factorisation) is made once, at construction; each call computes a block of samples.
-
-    The horizon map's build (or cache read) is timed as "horizons", the per-step fluxes as "direct"
-    and "radiosity". ``progress``: optional reporter (:mod:`crater_thermal.progress`).
-    """
-
-    def __init__(self, case, mesh, tracer, F, timer: Timer | None = None, progress=None):
-        from crater_thermal import illumination, radiosity
-
-        timer = timer or Timer()
-        sun = case.sun
-        self.case, self.mesh, self.tracer, self.F = case, mesh, tracer, F
-        self.method = getattr(sun, "method", "horizon")
-        self.hmap = self.disk = None
-        if self.method == "horizon":
-            from crater_thermal import horizons
-
-            with timer("horizons"), _stage(progress, f"horizon map ({mesh.n_facets} facets)") as report:
-                self.hmap = horizons.horizon_map(
-                    mesh,
-                    tracer,
-                    n_azimuths=getattr(sun, "horizon_azimuths", None) or horizons.DEFAULT_N_AZIMUTHS,
-                    cache_dir=_horizon_cache_dir(),
-                    progress=report,
-                )
-        elif not sun.point_sun:
-            self.disk = illumination.sun_disk(
-                **({"n_rings": sun.n_rings} if getattr(sun, "n_rings", None) else {}), law=sun.limb_darkening
-            )
-        self.scat = (
-            None
-            if F is None
-            else radiosity.ScatteringSolver(
-                F, case.surface.albedo, method=case.scattering.method, n_bounces=case.scattering.n_bounces
-            )
-        )
-
-    def __call__(self, sun_dirs, sun_dist_m, timer: Timer, progress=None):
-        """``(direct, solar)`` (n, nf) [W m-2] for Sun directions (n, 3) and distances (n,) [m].
-
-        ``progress``: optional ``(done, total)`` callback of the ray-traced disk (method "rays")."""
-        sun = self.case.sun
-        with timer("direct"):
-            if self.method == "horizon":
-                from crater_thermal import horizons
-
-                direct = horizons.direct_irradiance_horizon(
-                    self.mesh,
-                    self.hmap,
-                    sun_dirs,
-                    sun_dist_m,
-                    solar_constant=sun.solar_constant_W_m2,
-                    law=None if sun.point_sun else sun.limb_darkening,
-                )
-            else:
-                from crater_thermal import illumination
-
-                direct = illumination.direct_irradiance(
-                    self.mesh,
-                    self.tracer,
-                    sun_dirs,
-                    sun_dist_m,
-                    solar_constant=sun.solar_constant_W_m2,
-                    disk=self.disk,
-                    progress=progress,
-                )
-        with timer("radiosity"):
-            solar = direct if self.scat is None else self.scat.solar_incident(direct)
-        return direct, solar
-
-    @property
-    def incidence_dependent(self) -> bool:
-        """Whether direct sunlight is reflected with an incidence-dependent albedo A(i)."""
-        return getattr(self.case.surface, "albedo_model", "constant") != "constant"
-
-    def with_absorbed(self, sun_dirs, sun_dist_m, timer: Timer):
-        """``(direct, solar, absorbed)`` (n, nf) [W m-2]; ``absorbed`` is None for a constant albedo
-        (then it is ``(1 - A) solar``), else :func:`absorbed_sunlight` with the case's ``albedo_model``
-        (and ``solar`` its scattered light of A(i)-reflected direct light)."""
-        if not self.incidence_dependent:
-            return (*self(sun_dirs, sun_dist_m, timer), None)
-        scat, self.scat = self.scat, None  # direct light only: the scattering is done with A(i) below
-        try:
-            direct, _ = self(sun_dirs, sun_dist_m, timer)
-        finally:
-            self.scat = scat
-        with timer("radiosity"):
-            solar, absorbed = absorbed_sunlight(self.case, self.mesh, sun_dirs, direct, scat, self.F)
-        return direct, solar, absorbed
-
-
-def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Timer | None = None) -> np.ndarray:
-    """Direct irradiance (nt, nf) [W m-2] with the case's ``[sun]`` settings, all samples at once (see
-    :class:`Sunlight`; a run computes it block by block)."""
-    from types import SimpleNamespace
-
-    case = SimpleNamespace(sun=sun, surface=None, scattering=None)
-    timer = timer or Timer()
-    with _stage(progress, "direct sunlight") as report:
-        return Sunlight(case, mesh, tracer, None, timer, progress)(sun_dirs, sun_dist, timer, report)[0]
+def case_sunlight(case, mesh, tracer, F, timer=None, progress=None) -> sunlight.Sunlight:
+    """The :class:`crater_thermal.sunlight.Sunlight` of a case (its ``[sun]``, ``[surface]``, ``[scattering]``)."""
+    return sunlight.Sunlight(case.sun, case.surface, case.scattering, mesh, tracer, F, timer, progress)
 
 
 def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
@@ -819,40 +534,8 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     mesh, tracer, F = case_geometry(case, timer, progress)
     spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
     with _stage(progress, "direct sunlight") as report:
-        direct, solar = Sunlight(case, mesh, tracer, F, timer, progress)(sun_dirs, sun_dist, timer, report)
+        direct, solar = case_sunlight(case, mesh, tracer, F, timer, progress)(sun_dirs, sun_dist, timer, report)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
-
-
-def absorbed_sunlight(case, mesh, sun_dirs, direct, scat, F):
-    """Incident and absorbed sunlight [W m-2] with an incidence-dependent albedo for direct light.
-
-    Direct sunlight is reflected with A(i) (``illumination.direct_albedo``, the case's ``albedo_model``);
-    scattered light, which arrives from many directions, with the case's albedo A0 (the normal-incidence
-    value, a lower bound of the hemispherical average of A(i)). Radiosity: B = A(i) E + A0 F B, so the
-    scattered irradiance is F (I - A0 F)^-1 A(i) E, computed with the A0 solver on the equivalent direct
-    flux A(i) E / A0. Returns ``(solar_incident, solar_absorbed)``, both (nt, nf):
-    ``solar_absorbed = (1 - A(i)) E + (1 - A0) (solar_incident - E)``.
-    """
-    from crater_thermal import illumination
-
-    A0 = float(case.surface.albedo)
-    A_dir = illumination.direct_albedo(
-        mesh.normals,
-        sun_dirs,
-        A0,
-        case.surface.albedo_model,
-        getattr(case.surface, "albedo_a", illumination.HAYNE2017_ALBEDO_A),
-        getattr(case.surface, "albedo_b", illumination.HAYNE2017_ALBEDO_B),
-    )
-    if scat is None:
-        scattered = np.zeros_like(direct)
-    elif A0 > 0:
-        equivalent = direct * (A_dir / A0)
-        scattered = np.maximum(scat.solar_incident(equivalent) - equivalent, 0.0)
-    else:  # no multiple scattering: one bounce of the directly reflected light
-        scattered = np.asarray((F @ (A_dir * direct).T).T)
-    solar = direct + scattered
-    return solar, (1.0 - A_dir) * direct + (1.0 - A0) * scattered
 
 
 def _case_fingerprint(case) -> str:
@@ -866,7 +549,7 @@ def _scratch_path(out_path) -> str:
 
 
 def run_window(
-    stepper: CoupledStepper,
+    stepper: radiosity.CoupledStepper,
     times_s: np.ndarray,
     solar_rows: Callable,
     block: int,
@@ -946,7 +629,7 @@ def run_case(
 def case_inputs(case) -> list:
     """The files a case reads: the case file itself, its mesh or its DEM (absent ones left out)."""
     c = case.crater
-    return [p for p in (getattr(case, "path", None), getattr(c, "mesh", None), getattr(c, "dem", None)) if p]
+    return [p for p in (case.path, c.mesh, c.dem) if p]
 
 
 def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer):
@@ -991,13 +674,13 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
     if ckpt is None:
         store.remove()
         store = io.SegmentStore(scratch, block)
-    incidence = getattr(case.surface, "albedo_model", "constant") != "constant"
+    incidence = case.surface.albedo_model != "constant"
     fc = Forcing(
         mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
     )
     n_all = len(sun_dirs)
     if not store.marked("sunlight"):
-        sunlight = Sunlight(case, mesh, tracer, F, timer, progress)
+        sunlight = case_sunlight(case, mesh, tracer, F, timer, progress)
         with _stage(progress, f"sunlight ({nf} facets)") as report:
             for k0 in range(0, n_all, block):
                 k1 = min(n_all, k0 + block)
@@ -1014,7 +697,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
     del tracer
     albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
     solver_kw = {}
-    if getattr(case.steps, "conduction_step_s", None):
+    if case.steps.conduction_step_s:
         solver_kw["dt_max"] = float(case.steps.conduction_step_s)
     solver = thermal.ColumnSolver(
         [nominal] * nf,
@@ -1023,20 +706,20 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
         geothermal_flux=case.surface.geothermal_flux_W_m2,
         **solver_kw,
     )
-    stepper = CoupledStepper(
+    stepper = radiosity.CoupledStepper(
         solver,
         fc.F,
         albedo,
         eps,
         solar_is_absorbed=incidence,
-        ir_scheme=str(getattr(case.steps, "ir_coupling", "extrapolated") or "extrapolated"),
+        ir_scheme=case.steps.ir_coupling,
     )
     t0 = fc.times[0]
     spin_t = seconds_since(fc.spin_times, t0)
     rec_t = seconds_since(fc.times, t0)
     nt, ns, off = len(fc.times), fc.n_spin, fc.record_offset
-    every = int(getattr(case.output, "checkpoint_interval_steps", 0) or 0)
-    save_spin = bool(getattr(case.output, "save_spinup_fluxes", True)) and ns > 0
+    every = case.output.checkpoint_interval_steps
+    save_spin = case.output.save_spinup_fluxes and ns > 0
 
     def save_ckpt(k, info):
         hist = stepper.history()  # the IR extrapolation's history: a resumed run steps as the uninterrupted one
@@ -1202,9 +885,9 @@ def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> 
 LAGGED_SPINUP_MIN_FACETS = 10_000
 
 
-def spinup_ir_method(case, F, n_facets: int) -> str:
-    """ "coupled" or "lagged": the IR exchange of a case's periodic spin-up windows."""
-    method = str(getattr(case.period, "spinup_ir", "auto") or "auto")
+def spinup_ir_method(method: str, F, n_facets: int) -> str:
+    """ "coupled" or "lagged": the IR exchange of the periodic spin-up windows for ``[period] spinup_ir``
+    ``method`` ("auto" | "coupled" | "lagged"), the operator ``F`` (None: no exchange) and the facet count."""
     if F is None:
         return "coupled"  # nothing to exchange: both are the same
     if method == "auto":
@@ -1269,7 +952,7 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
             on_step=None if report is None else lambda k: report(done0 + k, total),
         )
 
-    if mode == "periodic" and spinup_ir_method(case, fc.F, fc.mesh.n_facets) == "lagged":
+    if mode == "periodic" and spinup_ir_method(case.period.spinup_ir, fc.F, fc.mesh.n_facets) == "lagged":
         if T0 is not None:
             solver.set_uniform(float(T0))
         else:

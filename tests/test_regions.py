@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from crater_thermal import analysis as an
-from crater_thermal import ephemeris, geometry, illumination, io, raytrace, simulate
+from crater_thermal import config, ephemeris, geometry, illumination, io, raytrace, simulate, sunlight
 from crater_thermal.errors import ConfigError
 
 from synthetic import make_run
@@ -237,17 +237,16 @@ def test_absorbed_sunlight_flat_and_scattering():
 
     from crater_thermal import radiosity
 
-    surf = SimpleNamespace(albedo=0.12, albedo_model="hayne2017")
-    case = SimpleNamespace(surface=surf)
+    surf = config.Surface(albedo=0.12, albedo_model="hayne2017")
     mesh = SimpleNamespace(normals=np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8], [0.0, -0.6, 0.8]]))
     sun = np.array([[0.0, 0.5, math.sqrt(0.75)], [0.0, 0.1, math.sqrt(0.99)]])
     direct = np.array([[100.0, 120.0, 10.0], [20.0, 30.0, 0.0]])
-    solar, absorbed = simulate.absorbed_sunlight(case, mesh, sun, direct, None, None)
+    solar, absorbed = sunlight.absorbed_sunlight(surf, mesh, sun, direct, None, None)
     A = illumination.direct_albedo(mesh.normals, sun, 0.12, "hayne2017")
     assert np.allclose(solar, direct) and np.allclose(absorbed, (1 - A) * direct)
     F = sparse.csr_matrix(np.array([[0.0, 0.2, 0.1], [0.15, 0.0, 0.2], [0.1, 0.25, 0.0]]))
     scat = radiosity.ScatteringSolver(F, 0.12, method="exact")
-    solar, absorbed = simulate.absorbed_sunlight(case, mesh, sun, direct, scat, F)
+    solar, absorbed = sunlight.absorbed_sunlight(surf, mesh, sun, direct, scat, F)
     Fd = F.toarray()
     for k in range(2):
         B = np.linalg.solve(np.eye(3) - 0.12 * Fd, A[k] * direct[k])

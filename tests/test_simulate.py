@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crater_thermal import config, io, simulate, thermal
+from crater_thermal import config, io, radiosity, simulate, thermal
 from crater_thermal.constants import SIGMA
 from crater_thermal.materials import DensityExtrapolationWarning
 
@@ -127,7 +127,7 @@ def test_crater_energy_conservation(tmp_path):
     nf = fc.mesh.n_facets
     solver = thermal.ColumnSolver(["1300/1800"] * nf)
     solver.set_uniform(100.0)
-    stepper = simulate.CoupledStepper(solver, fc.F, 0.12, 0.98)
+    stepper = radiosity.CoupledStepper(solver, fc.F, 0.12, 0.98)
     _, solar = fc.split(fc.solar)
     t = simulate.seconds_since(fc.times, fc.times[0])
     H0 = solver.stored_heat()
@@ -183,15 +183,12 @@ def test_lagged_spinup_matches_coupled_and_replays(tmp_path):
 
 
 def test_spinup_ir_method_auto():
-    from types import SimpleNamespace
-
-    case = SimpleNamespace(period=SimpleNamespace(spinup_ir="auto"))
     n = simulate.LAGGED_SPINUP_MIN_FACETS
-    assert simulate.spinup_ir_method(case, object(), n) == "lagged"
-    assert simulate.spinup_ir_method(case, object(), n - 1) == "coupled"
-    assert simulate.spinup_ir_method(case, None, n) == "coupled"  # no exchange: nothing to lag
-    case.period.spinup_ir = "lagged"
-    assert simulate.spinup_ir_method(case, object(), 10) == "lagged"
+    assert simulate.spinup_ir_method("auto", object(), n) == "lagged"
+    assert simulate.spinup_ir_method("auto", object(), n - 1) == "coupled"
+    assert simulate.spinup_ir_method("auto", None, n) == "coupled"  # no exchange: nothing to lag
+    assert simulate.spinup_ir_method("lagged", object(), 10) == "lagged"
+    assert simulate.spinup_ir_method("coupled", object(), n) == "coupled"
 
 
 def test_replay_fixed_start_is_exact(tmp_path):
@@ -380,7 +377,7 @@ def ir_scheme_runs(tmp_path_factory):
     for scheme in ("extrapolated", "predictor", "implicit"):
         solver = thermal.ColumnSolver(["1300/1800"] * nf)
         solver.set_equilibrium(solar)
-        stepper = simulate.CoupledStepper(
+        stepper = radiosity.CoupledStepper(
             solver, fc.F, 0.12, 0.98, ir_scheme="predictor" if scheme == "implicit" else scheme
         )
         if scheme == "implicit":

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from terrains import grid_mesh
 
-from crater_thermal import illumination, radiosity, simulate, thermal
+from crater_thermal import illumination, radiosity, thermal
 from crater_thermal import vfoperator as vo
 from crater_thermal.constants import AU, SIGMA
 from crater_thermal.errors import ConfigError
@@ -248,7 +248,7 @@ def test_coupled_night_temperatures_match_exact():
         solar = radiosity.ScatteringSolver(op, 0.12).solar_incident(E)
         solver = thermal.ColumnSolver(["1300/1800"] * m.n_facets)
         solver.set_uniform(150.0)
-        T, _ = simulate.CoupledStepper(solver, op, 0.12, 0.95).run(t, solar)
+        T, _ = radiosity.CoupledStepper(solver, op, 0.12, 0.95).run(t, solar)
         out[name] = T
     night = E == 0.0
     assert night.mean() > 0.3
