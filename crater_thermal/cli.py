@@ -152,11 +152,12 @@ def mesh_dem(
     Reads GeoTIFF, PDS3, GMT/COARDS netCDF (.grd) and any GDAL raster; --crs, --xy-units, --z-units and
     --height-kind say what a file does not (e.g. a .grd in km without a CRS).
     """
-    from crater_thermal import geometry, terrain
+    from crater_thermal import geometry, io, terrain
     from crater_thermal.errors import OutputExistsError
 
     if output.exists() and not overwrite:
         raise OutputExistsError(f"output {str(output)!r} exists; pass --overwrite to replace it")
+    io.refuse_input_as_output(output, [dem])
     m = terrain.site_mesh(
         dem,
         center_lat,

@@ -104,36 +104,37 @@ def steady_file(
         raise ConfigError(f"view-factor tolerance = {tolerance!r} is outside (0, 0.1]")
     choose_methods(0, view_factors, solver)  # unknown names, and direct + compressed, refused before any work
     disk = None if point_sun else illumination.sun_disk(n_rings or illumination.DEFAULT_N_RINGS, limb_darkening)
-    out = io.check_output(output, overwrite)
-    mesh = load_mesh(mesh_path, flip=flip)
-    kind, solver_kind = choose_methods(mesh.n_facets, view_factors, solver)
-    tracer = RayTracer(mesh)
-    with bar(f"view factors ({mesh.n_facets} facets, {kind})", progress) as report:
-        F = vfoperator.view_factor_operator(
-            mesh, tracer, method=kind, tolerance=tol, cache_dir=cache_dir, progress=report
+    out = io.check_output(output, overwrite, inputs=[mesh_path])
+    with io.output_lock(out):
+        mesh = load_mesh(mesh_path, flip=flip)
+        kind, solver_kind = choose_methods(mesh.n_facets, view_factors, solver)
+        tracer = RayTracer(mesh)
+        with bar(f"view factors ({mesh.n_facets} facets, {kind})", progress) as report:
+            F = vfoperator.view_factor_operator(
+                mesh, tracer, method=kind, tolerance=tol, cache_dir=cache_dir, progress=report
+            )
+        res, how = radiosity.steady_solution(
+            mesh, F, tracer, sun, AU, albedo, emissivity, solar_constant, disk, method, n_bounces, solver_kind
         )
-    res, how = radiosity.steady_solution(
-        mesh, F, tracer, sun, AU, albedo, emissivity, solar_constant, disk, method, n_bounces, solver_kind
-    )
-    attrs = {
-        "albedo": float(albedo),
-        "emissivity": float(emissivity),
-        "solar_constant": float(solar_constant),
-        "sun_elevation_deg": float(sun_elevation_deg),
-        "sun_azimuth_deg": float(sun_azimuth_deg),
-        "sun_distance_au": 1.0,
-        "sun_model": "point" if disk is None else f"disk, {disk.law} limb darkening, {disk.n_patches} patches",
-        "scattering": method if method == "exact" else f"{n_bounces} bounces",
-        "view_factors": kind,
-        "view_factors_requested": view_factors,
-        "view_factor_tolerance": tol if kind == "compressed" else None,
-        "view_factor_bytes": int(F.nbytes),
-        "solver": how["solver"],
-        "solver_requested": solver,
-        "scattering_solve": how["scattering_solve"],
-        "ir_solve": how["ir_solve"],
-        "ir_reflection": 0,
-        "conduction": 0,
-    }
-    path = io.write_steady(out, mesh, res, attrs, overwrite=overwrite)
-    return path, res
+        attrs = {
+            "albedo": float(albedo),
+            "emissivity": float(emissivity),
+            "solar_constant": float(solar_constant),
+            "sun_elevation_deg": float(sun_elevation_deg),
+            "sun_azimuth_deg": float(sun_azimuth_deg),
+            "sun_distance_au": 1.0,
+            "sun_model": "point" if disk is None else f"disk, {disk.law} limb darkening, {disk.n_patches} patches",
+            "scattering": method if method == "exact" else f"{n_bounces} bounces",
+            "view_factors": kind,
+            "view_factors_requested": view_factors,
+            "view_factor_tolerance": tol if kind == "compressed" else None,
+            "view_factor_bytes": int(F.nbytes),
+            "solver": how["solver"],
+            "solver_requested": solver,
+            "scattering_solve": how["scattering_solve"],
+            "ir_solve": how["ir_solve"],
+            "ir_reflection": 0,
+            "conduction": 0,
+        }
+        path = io.write_steady(out, mesh, res, attrs, overwrite=overwrite)
+        return path, res

@@ -316,3 +316,19 @@ def test_cache_info_and_clear(tmp_path, monkeypatch):
     assert cache.info()["files"] == 0 and keep.read_text() == "x"
     r = cli("cache", "clear", "--kind", "nonsense", CRATER_THERMAL_CACHE=str(root))
     assert r.returncode == 2 and "viewfactors, horizons" in one_line(r.stderr)
+
+
+def test_steady_and_mesh_dem_refuse_their_input_as_output(tmp_path):
+    mesh = tmp_path / "crater.ply"
+    assert cli("mesh", "crater", "--diameter-km", "1", "--facets", "60", "-o", mesh).returncode == 0
+    before = digest(mesh)
+    r = cli("steady", mesh, "--sun-elevation-deg", "10", "-o", mesh, "--overwrite")
+    assert r.returncode == 2 and "is the input" in one_line(r.stderr) and digest(mesh) == before
+    dem = tmp_path / "site.tif"
+    r = cli("dem", "synth", "--lat-deg", "-87", "--size-km", "4", "--pixel-m", "100", "-o", dem)
+    assert r.returncode == 0, r.stderr
+    before = digest(dem)
+    r = cli(
+        "mesh", "dem", dem, "--center-lat", "-87", "--center-lon", "0", "--radius-km", "1", "-o", dem, "--overwrite"
+    )
+    assert r.returncode == 2 and "is the input" in one_line(r.stderr) and digest(dem) == before
