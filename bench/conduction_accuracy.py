@@ -1,7 +1,7 @@
 """Accuracy of the conduction defaults against a fine reference (the numbers quoted in
 crater_thermal/thermal.py's docstring).
 
-Half a year of synthetic 4-hour forcing (tests/test_thermal.py::forcing: 'floor' = no sun, IR of
+Half a year of synthetic 4-hour forcing (crater_thermal.reference.synthetic_absorbed_flux: 'floor' = no sun, IR of
 0.3-16 W/m2 from lit walls; 'wall' = 500 W/m2 lunar-day pulses), nominal / loose / rock columns,
 each started from its equilibrium estimate. Reference: dt = 450 s, first layer / 4, growth 1.03.
 Reports the max |T - T_ref| of the surface over the last quarter year in settled nights (Sun, or
@@ -19,12 +19,11 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-
-from test_thermal import forcing  # noqa: E402
+sys.path.insert(0, str(ROOT))
 
 from crater_thermal import materials, thermal  # noqa: E402
 from crater_thermal.constants import LUNAR_DAY, YEAR  # noqa: E402
+from crater_thermal.reference import synthetic_absorbed_flux as forcing  # noqa: E402
 
 KINDS = ["floor", "wall"] * 3
 PROFS = ["1300/1800"] * 2 + ["800/1100"] * 2 + ["rock"] * 2

@@ -3,7 +3,7 @@
 Run:  PYTHONPATH=$PWD python bench/horizons.py [--facets 10000 30000] [--steps 48] [--rough]
 
 Per mesh (the 10 km Table 7.1 crater at each facet count; with ``--rough`` also the rough synthetic
-site of tests/rough_site.py at the first count), in one process, one after the other:
+site of crater_thermal.reference.rough_site at the first count), in one process, one after the other:
 
 * ``build_s``: the horizon map (no cache), the occlusion rays it traced (per facet and azimuth: 15 for
   a plain bisection) and their rate;
@@ -35,8 +35,8 @@ from crater_thermal import ephemeris, horizons, illumination
 from crater_thermal.geometry import crater_mesh
 from crater_thermal.raytrace import RayTracer
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from rough_site import rough_site  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from crater_thermal.reference import rough_site  # noqa: E402
 
 
 def _sun(n_steps: int):

@@ -2,7 +2,7 @@
 
 PCC's Topo3D test (``Topo3D/Test/README_testcase.txt``, RUN 3): ``topo81.xyz`` (81 x 81 heights at 5 m, a
 bowl of depth/diameter 1:5 in a flat plain), latitude 80 deg, 12 lunar days with subsurface conduction, 100
-steps per lunar day.  Our side runs the same heights (``tests/terrains.pcc_topo81``: 12,800 facets) through
+steps per lunar day.  Our side runs the same heights (``crater_thermal.reference.pcc_topo81``: 12,800 facets) through
 ``crater-thermal run`` as a whole process (start-up, ephemeris, horizon map with a cold cache, view-factor operator,
 scattering, coupled conduction + IR, writing ``run.nc``): 12 synodic months (354.37 d) recorded at 4-hour flux
 steps from the equilibrium estimate (fixed spin-up of 0 days, as PCC starts from its own initial state).
@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from crater_thermal import config, geometry, simulate  # noqa: E402
-from tests.terrains import pcc_topo81  # noqa: E402
+from crater_thermal.reference import pcc_topo81  # noqa: E402
 
 LUNAR_DAYS = 12
 SYNODIC_DAYS = 29.530589
@@ -121,7 +121,7 @@ def main() -> None:
 
     n = int(mesh.faces.shape[0])
     res = {
-        "terrain": "PCC Topo3D topo81 (81 x 81 at 5 m), rebuilt: tests/terrains.pcc_topo81",
+        "terrain": "PCC Topo3D topo81 (81 x 81 at 5 m), rebuilt: crater_thermal.reference.pcc_topo81",
         "lunar_days": LUNAR_DAYS,
         "ours": {
             "facets": n,

@@ -5,8 +5,8 @@ Run:  PYTHONPATH=$PWD .venv/bin/python bench/steady.py [--sizes 30752 100352] [-
                                                        [--terrain plain_bowl | crater_terrain]
 
 Terrain (the issue's case): a flat plain 20 km square with a spherical bowl crater 10 km across,
-depth/diameter 0.2, in its middle (``tests/terrains.spherical_bowl``), meshed as a height field of
-k x k cells, two triangles each (``tests/terrains.grid_mesh``): 30,752 facets is k = 124, 100,352 is
+depth/diameter 0.2, in its middle (``crater_thermal.reference.spherical_bowl``), meshed as a height field of
+k x k cells, two triangles each (``crater_thermal.reference.grid_mesh``): 30,752 facets is k = 124, 100,352 is
 k = 224. Issue 20 reports that ``steady`` used to end on such a 30,752-facet terrain in ``internal
 error: MemoryError`` after ~70 s (the sparse LU of I - A F). The Sun is 10 deg high in the south
 (azimuth 180 deg), the default limb-darkened disk; albedo 0.12, emissivity 0.95.
@@ -43,7 +43,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tests.terrains import grid_mesh, spherical_bowl  # noqa: E402
+from crater_thermal.reference import grid_mesh, spherical_bowl  # noqa: E402
 
 #: Terrain [m]: side of the square plain, diameter of the bowl; the bowl's depth/diameter [-].
 SIZE_M, DIAMETER_M, DEPTH_TO_DIAMETER = 20_000.0, 10_000.0, 0.2
@@ -136,7 +136,7 @@ def main() -> None:
         "benchmark": "bench/steady.py",
         "terrain": (
             f"plain {SIZE_M / 1000:g} km square with a spherical bowl {DIAMETER_M / 1000:g} km across, "
-            f"depth/diameter {DEPTH_TO_DIAMETER:g}, height field (tests/terrains.grid_mesh), 2 triangles per cell"
+            f"depth/diameter {DEPTH_TO_DIAMETER:g}, height field (reference.grid_mesh), 2 triangles per cell"
             if args.terrain == "plain_bowl"
             else "bench/viewfactor_operator.terrain: 20 km square, 10 km paraboloid crater 2 km deep, raised rim, "
             "20 m Gaussian roughness, height field, 2 triangles per cell"

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rough_site import rough_site
 
 from crater_thermal import choices, config, ephemeris, horizons, illumination, io, simulate
 from crater_thermal.errors import ConfigError, MeshError
 from crater_thermal.geometry import bowl_mesh, crater_mesh, load_mesh
 from crater_thermal.raytrace import RayTracer
+from crater_thermal.reference import rough_site
 
 REPO = Path(__file__).resolve().parents[1]
 

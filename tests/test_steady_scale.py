@@ -12,13 +12,13 @@ import sys
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from terrains import grid_mesh, spherical_bowl
 
 from crater_thermal import illumination, radiosity, steady, vfoperator
 from crater_thermal.constants import AU, SIGMA
 from crater_thermal.errors import ConfigError
 from crater_thermal.geometry import bowl_mesh, save_mesh
 from crater_thermal.raytrace import RayTracer
+from crater_thermal.reference import grid_mesh, spherical_bowl
 
 A, EPS, S = 0.12, 0.95, 1361.0
 

@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from terrains import grid_mesh, pcc_topo81, spherical_bowl, terrace_mesh
 
 from crater_thermal import radiosity
 from crater_thermal.constants import ALBEDO, AU, EMISSIVITY, SIGMA, SOLAR_CONSTANT
 from crater_thermal.illumination import sun_direction_from_angles
 from crater_thermal.raytrace import RayTracer
+from crater_thermal.reference import grid_mesh, pcc_topo81, spherical_bowl, terrace_mesh
 from crater_thermal.viewfactors import check_reciprocity, row_sums, view_factor_matrix
 
 

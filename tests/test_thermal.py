@@ -7,6 +7,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from crater_thermal import materials as mat
+from crater_thermal import reference
 from crater_thermal import thermal as th
 from crater_thermal.constants import LUNAR_DAY, SIGMA, YEAR
 from crater_thermal.errors import ConfigError, ProfileError, SolverError
@@ -14,14 +15,8 @@ from crater_thermal.errors import ConfigError, ProfileError, SolverError
 FLUX_STEP = 14_400.0  # thesis flux step [s]
 
 
-def forcing(kind, t):
-    """Synthetic absorbed flux [W m-2]: 'floor' (no sun: IR of a few W/m2 from walls lit during
-    the lunar day, with a seasonal modulation) or 'wall' (lunar-day solar pulses)."""
-    ph = 2 * np.pi * t / LUNAR_DAY
-    season = 1 + 0.3 * np.sin(2 * np.pi * t / YEAR)
-    if kind == "floor":
-        return (0.3 + 12.0 * np.maximum(0.0, np.cos(ph))) * season
-    return 500.0 * np.maximum(0.0, np.cos(ph)) * season + 3.0 + 0.5 * np.sin(ph)
+#: Synthetic absorbed flux [W m-2] of a shadowed floor and a sunlit wall (shared with bench/conduction_accuracy.py)
+forcing = reference.synthetic_absorbed_flux
 
 
 def quiet_solver(*args, **kw):

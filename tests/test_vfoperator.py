@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from terrains import grid_mesh
 
 from crater_thermal import illumination, radiosity, thermal
 from crater_thermal import vfoperator as vo
@@ -10,6 +9,7 @@ from crater_thermal.constants import AU, SIGMA
 from crater_thermal.errors import ConfigError
 from crater_thermal.geometry import flat_mesh
 from crater_thermal.raytrace import RayTracer
+from crater_thermal.reference import grid_mesh
 from crater_thermal.viewfactors import view_factor_matrix
 
 
