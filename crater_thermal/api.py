@@ -315,8 +315,8 @@ def analyse(
     footprint scatter of true temperatures [K] (default the report's); ``night``: the night definition
     (``facet``, ``centre``, ``facet_and_centre``); ``min_dark_hours`` [h].
     """
-    from crater_thermal import analysis as an
     from crater_thermal import instrument as ins
+    from crater_thermal import regions
     from crater_thermal import report as rp
 
     insts = None if instruments is None else [ins.get_instrument(n) for n in instruments]
@@ -327,7 +327,7 @@ def analyse(
         instruments=insts,
         observation=obs,
         night_definition=night,
-        min_dark_hours=an.MIN_DARK_HOURS if min_dark_hours is None else min_dark_hours,
+        min_dark_hours=regions.MIN_DARK_HOURS if min_dark_hours is None else min_dark_hours,
     )
     loose = s.get("loose_profile")
     return Results(

@@ -872,3 +872,96 @@ def open_replay(path) -> xr.Dataset:
         if name not in ds:
             raise FluxFileError(f"{path}: missing variable '{name}'")
     return ds
+
+
+# ----------------------------------------------------------------------------- analysed datasets
+
+#: Variables every analysed run dataset needs.
+RUN_VARIABLES = ("time", "surface_temperature", "sun_direction", "centroid", "mesh_faces", "mesh_vertices")
+#: Variables every analysed replay dataset needs.
+REPLAY_VARIABLES = ("time", "surface_temperature", "profile")
+
+
+def has_variable(ds, name: str) -> bool:
+    """Whether ``ds[name]`` exists (a variable or coordinate of a dataset, a key of a mapping)."""
+    try:
+        ds[name]
+        return True
+    except KeyError:
+        return False
+
+
+def check_run(ds, required: Iterable[str] = RUN_VARIABLES) -> None:
+    """Raise :class:`FluxFileError` if the run dataset lacks a required variable."""
+    missing = [v for v in required if not has_variable(ds, v)]
+    if missing:
+        raise FluxFileError(f"run dataset is missing variable(s) {', '.join(missing)}; required: {', '.join(required)}")
+
+
+def check_pair(run, replay) -> None:
+    """Check that ``replay`` was made from ``run``: variables present, same mesh hash and time axis.
+
+    Raises
+    ------
+    FluxFileError
+        One line naming what does not match.
+    """
+    check_run(run)
+    missing = [v for v in REPLAY_VARIABLES if not has_variable(replay, v)]
+    if missing:
+        raise FluxFileError(
+            f"replay dataset is missing variable(s) {', '.join(missing)}; required: {', '.join(REPLAY_VARIABLES)}"
+        )
+    h_run, h_rep = run.attrs.get("mesh_hash"), replay.attrs.get("mesh_hash")
+    if h_run is None or h_rep is None:
+        raise FluxFileError("mesh_hash attribute missing from run or replay dataset; cannot check they match")
+    if str(h_run) != str(h_rep):
+        raise FluxFileError(
+            f"replay mesh_hash={h_rep} does not match run mesh_hash={h_run}; the replay must be made from this run"
+        )
+    t_run = np.asarray(run["time"].values)
+    t_rep = np.asarray(replay["time"].values)
+    if t_run.shape != t_rep.shape or not np.array_equal(t_run, t_rep):
+        raise FluxFileError(
+            f"replay time axis ({t_rep.size} samples) does not match the run's "
+            f"({t_run.size} samples from {t_run[0] if t_run.size else '-'}); "
+            "the replay must cover the run's times"
+        )
+    dims = tuple(replay["surface_temperature"].dims)
+    if dims != ("profile", "time", "facet"):
+        raise FluxFileError(f"replay surface_temperature has dims {dims}; expected (profile, time, facet)")
+    nf_run = run["surface_temperature"].shape[1]
+    if replay["surface_temperature"].shape[2] != nf_run:
+        raise FluxFileError(f"replay has {replay['surface_temperature'].shape[2]} facets, run has {nf_run}")
+
+
+def mesh_meta(ds) -> dict:
+    """The ``mesh_meta`` attribute as a dict (JSON string or dict)."""
+    meta = ds.attrs.get("mesh_meta", {})
+    if isinstance(meta, (str, bytes)):
+        try:
+            meta = json.loads(meta)
+        except ValueError as exc:
+            raise FluxFileError(f"mesh_meta attribute is not valid JSON: {exc}") from None
+    return dict(meta)
+
+
+def latitude_deg(ds) -> float:
+    """The site centre's planetocentric latitude [deg] of a run, flux or replay dataset: its required
+    ``lat_deg`` attribute (no default: a file without it is refused, never analysed at a guessed latitude).
+
+    Raises
+    ------
+    FluxFileError
+        ``lat_deg`` is missing, not a number, or outside [-90, 90].
+    """
+    try:
+        lat = float(ds.attrs["lat_deg"])
+    except (KeyError, TypeError, ValueError):
+        raise FluxFileError(
+            "dataset has no valid 'lat_deg' attribute (the site centre's planetocentric latitude [deg]); runs of "
+            "crater-thermal have it, a file from elsewhere needs it added (e.g. ds.attrs['lat_deg'] = -86.0)"
+        ) from None
+    if not -90.0 <= lat <= 90.0:
+        raise FluxFileError(f"dataset attribute lat_deg = {lat} is outside [-90, 90] deg")
+    return lat

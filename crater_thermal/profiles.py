@@ -268,3 +268,28 @@ def density_grid_profiles(spec: str) -> tuple:
         for bot in dens[i:]:
             out.append(parse_profile(f"{top:g}/{bot:g}"))
     return tuple(out)
+
+
+# ----------------------------------------------------------------------------- labels
+
+
+def profile_label(top_bottom) -> str:
+    """Label of a two-layer profile, e.g. ``(1300.0, 1800.0) -> "1300/1800"``."""
+    return f"{top_bottom[0]:g}/{top_bottom[1]:g}"
+
+
+def parse_two_layer(label: str) -> tuple[float, float] | None:
+    """``(top, bottom)`` densities [kg m-3] of a two-layer label such as ``"1300/1800"``; None otherwise."""
+    try:
+        a, b = str(label).split("/")
+        return float(a), float(b)
+    except ValueError:
+        return None
+
+
+def is_rock(label: str) -> bool:
+    """Whether a profile label names solid rock (``"rock"``, any case): the label parsed, not searched."""
+    try:
+        return parse_profile(str(label)).material == "rock"
+    except ProfileError:
+        return False

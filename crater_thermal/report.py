@@ -30,6 +30,7 @@ import numpy as np
 from crater_thermal import analysis as an
 from crater_thermal import instrument as ins
 from crater_thermal import io as ctio
+from crater_thermal import profiles, regions
 from crater_thermal.errors import ConfigError, CraterThermalError, MissingExtraError
 from crater_thermal.progress import bar
 
@@ -64,7 +65,7 @@ SNAPSHOTS = {
     "map3d_night_dT.png": "3-D view: per-facet night-time median loose minus nominal.",
 }
 
-#: Top-level keys of summary.json and what they hold (units in the names; regions: analysis.region_masks).
+#: Top-level keys of summary.json and what they hold (units in the names; regions: regions.region_masks).
 SUMMARY_KEYS = {
     "schema_version": "int: layout version of this file (2: detection statistics replace the k-sigma "
     "detectability of 1).",
@@ -80,7 +81,7 @@ SUMMARY_KEYS = {
     "directly lit) or 'centre' (the thesis: Sun's centre below the crater centre's horizon).",
     "night_min_dark_hours": "float [h]: darkness a facet needs before its samples count as night ('facet').",
     "night_fraction_samples": "float [-]: fraction of (time, facet) samples that are night.",
-    "regions": "list[str]: region names (analysis.region_masks): floor, {lower_wall, upper_wall, top_wall_ring, rim}_"
+    "regions": "list[str]: region names (regions.region_masks): floor, {lower_wall, upper_wall, top_wall_ring, rim}_"
     "{pole,equator,east,west}_facing (by the facet normal's azimuth, +-45 deg; at |lat| >= 89.5 deg "
     "{antisun,sun,sun_left,sun_right}_facing), surround, never_lit / rarely_lit / often_lit; may overlap.",
     "region_facet_count": "{region: int}: facets per region.",
@@ -169,21 +170,21 @@ class _Analysis:
         threshold_K: float,
         advance: Callable[[], None] = lambda: None,
         night_definition: str = "facet",
-        min_dark_hours: float = an.MIN_DARK_HOURS,
+        min_dark_hours: float = regions.MIN_DARK_HOURS,
     ):
-        an.check_pair(run, replay)
+        ctio.check_pair(run, replay)
         self.run, self.replay = run, replay
         self.times = np.asarray(run["time"].values).astype("datetime64[ns]")
         self.days = (self.times - self.times[0]).astype(np.int64) / 86400e9
-        self.night = an.night_mask(run)  # the crater centre's night: shading of the time series
+        self.night = regions.night_mask(run)  # the crater centre's night: shading of the time series
         self.night_definition, self.min_dark_hours = night_definition, float(min_dark_hours)
-        # per (time, facet) night and day used by every statistic (analysis.night_day_masks)
-        self.night_f, self.day_f = an.night_day_masks(run, night_definition, min_dark_hours)
-        self.regions = an.region_masks(run)  # name -> (nf,) bool
+        # per (time, facet) night and day used by every statistic (regions.night_day_masks)
+        self.night_f, self.day_f = regions.night_day_masks(run, night_definition, min_dark_hours)
+        self.regions = regions.region_masks(run)  # name -> (nf,) bool
         self.nf = int(run["surface_temperature"].shape[1])
-        self.local_time = an.local_solar_time_h(run, float(run.attrs.get("lat_deg", np.nan)))
-        self.meta = an.mesh_meta(run)
-        self.lat = float(run.attrs.get("lat_deg", np.nan))
+        self.local_time = an.local_solar_time_h(run, ctio.latitude_deg(run))
+        self.meta = ctio.mesh_meta(run)
+        self.lat = ctio.latitude_deg(run)
         self.nominal = an.nominal_label(run, replay)
         self.labels = an.profile_labels(replay)
         self.loose = an.loose_label(replay, self.nominal)
@@ -213,7 +214,7 @@ class _Analysis:
 
     def density_grid(self):
         return an.density_grid(
-            self.replay, {p: v for p, v in self.floor_night_median.items() if not an.is_rock(p)}, self.nominal
+            self.replay, {p: v for p, v in self.floor_night_median.items() if not profiles.is_rock(p)}, self.nominal
         )
 
 
@@ -466,7 +467,7 @@ def _fig_density_grid(A, path):
         for (r, c), v in np.ndenumerate(grid):
             if np.isfinite(v):
                 a.text(c, r, f"{v:.2f}", ha="center", va="center", fontsize=7)
-    nom = an.parse_two_layer(A.nominal)
+    nom = profiles.parse_two_layer(A.nominal)
     if nom and nom[0] in tops and nom[1] in bottoms:
         r, c = list(tops).index(nom[0]), list(bottoms).index(nom[1])
         a.add_patch(Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, ec="k", lw=2.5))
@@ -749,7 +750,7 @@ def site_plan_coordinates(run) -> Tuple[np.ndarray, str]:
     """(nv, 2) vertex positions [km] in the DEM's projected CRS, and the CRS name (terrain does the projection)."""
     from crater_thermal import terrain
 
-    meta = an.mesh_meta(run)
+    meta = ctio.mesh_meta(run)
     x, y = terrain.local_to_dem_xy(np.asarray(run["mesh_vertices"].values, float), meta)
     return np.column_stack([np.asarray(x), np.asarray(y)]) / 1000.0, str(meta.get("crs_name", "DEM CRS"))
 
@@ -1109,7 +1110,7 @@ def make_report(
     threshold_K: float = an.NATURAL_SCATTER_K,
     snapshots: bool = True,
     night_definition: str = "facet",
-    min_dark_hours: float = an.MIN_DARK_HOURS,
+    min_dark_hours: float = regions.MIN_DARK_HOURS,
 ) -> Path:
     """Write figures, report.html and summary.json for a run and its replay.
 
@@ -1134,7 +1135,7 @@ def make_report(
         Also render 3-D views with pyvista (a note replaces them if rendering fails).
     night_definition : str
         "facet" (default: no direct sunlight on the facet for ``min_dark_hours``), "centre" (the thesis:
-        Sun below the crater centre's horizon) or "facet_and_centre" (analysis.night_day_masks).
+        Sun below the crater centre's horizon) or "facet_and_centre" (regions.night_day_masks).
     min_dark_hours : float [h]
         Darkness a facet needs before its samples count as night (24 h).
 
@@ -1192,8 +1193,8 @@ def _locked_report(
         raise ConfigError("need at least one instrument")
     if replay_ds is None:
         run_ds, replay_ds = sweep_pairs(run_ds)
-    if night_definition not in an.NIGHT_DEFINITIONS:
-        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(an.NIGHT_DEFINITIONS)}")
+    if night_definition not in regions.NIGHT_DEFINITIONS:
+        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(regions.NIGHT_DEFINITIONS)}")
     if not (np.isfinite(min_dark_hours) and min_dark_hours >= 0):
         raise ConfigError(f"min_dark_hours={min_dark_hours} out of range [0, inf)")
     runs, reps = _as_list(run_ds), _as_list(replay_ds)
@@ -1228,7 +1229,7 @@ def summarize(
     observation: ins.Observation = ins.Observation(),
     threshold_K: float = an.NATURAL_SCATTER_K,
     night_definition: str = "facet",
-    min_dark_hours: float = an.MIN_DARK_HOURS,
+    min_dark_hours: float = regions.MIN_DARK_HOURS,
 ) -> dict:
     """The numbers of a report (``summary.json``) for one run and its replay, without figures or files.
 
@@ -1238,13 +1239,13 @@ def summarize(
     instruments = list(ins.PRESETS.values()) if instruments is None else list(instruments)
     if not instruments:
         raise ConfigError("need at least one instrument")
-    if night_definition not in an.NIGHT_DEFINITIONS:
-        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(an.NIGHT_DEFINITIONS)}")
+    if night_definition not in regions.NIGHT_DEFINITIONS:
+        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(regions.NIGHT_DEFINITIONS)}")
     opened = []
     try:
         run = _track(ctio.open_run(run_ds), opened) if isinstance(run_ds, (str, os.PathLike)) else run_ds
         rep = _track(ctio.open_replay(replay_ds), opened) if isinstance(replay_ds, (str, os.PathLike)) else replay_ds
-        an.check_run(run, an.RUN_VARIABLES + ("solar_incident", "ir_incident"))
+        ctio.check_run(run, ctio.RUN_VARIABLES + ("solar_incident", "ir_incident"))
         A = _Analysis(run, rep, threshold_K, night_definition=night_definition, min_dark_hours=min_dark_hours)
         return _summary(A, [], instruments, observation, [], None)
     finally:
@@ -1268,11 +1269,11 @@ def _make_report(
     observation,
     snapshots,
     night_definition="facet",
-    min_dark_hours=an.MIN_DARK_HOURS,
+    min_dark_hours=regions.MIN_DARK_HOURS,
 ) -> Path:
     for run, rep in zip(runs, reps):
-        an.check_run(run, an.RUN_VARIABLES + ("solar_incident", "ir_incident"))
-        an.check_pair(run, rep)
+        ctio.check_run(run, ctio.RUN_VARIABLES + ("solar_incident", "ir_incident"))
+        ctio.check_pair(run, rep)
     n_profiles = sum(len(an.profile_labels(p)) - 1 for p in reps)
     n_steps = n_profiles + len(FIGURES) + 1
     with bar("report: profiles, figures", progress) as report:

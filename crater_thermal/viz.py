@@ -132,7 +132,7 @@ def field(run, var: str = "surface_temperature", replay=None, profile: Optional[
             raise ConfigError("profile given without a replay dataset (--replay REPLAY.nc)")
         if var != "surface_temperature":
             raise ConfigError(f"var={var!r} with a profile: only surface_temperature differences are shown")
-        an.check_pair(run, replay)
+        ctio.check_pair(run, replay)
         labels = an.profile_labels(replay)
         if profile not in labels:
             raise ConfigError(f"profile={profile!r} not in the replay; allowed: {', '.join(labels)}")
@@ -195,9 +195,9 @@ class _Scene:
         self.extent = float(max(b[1] - b[0], b[3] - b[2]))
         self.top = float(b[5])
         self.times = np.asarray(run["time"].values)
-        self.sun = np.asarray(run["sun_direction"].values, float) if an.has_variable(run, "sun_direction") else None
+        self.sun = np.asarray(run["sun_direction"].values, float) if ctio.has_variable(run, "sun_direction") else None
         # look from the equator side, so the pole-side (Sun-facing) inner wall is in view
-        lat = float(run.attrs.get("lat_deg", -90.0))
+        lat = ctio.latitude_deg(run)
         self.p.view_vector((0.35, 1.0 if lat <= 0 else -1.0, 1.1), viewup=(0.0, 0.0, 1.0))
         self.p.reset_camera(bounds=list(b))
         self.p.camera.zoom(1.25)
@@ -371,7 +371,7 @@ def _show(
     exaggeration = _check_exaggeration(exaggeration)
     vals, scalar_title, cmap = field(run, var, rep, profile)
     times = np.asarray(run["time"].values)
-    sun = np.asarray(run["sun_direction"].values) if an.has_variable(run, "sun_direction") else None
+    sun = np.asarray(run["sun_direction"].values) if ctio.has_variable(run, "sun_direction") else None
     i = select_time(times, time, sun)
     shot = ctio.check_output(screenshot, overwrite) if screenshot else None
     anim = ctio.check_output(animate, overwrite) if animate else None

@@ -7,8 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from crater_thermal import analysis as an
-from crater_thermal import config, ephemeris, geometry, illumination, io, raytrace, simulate, sunlight
+from crater_thermal import config, ephemeris, geometry, illumination, io, raytrace, regions, simulate, sunlight
 from crater_thermal.errors import ConfigError
 
 from synthetic import make_run
@@ -50,7 +49,7 @@ def test_facet_night_hand_computed():
     e = np.zeros((16, 3))
     e[3, 0] = 2.5
     e[0:2, 2] = 100.0
-    night = an.facet_night_mask(e, t, min_dark_hours=24.0)
+    night = regions.facet_night_mask(e, t, min_dark_hours=24.0)
     # facet 0: lit at sample 3, light lasts (linear fluxes) until sample 4; 24 h of darkness at sample 10
     assert night[:, 0].tolist() == [False] * 10 + [True] * 6
     # facet 1: the history before the record counts as lit, so dark for 24 h from sample 6 on
@@ -58,26 +57,26 @@ def test_facet_night_hand_computed():
     # facet 2: dark from sample 2, night from sample 8
     assert night[:, 2].tolist() == [False] * 8 + [True] * 8
     # no darkness required: every unlit sample is night
-    assert np.array_equal(an.facet_night_mask(e, t, 0.0), e <= 0)
+    assert np.array_equal(regions.facet_night_mask(e, t, 0.0), e <= 0)
     with pytest.raises(ConfigError):
-        an.facet_night_mask(e, t, -1.0)
+        regions.facet_night_mask(e, t, -1.0)
 
 
 def test_facet_lit_at_centre_night_is_excluded(crater86):
     run = crater86
-    centre_night = an.night_mask(run)
-    lit = an.lit_mask(run)
-    night, day = an.night_day_masks(run, "facet")
+    centre_night = regions.night_mask(run)
+    lit = regions.lit_mask(run)
+    night, day = regions.night_day_masks(run, "facet")
     # at -86 deg the outer flank on the pole side is lit while the Sun is below the crater centre's horizon
     lit_at_centre_night = lit & centre_night[:, None]
     assert lit_at_centre_night.any()
     assert not (night & lit_at_centre_night).any()
     # the centre definition is still available, the same for every facet
-    cn, cd = an.night_day_masks(run, "centre")
+    cn, cd = regions.night_day_masks(run, "centre")
     assert np.array_equal(cn, np.repeat(centre_night[:, None], cn.shape[1], axis=1))
     assert np.array_equal(cd, ~cn)
     with pytest.raises(ConfigError):
-        an.night_day_masks(run, "sunset")
+        regions.night_day_masks(run, "sunset")
 
 
 def test_region_night_has_no_direct_sunlight(crater86):
@@ -85,7 +84,7 @@ def test_region_night_has_no_direct_sunlight(crater86):
     and none has had any in the 24 h before."""
     run = crater86
     e = run["solar_direct"].values
-    night, _ = an.night_day_masks(run)
+    night, _ = regions.night_day_masks(run)
     t_h = (run["time"].values - run["time"].values[0]).astype("timedelta64[s]").astype(float) / 3600.0
     # any direct sunlight on the facet in [t - 28 h, t]: 24 h of darkness plus the 4-h step after the last
     # lit sample (fluxes are linear between samples), by a cumulative count over time
@@ -93,7 +92,7 @@ def test_region_night_has_no_direct_sunlight(crater86):
     count = np.vstack([np.zeros((1, lit.shape[1])), np.cumsum(lit, axis=0)])
     lo = np.searchsorted(t_h, t_h - 28.0 + 1e-9)
     lit_recently = (count[np.arange(len(t_h)) + 1] - count[lo]) > 0
-    for name, m in an.region_masks(run).items():
+    for name, m in regions.region_masks(run).items():
         assert not (night[:, m] & lit[:, m]).any(), name
         assert not (night[:, m] & lit_recently[:, m]).any(), name
         assert not night[t_h < 24.0][:, m].any(), name  # before the record: unknown, taken as lit
@@ -113,15 +112,15 @@ def _angle_between_deg(a, b):
 
 def test_crater_regions_hold_what_their_names_say(crater86):
     run = crater86
-    masks = an.region_masks(run)
-    meta = an.mesh_meta(run)
+    masks = regions.region_masks(run)
+    meta = io.mesh_meta(run)
     c = run["centroid"].values
     n = run["normal"].values
     z_floor, z_rim = meta["floor_z_m"], meta["rim_height_m"]
     mid = 0.5 * (z_floor + z_rim)
-    upper = np.any([masks[f"upper_wall_{s}"] for s in an.SECTORS], axis=0)
-    lower = np.any([masks[f"lower_wall_{s}"] for s in an.SECTORS], axis=0)
-    top = np.any([masks[f"top_wall_ring_{s}"] for s in an.SECTORS], axis=0)
+    upper = np.any([masks[f"upper_wall_{s}"] for s in regions.SECTORS], axis=0)
+    lower = np.any([masks[f"lower_wall_{s}"] for s in regions.SECTORS], axis=0)
+    top = np.any([masks[f"top_wall_ring_{s}"] for s in regions.SECTORS], axis=0)
     assert upper.sum() > 20 and lower.sum() > 20 and top.sum() > 10
     assert np.all(c[upper, 2] >= mid) and np.all(c[lower, 2] < mid)  # the wall's mid-height, in z
     assert not (upper & lower).any()
@@ -133,13 +132,13 @@ def test_crater_regions_hold_what_their_names_say(crater86):
     assert np.all(np.isclose(rv[f[top]], meta["rim_radius_m"], rtol=1e-6).any(axis=1))
     # sectors: the facet's slope faces within +-45 deg of the named direction (pole = south = 180 deg)
     az = _normal_azimuth_deg(n)
-    for sector, want in zip(an.SECTORS, (180.0, 0.0, 90.0, 270.0)):
-        for part in an.SECTORED_PARTS:
+    for sector, want in zip(regions.SECTORS, (180.0, 0.0, 90.0, 270.0)):
+        for part in regions.SECTORED_PARTS:
             m = masks[f"{part}_{sector}"]
             assert m.any(), f"{part}_{sector}"
             assert np.all(_angle_between_deg(az[m], want) <= 45.0 + 1e-9), f"{part}_{sector}"
     # the equator-facing upper wall is on the pole side of the crater and is the lit one
-    lit = an.lit_mask(run).mean(axis=0)
+    lit = regions.lit_mask(run).mean(axis=0)
     assert np.all(c[masks["upper_wall_equator_facing"], 1] < 0)
     assert lit[masks["upper_wall_equator_facing"]].mean() > 3 * lit[masks["upper_wall_pole_facing"]].mean()
 
@@ -147,15 +146,15 @@ def test_crater_regions_hold_what_their_names_say(crater86):
 def test_illumination_classes(crater86):
     run = crater86
     e = run["solar_direct"].values
-    cls = an.illumination_classes(e)
-    assert set(cls) == set(an.ILLUMINATION_CLASSES)
+    cls = regions.illumination_classes(e)
+    assert set(cls) == set(regions.ILLUMINATION_CLASSES)
     assert np.array_equal(cls["never_lit"] | cls["rarely_lit"] | cls["often_lit"], np.ones(e.shape[1], bool))
     assert cls["never_lit"].any() and cls["often_lit"].any()
     assert np.all(e[:, cls["never_lit"]] == 0.0)  # zero direct flux at every sample
     frac = (e > 0).mean(axis=0)
-    assert np.all((frac[cls["rarely_lit"]] > 0) & (frac[cls["rarely_lit"]] < an.RARELY_LIT_MAX_FRACTION))
-    assert np.all(frac[cls["often_lit"]] >= an.RARELY_LIT_MAX_FRACTION)
-    masks = an.region_masks(run)
+    assert np.all((frac[cls["rarely_lit"]] > 0) & (frac[cls["rarely_lit"]] < regions.RARELY_LIT_MAX_FRACTION))
+    assert np.all(frac[cls["often_lit"]] >= regions.RARELY_LIT_MAX_FRACTION)
+    masks = regions.region_masks(run)
     assert masks["floor"].any() and np.all(cls["never_lit"][masks["floor"]])  # the floor of a -86 deg PSR
 
 
@@ -163,40 +162,40 @@ def test_slope_and_facing_classes_any_mesh():
     # a tilted-plane "terrain": four facets facing S, N, E, W at 20 deg, and one level facet
     s20, c20 = math.sin(math.radians(20)), math.cos(math.radians(20))
     normals = np.array([[0, -s20, c20], [0, s20, c20], [s20, 0, c20], [-s20, 0, c20], [0, 0, 1.0]])
-    slopes = an.slope_classes(normals)
+    slopes = regions.slope_classes(normals)
     assert slopes["slope_15_25_deg"].tolist() == [True] * 4 + [False]
     assert slopes["slope_0_5_deg"].tolist() == [False] * 4 + [True]
-    facing = an.facing_classes(normals, -45.0)
+    facing = regions.facing_classes(normals, -45.0)
     assert facing["pole_facing"].tolist() == [True, False, False, False, False]
     assert facing["equator_facing"].tolist() == [False, True, False, False, False]
     assert facing["east_facing"].tolist() == [False, False, True, False, False]
     assert facing["west_facing"].tolist() == [False, False, False, True, False]
     assert facing["level"].tolist() == [False] * 4 + [True]
-    north = an.facing_classes(normals, 45.0)
+    north = regions.facing_classes(normals, 45.0)
     assert north["pole_facing"].tolist() == [False, True, False, False, False]
     with pytest.raises(ConfigError):
-        an.slope_classes(normals, (10.0, 5.0))
+        regions.slope_classes(normals, (10.0, 5.0))
 
 
 def test_polar_sectors_named_by_mean_sun_azimuth():
     run = make_run(lat_deg=-90.0, n_lunar_days=1.0, n_rings=8)
-    masks = an.region_masks(run)
+    masks = regions.region_masks(run)
     assert "upper_wall_sun_facing" in masks and "upper_wall_pole_facing" not in masks
-    s, weight = an.mean_sun_azimuth(run)
+    s, weight = regions.mean_sun_azimuth(run)
     assert 0.0 < weight <= 1.0
     n = run["normal"].values if "normal" in run else None
     if n is None:
-        n = an.mesh_normals(run["mesh_vertices"].values, run["mesh_faces"].values)
+        n = regions.mesh_normals(run["mesh_vertices"].values, run["mesh_faces"].values)
     az = _normal_azimuth_deg(n)
     want = math.degrees(math.atan2(s[0], s[1]))
-    for part in an.SECTORED_PARTS:
+    for part in regions.SECTORED_PARTS:
         m = masks[f"{part}_sun_facing"]
         assert np.all(_angle_between_deg(az[m], want) <= 45.0 + 1e-9)
         m = masks[f"{part}_antisun_facing"]
         assert np.all(_angle_between_deg(az[m], want + 180.0) <= 45.0 + 1e-9)
-    assert an.region_names(-90.0)[:3] == ("floor", "lower_wall_antisun_facing", "lower_wall_sun_facing")
+    assert regions.region_names(-90.0)[:3] == ("floor", "lower_wall_antisun_facing", "lower_wall_sun_facing")
     with pytest.raises(ConfigError):
-        an.sector_axes(-89.9)  # needs the Sun
+        regions.sector_axes(-89.9)  # needs the Sun
 
 
 # ----------------------------------------------------------------------------------- albedo A(i)

@@ -24,7 +24,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import analysis, config, io, simulate, thermal  # noqa: E402
+from crater_thermal import config, io, regions, simulate, thermal  # noqa: E402
 
 FLUXES_W_M2 = (0.033, 0.018)
 
@@ -45,8 +45,8 @@ def main() -> None:
             simulate.run_case(case, run_nc, progress=False)
     ds = io.read_flux_dataset(run_nc)
     run = io.open_run(run_nc)
-    night = analysis.night_mask(run)
-    floor = analysis.regions_of(run) == "floor"
+    night = regions.night_mask(run)
+    floor = regions.regions_of(run) == "floor"
     eps = float(ds.attrs["emissivity"])
     out = {
         "run": _shown(run_nc),

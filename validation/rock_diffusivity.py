@@ -22,7 +22,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import analysis, io, materials, simulate, thermal  # noqa: E402
+from crater_thermal import io, materials, regions, simulate, thermal  # noqa: E402
 
 OLD_D1 = 4.0e-5  # [m2 K s-1] rock diffusivity's 1/T coefficient before issue 12
 
@@ -39,7 +39,7 @@ def main() -> None:
     run_nc = Path(sys.argv[1])
     ds = io.read_flux_dataset(run_nc)
     run = io.open_run(run_nc)
-    floor = analysis.regions_of(run) == "floor"
+    floor = regions.regions_of(run) == "floor"
     nominal, rock = thermal.parse_profile("1300/1800"), thermal.parse_profile("rock")
     out = {"run": _shown(run_nc), "lat_deg": float(run.attrs["lat_deg"]), "floor_abs_rock_minus_nominal_median_K": {}}
     adopted = materials.ROCK_D1

@@ -7,8 +7,8 @@ Usage::
     python validation/thesis_results.py results/thesis [results/thesis_faithful] [--albedo results/hayne]
 
 For every crater latitude, medians over the recorded year, with **per-facet night** (issue 10: a sample
-is night for a facet after 24 h without direct sunlight on it; ``analysis.night_day_masks``) and the
-regions of ``analysis.region_masks`` (sectors by the azimuth the slope faces, +-45 deg):
+is night for a facet after 24 h without direct sunlight on it; ``regions.night_day_masks``) and the
+regions of ``regions.region_masks`` (sectors by the azimuth the slope faces, +-45 deg):
 the nominal floor temperature at night; loose - nominal at night on the floor, the equator-facing upper
 wall (the wall on the pole side, facing the Sun), its top ring, and the often-lit facets; |loose - nominal|
 while directly lit; |rock - nominal| on the floor at all times; and, for the thesis comparison, the floor
@@ -31,7 +31,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import analysis, io  # noqa: E402
+from crater_thermal import analysis, io, regions  # noqa: E402
 
 WALL = "upper_wall_equator_facing"
 TOP = "top_wall_ring_equator_facing"
@@ -39,10 +39,10 @@ WALL_POLE = "upper_wall_pole_facing"
 
 
 def _region(masks: dict, name: str) -> np.ndarray | None:
-    """A region mask; at the pole the Sun-named sector in the same place of analysis.SECTORS."""
+    """A region mask; at the pole the Sun-named sector in the same place of regions.SECTORS."""
     if name in masks:
         return masks[name]
-    for s, p in zip(analysis.SECTORS, analysis.POLAR_SECTORS_SOUTH):
+    for s, p in zip(regions.SECTORS, regions.POLAR_SECTORS_SOUTH):
         if name.endswith(s) and name.replace(s, p) in masks:
             return masks[name.replace(s, p)]
     return None
@@ -53,10 +53,10 @@ def _case_numbers(folder: Path) -> dict | None:
     if not (run_nc.exists() and rep_nc.exists()):
         return None
     run, rep = io.open_run(run_nc), io.open_replay(rep_nc)
-    night, day = analysis.night_day_masks(run, "facet")
-    centre = analysis.night_mask(run)
-    masks = analysis.region_masks(run)
-    thesis_regions = analysis.regions_of(run)
+    night, day = regions.night_day_masks(run, "facet")
+    centre = regions.night_mask(run)
+    masks = regions.region_masks(run)
+    thesis_regions = regions.regions_of(run)
     T_nom = analysis.nominal_temperature(run, rep)
     loose = analysis.profile_temperature(rep, "800/1100") - T_nom
     rock = analysis.profile_temperature(rep, "rock") - T_nom if "rock" in list(rep["profile"].values) else None
