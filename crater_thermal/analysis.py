@@ -21,7 +21,7 @@ from typing import Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 
 from crater_thermal import io, profiles, regions
-from crater_thermal.constants import LOOSE_PROFILE, NOMINAL_PROFILE
+from crater_thermal.constants import LOOSE_PROFILE
 from crater_thermal.errors import ConfigError, FluxFileError
 
 #: Default |dT| threshold [K] for the "fraction of time above" statistic: the 0.94 K natural scatter.
@@ -84,7 +84,7 @@ def facet_median_map(dT, sample_mask) -> np.ndarray:
 def nominal_label(ds, replay=None) -> str:
     """Label of the nominal profile: ``attrs["nominal_profile"]`` or the thesis default "1300/1800"."""
     lab = (replay.attrs.get("nominal_profile") if replay is not None else None) or ds.attrs.get("nominal_profile")
-    return str(lab) if lab else profiles.profile_label(NOMINAL_PROFILE)
+    return str(lab) if lab else profiles.NOMINAL_LABEL
 
 
 def profile_labels(replay) -> List[str]:

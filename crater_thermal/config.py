@@ -564,7 +564,7 @@ SCHEMA: Tuple[Key, ...] = (
         "surface",
         "nominal_profile",
         "profile",
-        "1300/1800",
+        profiles.NOMINAL_LABEL,
         "density profile of the coupled run",
         allowed_doc=_PROFILE_ALLOWED,
     ),

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crater_thermal.constants import COLUMN_DEPTH, ROCK_DENSITY, TOP_LAYER_THICKNESS
+from crater_thermal.constants import COLUMN_DEPTH, LOOSE_PROFILE, NOMINAL_PROFILE, ROCK_DENSITY, TOP_LAYER_THICKNESS
 from crater_thermal.errors import ProfileError
 
 __all__ = [
@@ -293,3 +293,21 @@ def is_rock(label: str) -> bool:
         return parse_profile(str(label)).material == "rock"
     except ProfileError:
         return False
+
+
+#: Label of the nominal (compact) profile of the thesis, top/bottom [kg m-3]: the default of a run.
+NOMINAL_LABEL = profile_label(NOMINAL_PROFILE)
+#: Label of the thesis's loose profile [kg m-3].
+LOOSE_LABEL = profile_label(LOOSE_PROFILE)
+#: Profiles a replay uses when none are given: nominal, loose and rock.
+DEFAULT_REPLAY_PROFILES = (NOMINAL_LABEL, LOOSE_LABEL, "rock")
+
+
+def unique_profiles(profiles) -> list:
+    """``profiles`` without repeated labels (the first kept, order kept)."""
+    seen, unique = set(), []
+    for p in profiles:
+        if p.label not in seen:
+            seen.add(p.label)
+            unique.append(p)
+    return unique

@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from crater_thermal import cache, radiosity, sunlight
+from crater_thermal import cache, profiles, radiosity, sunlight
 from crater_thermal.constants import SIGMA
 from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 
@@ -311,25 +311,17 @@ def checkpoint_path(out_path) -> str:
     return str(out_path) + ".checkpoint.npz"
 
 
-DEFAULT_REPLAY_PROFILES = ("1300/1800", "800/1100", "rock")
-
-
 def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, allow_inverted: bool = False):
     """Profiles from labels and an optional density grid, without duplicates (order kept)."""
     from crater_thermal import thermal
 
     labels = list(labels)
     if not labels and not density_grid:
-        labels = list(DEFAULT_REPLAY_PROFILES)
-    profiles = [thermal.parse_profile(lab, allow_inverted=allow_inverted) for lab in labels]
+        labels = list(profiles.DEFAULT_REPLAY_PROFILES)
+    chosen = [thermal.parse_profile(lab, allow_inverted=allow_inverted) for lab in labels]
     if density_grid:
-        profiles += list(thermal.density_grid_profiles(density_grid))
-    seen, unique = set(), []
-    for p in profiles:
-        if p.label not in seen:
-            seen.add(p.label)
-            unique.append(p)
-    return unique
+        chosen += list(thermal.density_grid_profiles(density_grid))
+    return profiles.unique_profiles(chosen)
 
 
 def replay_file(

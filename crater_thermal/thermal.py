@@ -128,8 +128,9 @@ SCHEMES = {"euler": _k.SCHEME_BE, "trbdf2": _k.SCHEME_TRBDF2}
 # Table 7.2 also get materials' DensityExtrapolationWarning.
 
 
-def _check_profile(p: Profile, allow_inverted: bool, warn: bool = True) -> Profile:
-    profiles.check_profile(p, allow_inverted)
+def _check_profile(p: Profile, allow_inverted: bool, warn: bool = True, checked: bool = False) -> Profile:
+    if not checked:  # a Profile built elsewhere; profiles.parse_profile has already checked its own
+        profiles.check_profile(p, allow_inverted)
     if warn and p.material == "regolith":
         materials.check_density([r for _, r in p.layers], name=f"profile {p.label!r} density", warn=True)
     return p
@@ -146,7 +147,7 @@ def parse_profile(spec, allow_inverted: bool = False, label: str | None = None, 
     p = profiles.parse_profile(spec, allow_inverted, label)
     # the built-in hayne2017 label never warns (its set's conductivity is not Table 7.2)
     builtin_hayne = isinstance(spec, str) and spec.strip().lower() == HAYNE_LABEL
-    return _check_profile(p, allow_inverted, warn=warn and not builtin_hayne)
+    return _check_profile(p, allow_inverted, warn=warn and not builtin_hayne, checked=True)
 
 
 def density_grid_profiles(spec: str) -> tuple:
