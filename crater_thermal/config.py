@@ -803,15 +803,6 @@ class Crater:
         ("m" | "km" or None): overrides of the DEM file's metadata (terrain.open_dem)
     """
 
-    @property
-    def n_facets(self) -> Optional[int]:
-        return self.facets
-
-    @property
-    def diameter_m(self) -> Optional[float]:
-        """Rim diameter [m] or None."""
-        return None if self.diameter_km is None else self.diameter_km * 1e3
-
 
 @_section("location")
 class Location:
@@ -863,20 +854,10 @@ class Surface:
     """Surface and subsurface properties (see PHYSICS.md): albedo, emissivity, property set,
     geothermal flux [W m-2], nominal density profile label."""
 
-    @property
-    def geothermal_flux(self) -> float:
-        """Geothermal flux [W m-2] (same number; SI name)."""
-        return self.geothermal_flux_W_m2
-
 
 @_section("sun")
 class Sun:
     """Sun model and ephemeris options."""
-
-    @property
-    def solar_constant(self) -> float:
-        """Irradiance at 1 au [W m-2]."""
-        return self.solar_constant_W_m2
 
 
 @_section("scattering")
@@ -926,31 +907,6 @@ class Case:
     toml_text: str = ""
     path: Optional[Path] = None
     description: str = ""
-
-    # conveniences (interface names)
-    @property
-    def flux_step_s(self) -> float:
-        return self.steps.flux_step_s
-
-    @property
-    def conduction_step_s(self) -> Optional[float]:
-        return self.steps.conduction_step_s
-
-    @property
-    def nominal_profile(self) -> str:
-        return self.surface.nominal_profile
-
-    @property
-    def profiles(self) -> Tuple[str, ...]:
-        return self.replay.profiles
-
-    @property
-    def density_grid(self) -> Optional[str]:
-        return self.replay.density_grid
-
-    @property
-    def checkpoint_interval_steps(self) -> int:
-        return self.output.checkpoint_interval_steps
 
     def replace(self, **changes) -> "Case":
         """``dataclasses.replace`` (no re-validation; prefer :meth:`with_overrides`)."""

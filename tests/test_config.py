@@ -88,15 +88,15 @@ def test_generated_thesis_cases_are_current(tmp_path):
         assert (copy / rel).read_text() == (REPO / "cases" / rel).read_text(), rel
 
 
-def test_defaults_and_conveniences():
+def test_defaults():
     c = loads_case(MINIMAL, name="m")
     assert c.name == "m" and c.crater.facets == 502 and c.location.lon_deg == 0.0
     assert c.period.spinup == "periodic" and c.period.spinup_years == 1.0
-    assert c.flux_step_s == 4 * 3600.0 and c.conduction_step_s is None
-    assert c.surface.albedo == 0.12 and c.surface.emissivity == 0.98 and c.surface.geothermal_flux == 0.033
-    assert c.nominal_profile == "1300/1800" and c.profiles == () and c.density_grid is None
-    assert c.sun.moon_frame == "iau2009" and c.sun.solar_constant == 1361.0
-    assert c.scattering.method == "exact" and c.checkpoint_interval_steps == 0
+    assert c.steps.flux_step_s == 4 * 3600.0 and c.steps.conduction_step_s is None
+    assert c.surface.albedo == 0.12 and c.surface.emissivity == 0.98 and c.surface.geothermal_flux_W_m2 == 0.033
+    assert c.surface.nominal_profile == "1300/1800" and c.replay.profiles == () and c.replay.density_grid is None
+    assert c.sun.moon_frame == "iau2009" and c.sun.solar_constant_W_m2 == 1361.0
+    assert c.scattering.method == "exact" and c.output.checkpoint_interval_steps == 0
     assert c.period.spinup_s == YEAR
     assert c.period.duration_s == 59 * 86400.0
     fixed = loads_case(_with("period", 'spinup = "fixed"'))
