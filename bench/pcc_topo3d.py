@@ -37,7 +37,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import config, geometry, simulate  # noqa: E402
+from crater_thermal import (  # noqa: E402
+    config,
+    geometry,
+    runner,  # noqa: E402
+    simulate,
+)
 from crater_thermal.reference import pcc_topo81  # noqa: E402
 
 LUNAR_DAYS = 12
@@ -116,7 +121,7 @@ def main() -> None:
         case = config.load_case(tmp / "case.toml")
         timer = simulate.Timer()
         t = time.perf_counter()
-        simulate.run_case(case, tmp / "split.nc", progress=False, timer=timer, overwrite=True)
+        runner.run_case(case, tmp / "split.nc", progress=False, timer=timer, overwrite=True)
         in_process = time.perf_counter() - t
 
     n = int(mesh.faces.shape[0])

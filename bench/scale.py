@@ -5,7 +5,7 @@ Run:  PYTHONPATH=$PWD python bench/scale.py [--sizes 10000 30000 100000] [--sun-
 
 Each size runs in its own process (``--one N``): the idealized 10 km crater of the mesh generator
 (thesis Table 7.1 profile) with a 5 km flat surround, N facets, at 86 S; everything from the mesh to
-run.nc through ``simulate.run_case`` (mesh and ray-tracing scene, view factors / radiation operator,
+run.nc through ``runner.run_case`` (mesh and ray-tracing scene, view factors / radiation operator,
 horizon map, Sun directions, direct sunlight, scattering, spin-up, record, I/O). Per stage: wall time
 and the peak resident set reached inside it (the kernel's high-water mark, reset at each stage start
 through ``/proc/self/clear_refs``); per size: the process's peak resident set (``VmHWM``;
@@ -126,7 +126,7 @@ def quasi_newton_pass_s(n_cols: int) -> float:
 
 def run_one(args) -> dict:
     """One size, in this process: build the case, run it, report stage times and memory."""
-    from crater_thermal import config, progress, simulate
+    from crater_thermal import config, progress, runner, simulate
 
     class StageTimer(simulate.Timer):
         """The run's own time split, plus the peak RSS reached inside each stage [MB]."""
@@ -184,14 +184,14 @@ def run_one(args) -> dict:
                 spinup='spinup = "fixed"\nspinup_days = 1.0',
             )
         )
-        simulate.run_case(config.load_case(warm), tmp / "warm.nc")
+        runner.run_case(config.load_case(warm), tmp / "warm.nc")
         case = config.load_case(case_path)
         timer = StageTimer()
         rss0 = _status_kb("VmRSS") / 1024.0
         load0 = os.getloadavg()
         reporter = progress.reporter(True) if args.progress else None
         t0 = time.perf_counter()
-        out = simulate.run_case(case, tmp / "run.nc", progress=reporter, timer=timer)
+        out = runner.run_case(case, tmp / "run.nc", progress=reporter, timer=timer)
         total = time.perf_counter() - t0
         peak = _status_kb("VmHWM") / 1024.0
         size_mb = out.stat().st_size / 2**20

@@ -46,7 +46,14 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from crater_thermal import config, geometry, io, simulate, terrain  # noqa: E402
+from crater_thermal import (  # noqa: E402
+    config,
+    geometry,
+    io,
+    runner,  # noqa: E402
+    simulate,
+    terrain,
+)
 
 LAT, LON = -87.0, 45.0
 RADIUS_KM = 15.0
@@ -78,7 +85,7 @@ def _run(tmp: Path, name: str, crater: str, end: str, spinup_days: float, sun_me
     case = config.load_case(path)
     timer = simulate.Timer()
     t = time.perf_counter()
-    out = simulate.run_case(case, tmp / f"{name}.nc", progress=False, timer=timer)
+    out = runner.run_case(case, tmp / f"{name}.nc", progress=False, timer=timer)
     total = time.perf_counter() - t
     ds = io.open_run(out)
     res = {

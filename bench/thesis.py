@@ -28,7 +28,13 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import config, io, simulate, thermal  # noqa: E402
+from crater_thermal import (  # noqa: E402
+    config,
+    io,
+    runner,  # noqa: E402
+    simulate,
+    thermal,
+)
 
 
 def main() -> None:
@@ -39,19 +45,19 @@ def main() -> None:
         tmp = Path(tmp)
         # warm-up: numba compilation and the view-factor cache are not what we measure
         warm = config.load_case(REPO / "cases" / "default.toml")
-        simulate.run_case(warm, tmp / "warm.nc", progress=False)
+        runner.run_case(warm, tmp / "warm.nc", progress=False)
 
         faithful = config.load_case(REPO / "cases" / "thesis" / "faithful" / "crater_lat86S_faithful.toml")
         timer = simulate.Timer()
         t = time.perf_counter()
-        simulate.run_case(faithful, tmp / "faithful.nc", progress=False, timer=timer)
+        runner.run_case(faithful, tmp / "faithful.nc", progress=False, timer=timer)
         result["nominal_run_s"] = time.perf_counter() - t
         result["nominal_run_split_s"] = {k: round(v, 3) for k, v in timer.split.items()}
 
         converged = config.load_case(REPO / "cases" / "thesis" / "crater_lat86S.toml")
         timer = simulate.Timer()
         t = time.perf_counter()
-        out = simulate.run_case(converged, tmp / "converged.nc", progress=False, timer=timer)
+        out = runner.run_case(converged, tmp / "converged.nc", progress=False, timer=timer)
         result["converged_run_s"] = time.perf_counter() - t
         result["split_s"] = {k: round(v, 3) for k, v in timer.split.items()}
         ds = io.open_run(out)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional, Sequence, Union
 
-from crater_thermal import config, geometry, io, progress, simulate
+from crater_thermal import config, geometry, io, progress, runner
 from crater_thermal.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -197,9 +197,9 @@ def run(
         if resume:
             raise ConfigError("resume needs out: the run's file and its checkpoint")
         with _scratch_folder() as d:
-            path = simulate.run_case(case, d / "run.nc", progress=rep)
+            path = runner.run_case(case, d / "run.nc", progress=rep)
             return _in_memory(path, io.open_run)
-    path = simulate.run_case(case, out, resume=resume, overwrite=overwrite, progress=rep)
+    path = runner.run_case(case, out, resume=resume, overwrite=overwrite, progress=rep)
     return io.open_written(path)
 
 
@@ -251,9 +251,9 @@ def replay(
     with _scratch_folder() as d:
         flux = _as_file(run, d / "flux.nc")
         if out is None:
-            path = simulate.replay_file(flux, list(profiles), output=d / "replay.nc", **kw)
+            path = runner.replay_file(flux, list(profiles), output=d / "replay.nc", **kw)
             return _in_memory(path, io.open_replay)
-        path = simulate.replay_file(flux, list(profiles), output=out, overwrite=overwrite, **kw)
+        path = runner.replay_file(flux, list(profiles), output=out, overwrite=overwrite, **kw)
     return io.open_written(path)
 
 

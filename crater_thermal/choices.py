@@ -45,7 +45,7 @@ CRATER_KINDS = ("crater", "flat", "mesh", "dem")
 HEIGHT_KINDS = ("auto", "height", "radius", "tangent")
 #: Length units a DEM's x/y coordinates or pixel values may be declared in (terrain overrides).
 LENGTH_UNITS = ("m", "km")
-#: Spin-up procedures (simulate.run_case).
+#: Spin-up procedures (runner.run_case).
 SPINUP_MODES = ("periodic", "fixed")
 #: IR exchange during a periodic spin-up: "coupled" (every step, as the record), "lagged" (each window
 #: with the IR series of the previous one), "auto" (simulate.spinup_ir_method: lagged on large meshes).

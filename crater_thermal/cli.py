@@ -323,14 +323,14 @@ def run(
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""
-    from crater_thermal import api, simulate
+    from crater_thermal import api, runner
     from crater_thermal.errors import Interrupted
     from crater_thermal.progress import reporter
 
     try:
         api.run(case, output, resume=resume, overwrite=overwrite, progress=reporter(progress)).close()
     except Interrupted as exc:
-        ckpt = Path(simulate.checkpoint_path(output))
+        ckpt = Path(runner.checkpoint_path(output))
         if ckpt.exists():
             exc.hint = f"checkpoint {ckpt} kept: continue with `crater-thermal run {case} -o {output} --resume`"
         raise

@@ -27,17 +27,14 @@ Start of the recorded period
 from __future__ import annotations
 
 import contextlib
-import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from crater_thermal import cache, profiles, radiosity, sunlight
+from crater_thermal import cache, radiosity, sunlight
 from crater_thermal.constants import SIGMA
-from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 
 # ----------------------------------------------------------------------------- memory budget
 
@@ -67,7 +64,7 @@ def chunk_bytes(case) -> float:
 # ----------------------------------------------------------------------------- progress
 
 
-def _stage(progress, description: str):
+def stage(progress, description: str):
     """Context yielding the stage's ``(done, total)`` callback from a reporter, or None without one.
 
     ``progress`` is a reporter (``crater_thermal.progress``): ``progress(description)`` is a context
@@ -306,113 +303,6 @@ def case_mesh(case):
     return geometry.crater_mesh(c.diameter_km, n_facets=c.facets, surround_km=c.surround_km)
 
 
-def checkpoint_path(out_path) -> str:
-    """The checkpoint file of a run writing ``out_path``: ``OUT.checkpoint.npz`` beside it."""
-    return str(out_path) + ".checkpoint.npz"
-
-
-def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, allow_inverted: bool = False):
-    """Profiles from labels and an optional density grid, without duplicates (order kept)."""
-    from crater_thermal import thermal
-
-    labels = list(labels)
-    if not labels and not density_grid:
-        labels = list(profiles.DEFAULT_REPLAY_PROFILES)
-    chosen = [thermal.parse_profile(lab, allow_inverted=allow_inverted) for lab in labels]
-    if density_grid:
-        chosen += list(thermal.density_grid_profiles(density_grid))
-    return profiles.unique_profiles(chosen)
-
-
-def replay_file(
-    flux_path,
-    labels: Sequence[str],
-    *,
-    density_grid=None,
-    initial_temperature=None,
-    fixed_spinup=False,
-    property_set=None,
-    allow_inverted=False,
-    output,
-    overwrite=False,
-    progress=None,
-    chunk_mb: float = DEFAULT_CHUNK_MB,
-):
-    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
-
-    The fluxes are read and the temperatures written block by block (memory about ``chunk_mb`` [MB]
-    plus the solver's columns, whatever the run's length and size).
-    ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
-    """
-    from crater_thermal import io
-
-    io.check_output(output, overwrite, inputs=[flux_path])  # fail before any work
-    with io.output_lock(output):
-        return _replay_file(
-            flux_path,
-            labels,
-            density_grid=density_grid,
-            initial_temperature=initial_temperature,
-            fixed_spinup=fixed_spinup,
-            property_set=property_set,
-            allow_inverted=allow_inverted,
-            output=output,
-            overwrite=overwrite,
-            progress=progress,
-            chunk_mb=chunk_mb,
-        )
-
-
-def _replay_file(
-    flux_path,
-    labels,
-    *,
-    density_grid,
-    initial_temperature,
-    fixed_spinup,
-    property_set,
-    allow_inverted,
-    output,
-    overwrite,
-    progress,
-    chunk_mb,
-):
-    from crater_thermal import io
-
-    io.check_output(output, overwrite, inputs=[flux_path])  # again, under the lock
-    if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
-        raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
-    profiles = resolve_profiles(labels, density_grid, allow_inverted)
-    ds = io.read_flux_dataset(flux_path, load=False)
-    tops, bottoms = zip(*(profile_densities(p) for p in profiles))
-    skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
-    shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
-    variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
-    with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=TIME_CHUNK) as stream:
-        with _stage(progress, f"replay ({len(profiles)} profiles x {shape[2]} facets)") as report:
-            _, info = replay_fluxes(
-                ds,
-                profiles,
-                property_set=property_set,
-                initial_temperature=initial_temperature,
-                fixed_spinup=fixed_spinup,
-                progress=report,
-                chunk_mb=chunk_mb,
-                write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T),
-            )
-        stream.set_attrs(
-            {
-                "replay_start": info["start"],
-                "periodic_iterations": info["periodic_iterations"] or None,
-                "periodic_residual_K": info["periodic_residual_K"] or None,
-                "initial_temperature_K": initial_temperature,
-                "ir_assumption": "saved nominal IR (thesis 7.2)",
-            }
-        )
-    ds.close()
-    return Path(output)
-
-
 def _view_factor_cache_dir():
     """Folder for cached view-factor matrices (see :mod:`crater_thermal.cache`), or None when unwritable."""
     return cache.folder("viewfactors")
@@ -481,7 +371,7 @@ def case_geometry(case, timer: Timer, progress=None):
         if case.crater.kind != "flat":
             method, tol = view_factor_settings(case)
             kind = vfoperator.resolve_method(method, mesh.n_facets)
-            with _stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
+            with stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
                 F = vfoperator.view_factor_operator(
                     mesh, tracer, method=kind, tolerance=tol, cache_dir=_view_factor_cache_dir(), progress=report
                 )
@@ -525,19 +415,9 @@ def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     in memory (a run streams them instead: :func:`run_case`)."""
     mesh, tracer, F = case_geometry(case, timer, progress)
     spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
-    with _stage(progress, "direct sunlight") as report:
+    with stage(progress, "direct sunlight") as report:
         direct, solar = case_sunlight(case, mesh, tracer, F, timer, progress)(sun_dirs, sun_dist, timer, report)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
-
-
-def _case_fingerprint(case) -> str:
-    import hashlib
-
-    return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
-
-
-def _scratch_path(out_path) -> str:
-    return str(out_path) + ".partial"
 
 
 def run_window(
@@ -587,281 +467,6 @@ def run_window(
     return ir
 
 
-def run_case(
-    case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None, timer: Timer | None = None
-):
-    """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
-
-    Memory stays bounded by ``[output] chunk_mb`` (default 256 MB) for the (time, facet) series, not by
-    run length x facets: sunlight is computed, and temperatures and IR are kept, in blocks of time
-    samples, in a crash-safe scratch store ``OUT.partial/`` (one file per block, written atomically);
-    the netCDF file is written from it block by block at the end (temporary name, then rename).
-    The solver state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and
-    when the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the
-    same numbers as an uninterrupted run. Returns the output path.
-
-    ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view factors,
-    horizon map, sunlight, spin-up windows, recorded period, writing); None (or False) for none.
-    """
-    from pathlib import Path
-
-    from crater_thermal import io
-
-    out_path = Path(out_path)
-    io.refuse_input_as_output(out_path, case_inputs(case))
-    with io.output_lock(out_path):
-        try:
-            return _run_case(case, out_path, resume=resume, overwrite=overwrite, progress=progress, timer=timer)
-        except BaseException:  # failed or interrupted: the scratch store is kept only for a checkpoint
-            if not Path(checkpoint_path(out_path)).exists():
-                shutil.rmtree(_scratch_path(out_path), ignore_errors=True)
-            raise
-
-
-def case_inputs(case) -> list:
-    """The files a case reads: the case file itself, its mesh or its DEM (absent ones left out)."""
-    c = case.crater
-    return [p for p in (case.path, c.mesh, c.dem) if p]
-
-
-def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer):
-    from pathlib import Path
-
-    from crater_thermal import io, thermal
-
-    ckpt_path = Path(checkpoint_path(out_path))
-    if ckpt_path.exists() and not resume:
-        if not overwrite:
-            raise OutputExistsError(
-                f"{ckpt_path} holds an unfinished run of output {out_path}: pass --resume to continue it, or "
-                "--overwrite to discard it and start again"
-            )
-        ckpt_path.unlink()
-    fingerprint = _case_fingerprint(case)
-    ckpt = None
-    if resume and ckpt_path.exists():
-        try:
-            ckpt = dict(np.load(ckpt_path, allow_pickle=False))
-        except Exception as exc:
-            raise FluxFileError(
-                f"checkpoint {ckpt_path} is unreadable ({type(exc).__name__}); run again without --resume"
-            ) from None
-        if str(ckpt["fingerprint"]) != fingerprint:
-            raise ConfigError(f"checkpoint {ckpt_path} belongs to a different case; run without --resume")
-    if ckpt is None:
-        io.check_output(out_path, overwrite)
-    nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
-    timer = timer or Timer()
-    mesh, tracer, F = case_geometry(case, timer, progress)
-    spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
-    nf = mesh.n_facets
-    block = block_rows(nf, chunk_bytes(case))
-    if ckpt is not None and int(ckpt.get("block", -1)) != block:
-        raise ConfigError(
-            f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
-            f"samples, this run uses {block}; run again without --resume"
-        )
-    scratch = Path(_scratch_path(out_path))
-    store = io.SegmentStore(scratch, block)
-    if ckpt is None:
-        store.remove()
-        store = io.SegmentStore(scratch, block)
-    incidence = case.surface.albedo_model != "constant"
-    fc = Forcing(
-        mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
-    )
-    n_all = len(sun_dirs)
-    if not store.marked("sunlight"):
-        sunlight = case_sunlight(case, mesh, tracer, F, timer, progress)
-        with _stage(progress, f"sunlight ({nf} facets)") as report:
-            for k0 in range(0, n_all, block):
-                k1 = min(n_all, k0 + block)
-                direct, solar, absorbed = sunlight.with_absorbed(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
-                with timer("io"):
-                    store.write("direct", k0, direct)
-                    store.write("solar", k0, solar)
-                    if absorbed is not None:
-                        store.write("absorbed", k0, absorbed)
-                del direct, solar, absorbed
-                if report is not None:
-                    report(k1, n_all)
-        store.mark("sunlight")
-    del tracer
-    albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
-    solver_kw = {}
-    if case.steps.conduction_step_s:
-        solver_kw["dt_max"] = float(case.steps.conduction_step_s)
-    solver = thermal.ColumnSolver(
-        [nominal] * nf,
-        property_set=case.surface.property_set,
-        emissivity=eps,
-        geothermal_flux=case.surface.geothermal_flux_W_m2,
-        **solver_kw,
-    )
-    stepper = radiosity.CoupledStepper(
-        solver,
-        fc.F,
-        albedo,
-        eps,
-        solar_is_absorbed=incidence,
-        ir_scheme=case.steps.ir_coupling,
-    )
-    t0 = fc.times[0]
-    spin_t = seconds_since(fc.spin_times, t0)
-    rec_t = seconds_since(fc.times, t0)
-    nt, ns, off = len(fc.times), fc.n_spin, fc.record_offset
-    every = case.output.checkpoint_interval_steps
-    save_spin = case.output.save_spinup_fluxes and ns > 0
-
-    def save_ckpt(k, info):
-        hist = stepper.history()  # the IR extrapolation's history: a resumed run steps as the uninterrupted one
-        extra = {} if hist is None else {f"history_{name}": np.asarray(v) for name, v in hist.items()}
-        with timer("io"):
-            io.save_npz_atomic(
-                ckpt_path,
-                fingerprint=np.array(fingerprint),
-                phase=np.array("record"),
-                k=np.array(k),
-                block=np.array(block),
-                state=solver.state(),
-                start_method=np.array(info["start_method"]),
-                iterations=np.array(info["iterations"]),
-                residual=np.asarray(info["residual"], float),
-                **extra,
-            )
-
-    # ---- start of the record
-    if ckpt is not None:
-        spin_info = {
-            "start_method": str(ckpt["start_method"]),
-            "iterations": int(ckpt["iterations"]),
-            "residual": ckpt["residual"],
-        }
-        k0 = int(ckpt["k"])
-        solver.set_state(ckpt["state"])
-        if "history_ir_now" in ckpt:
-            stepper.set_history({name: ckpt[f"history_{name}"] for name in ("ir_now", "ir_before", "dt_before")})
-        ir_k = store.read("ir", k0, k0 + 1)[0]
-    else:
-        with timer("conduction_spinup"):
-            spin_info, ir_start = _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
-        k0 = 0
-        ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
-        with timer("io"):
-            store.write("T", 0, solver.surface_temperature[None, :])
-            store.write("ir", 0, ir_k[None, :])
-        save_ckpt(0, spin_info)
-    # ---- recorded period, block by block; rows k0+1 .. are buffered and flushed to the store
-    pend_T = np.empty((block, nf))
-    pend_ir = np.empty((block, nf))
-    pend0, n_pend = k0 + 1, 0  # first buffered row, rows buffered
-
-    def flush():
-        nonlocal pend0, n_pend
-        if n_pend:
-            with timer("io"):
-                store.write_rows("T", pend0, pend_T[:n_pend])
-                store.write_rows("ir", pend0, pend_ir[:n_pend])
-        pend0, n_pend = pend0 + n_pend, 0
-
-    sol, w0 = None, 0
-    with _stage(progress, f"record {case.name}") as report:
-        for k in range(k0, nt - 1):
-            if sol is None or k + 1 >= w0 + len(sol):
-                sol = None
-                w0 = k
-                with timer("io"):
-                    sol = fc.rows(fc.drive, off + k, off + min(nt, k + block + 1))
-            with timer("conduction_record"):
-                T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
-            pend_T[n_pend], pend_ir[n_pend] = T1, ir_k
-            n_pend += 1
-            if (pend0 + n_pend) % block == 0:
-                flush()
-            if every and (k + 1) % every == 0 and k + 1 < nt - 1:
-                flush()
-                save_ckpt(k + 1, spin_info)
-            if report is not None:
-                report(k + 1 - k0, nt - 1 - k0)
-        flush()
-    pend_T = pend_ir = sol = None  # free the buffers before the file is written
-    # ---- write run.nc from the store, block by block
-    with timer("io"):
-        from crater_thermal.constants import AU
-
-        _, rec_dirs = fc.split(fc.sun_dirs)
-        _, rec_dist = fc.split(fc.sun_dist_m)
-        extra_vars = {
-            "start_residual": (
-                ("facet",),
-                np.asarray(spin_info["residual"], float),
-                {
-                    "units": "K",
-                    "long_name": "max over the column of |T(end) - T(start)| of the spin-up window's last period",
-                },
-            )
-        }
-        attrs = {
-            "case_name": case.name,
-            "case_toml": case.toml_text,
-            "albedo": albedo,
-            "emissivity": eps,
-            "lat_deg": float(case.location.lat_deg),
-            "lon_deg": float(case.location.lon_deg),
-            "property_set": case.surface.property_set,
-            "nominal_profile": nominal.label,
-            "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
-            "start_method": spin_info["start_method"],
-            "spinup_iterations": int(spin_info["iterations"]),
-            "spinup_years": float(case.period.spinup_years),
-            "initial_temperature_K": case.period.initial_temperature_K,
-            "timing_s": dict(timer.split),
-        }
-        ds = io.run_dataset(
-            mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
-        )
-        if ns:
-            ds = ds.assign_coords(spinup_time=fc.spin_times)
-        # (name, dims, rows, reader of rows k0..k1-1)
-        series = [
-            ("solar_incident", "time", nt, lambda a, b: store.read("solar", off + a, off + b)),
-            ("ir_incident", "time", nt, lambda a, b: store.read("ir", a, b)),
-            ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
-            ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b)),
-        ]
-        if incidence:
-            series.append(("solar_absorbed", "time", nt, lambda a, b: store.read("absorbed", off + a, off + b)))
-        if save_spin:
-            series += [
-                ("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
-                ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b)),
-            ]
-            if incidence:
-                series.append(("spinup_solar_absorbed", "spinup_time", ns, lambda a, b: store.read("absorbed", a, b)))
-        # stored as io.RUN_SERIES_DTYPE (float32; precision and sizes documented there)
-        variables = {
-            name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}), io.RUN_SERIES_DTYPE)
-            for name, dim, n, _ in series
-        }
-        with io.stream_dataset(
-            ds, out_path, variables, overwrite=True if ckpt is not None else overwrite, time_rows=min(TIME_CHUNK, block)
-        ) as write:
-            n_blocks = sum(-(-n // block) for _, _, n, _ in series)
-            with _stage(progress, f"write {out_path.name}") as report:
-                done = 0
-                for name, _, n, read in series:
-                    for a in range(0, n, block):
-                        b = min(n, a + block)
-                        write(name, (slice(a, b), slice(None)), read(a, b))
-                        done += 1
-                        if report is not None:
-                            report(done, n_blocks)
-    if ckpt_path.exists():
-        ckpt_path.unlink()
-    store.remove()
-    return out_path
-
-
 def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> np.ndarray:
     """Time mean over sunlight rows k0..k1-1, block by block: ``fn(solar_rows)`` gives a block's mean (nf,)."""
     total = None
@@ -887,7 +492,7 @@ def spinup_ir_method(method: str, F, n_facets: int) -> str:
     return method
 
 
-def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
+def spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
     """Bring the columns to the start of the record, streaming the spin-up window in blocks.
 
     Writes the spin-up IR series to ``fc.store`` (series ``spin_ir``) when ``save_spin``.
@@ -994,7 +599,7 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
                     report(done0 + e - 1, total)
             lag["in"], lag["out"] = lag["out"], ("lag_ir1" if lag["out"] == "lag_ir0" else "lag_ir0")
 
-        with _stage(progress, "spin-up (periodic state, lagged IR)") as report:
+        with stage(progress, "spin-up (periodic state, lagged IR)") as report:
 
             def period_map_lagged(x):
                 solver.set_state(x)
@@ -1025,7 +630,7 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
         else:
             solver.set_equilibrium(surface_K=eq_surface)
         # ETA: the shooting usually converges in about 4-6 windows; the bar grows if it needs more
-        with _stage(progress, "spin-up (periodic state)") as report:
+        with stage(progress, "spin-up (periodic state)") as report:
 
             def period_map(x):
                 solver.set_state(x)
@@ -1047,7 +652,7 @@ def _spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
         solver.set_equilibrium(surface_K=eq_surface)
         method = f"fixed spin-up {case.period.spinup_years} yr from the equilibrium estimate"
     x0 = solver.state()
-    with _stage(progress, "spin-up (fixed)") as report:
+    with stage(progress, "spin-up (fixed)") as report:
         one_window(report, 1)
     residual = np.max(np.abs(solver.state() - x0), axis=1)
     return {"start_method": method, "iterations": 1, "residual": residual}, holder["ir"]

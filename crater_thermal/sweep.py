@@ -37,7 +37,7 @@ def run_one(case_path: str, out_dir: str) -> dict:
     """Run one case and its replays; skip the parts already written. Returns a summary dict."""
     import warnings
 
-    from crater_thermal import config, simulate
+    from crater_thermal import config, runner
     from crater_thermal.progress import one_line_warning
 
     warnings.showwarning = one_line_warning  # a worker's warnings read as the command's own: one line each
@@ -48,14 +48,14 @@ def run_one(case_path: str, out_dir: str) -> dict:
     run_nc, replay_nc = case_outputs(case_path, out_dir)
     done = []
     if not run_nc.exists():
-        ckpt = Path(simulate.checkpoint_path(run_nc))
-        simulate.run_case(case, run_nc, resume=ckpt.exists(), progress=False)
+        ckpt = Path(runner.checkpoint_path(run_nc))
+        runner.run_case(case, run_nc, resume=ckpt.exists(), progress=False)
         done.append("run")
     labels = list(case.replay.profiles)
     grid = case.replay.density_grid
     if (labels or grid) and not replay_nc.exists():
         fixed = case.period.spinup == "fixed"  # replay as the run started (thesis procedure)
-        simulate.replay_file(
+        runner.replay_file(
             run_nc,
             labels,
             density_grid=grid,

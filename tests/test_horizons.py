@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crater_thermal import choices, config, ephemeris, horizons, illumination, io, simulate
+from crater_thermal import choices, config, ephemeris, horizons, illumination, io, runner
 from crater_thermal.errors import ConfigError, MeshError
 from crater_thermal.geometry import bowl_mesh, crater_mesh, load_mesh
 from crater_thermal.raytrace import RayTracer
@@ -268,7 +268,7 @@ def test_coupled_run_temperatures_match(tmp_path, monkeypatch):
     runs = {}
     for method, extra in (("rays", "n_rings = 8\n"), ("horizon", "")):
         case = config.loads_case(CASE.format(name=method, method=method) + extra)
-        runs[method] = io.open_run(simulate.run_case(case, tmp_path / f"{method}.nc", progress=False))
+        runs[method] = io.open_run(runner.run_case(case, tmp_path / f"{method}.nc", progress=False))
     a, b = runs["rays"], runs["horizon"]
     dT = b["surface_temperature"].values - a["surface_temperature"].values
     lit = (a["solar_direct"].values > 0) | (b["solar_direct"].values > 0)

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from crater_thermal import config, ephemeris, geometry, illumination, io, raytrace, regions, simulate, sunlight
+from crater_thermal import config, ephemeris, geometry, illumination, io, raytrace, regions, runner, simulate, sunlight
 from crater_thermal.errors import ConfigError
 
 from synthetic import make_run
@@ -288,7 +288,7 @@ def test_hayne2017_streamed_run_saves_absorbed_sunlight_and_replays_exactly(tmp_
     path = tmp_path / "hayne.toml"
     path.write_text(HAYNE_CASE)
     case = config.load_case(path)
-    ds = io.open_run(simulate.run_case(case, tmp_path / "run.nc", progress=False))
+    ds = io.open_run(runner.run_case(case, tmp_path / "run.nc", progress=False))
     for name in ("solar_absorbed", "spinup_solar_absorbed"):
         assert name in ds and ds[name].attrs["units"] == "W m-2"
     direct = ds["solar_direct"].values
@@ -302,7 +302,7 @@ def test_hayne2017_streamed_run_saves_absorbed_sunlight_and_replays_exactly(tmp_
     assert lit.any()
     assert np.all(absorbed[lit] < 0.88 * solar[lit])  # A(i) > A0 away from normal incidence (i > 0 here)
     T, _ = simulate.replay_fluxes(
-        ds, simulate.resolve_profiles(["1300/1800"]), initial_temperature=100.0, fixed_spinup=True, progress=False
+        ds, runner.resolve_profiles(["1300/1800"]), initial_temperature=100.0, fixed_spinup=True, progress=False
     )
     # same columns, same forcing, same uniform start: only float32 storage of the fluxes differs
     assert np.max(np.abs(T[0] - ds["surface_temperature"].values)) <= 1e-3

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crater_thermal import config, io, radiosity, simulate, thermal
+from crater_thermal import config, io, radiosity, runner, simulate, thermal
 from crater_thermal.constants import SIGMA
 from crater_thermal.materials import DensityExtrapolationWarning
 
@@ -76,7 +76,7 @@ def small_case(
 def small_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("run")
     case = config.load_case(small_case(tmp))
-    out = simulate.run_case(case, tmp / "run.nc", progress=False)
+    out = runner.run_case(case, tmp / "run.nc", progress=False)
     return case, io.open_run(out)
 
 
@@ -108,7 +108,7 @@ def test_run_dataset_contract_and_physics(small_run):
 
 def test_run_is_deterministic(small_run, tmp_path):
     case, ds = small_run
-    out = simulate.run_case(case, tmp_path / "again.nc", progress=False)
+    out = runner.run_case(case, tmp_path / "again.nc", progress=False)
     again = io.open_run(out)
     np.testing.assert_array_equal(again["surface_temperature"].values, ds["surface_temperature"].values)
     np.testing.assert_array_equal(again["ir_incident"].values, ds["ir_incident"].values)
@@ -148,7 +148,7 @@ def test_crater_energy_conservation(tmp_path):
 def test_replay_of_nominal_reproduces_run(small_run):
     case, ds = small_run
     with pytest.warns(DensityExtrapolationWarning, match="800"):  # 800 and 1100 lie below Table 7.2
-        profiles = simulate.resolve_profiles(["1300/1800", "800/1100", "rock"])
+        profiles = runner.resolve_profiles(["1300/1800", "800/1100", "rock"])
     T, info = simulate.replay_fluxes(ds, profiles, tol_K=1e-4, progress=False)
     diff = np.abs(T[0] - ds["surface_temperature"].values)
     # periodic starts converged to 1e-3 K (run) and 1e-4 K (replay): the runs agree to well under 0.01 K
@@ -167,7 +167,7 @@ def test_lagged_spinup_matches_coupled_and_replays(tmp_path):
     runs = {}
     for m in ("coupled", "lagged"):
         path = small_case(tmp_path, name=m, facets=400, end="2019-01-16", extra_period=f'spinup_ir = "{m}"')
-        runs[m] = io.open_run(simulate.run_case(config.load_case(path), tmp_path / f"{m}.nc", progress=False))
+        runs[m] = io.open_run(runner.run_case(config.load_case(path), tmp_path / f"{m}.nc", progress=False))
     lag, cpl = runs["lagged"], runs["coupled"]
     assert "previous window's IR" in lag.attrs["start_method"]
     assert "previous window's IR" not in cpl.attrs["start_method"]
@@ -178,7 +178,7 @@ def test_lagged_spinup_matches_coupled_and_replays(tmp_path):
     dT = lag["surface_temperature"].values - cpl["surface_temperature"].values
     assert np.abs(dT).max() <= 0.05
     # the saved spin-up IR is the forcing of the last window: the nominal replay reproduces the run (6e-5 K)
-    T, _ = simulate.replay_fluxes(lag, simulate.resolve_profiles(["1300/1800"]), tol_K=1e-4, progress=False)
+    T, _ = simulate.replay_fluxes(lag, runner.resolve_profiles(["1300/1800"]), tol_K=1e-4, progress=False)
     assert np.abs(T[0] - lag["surface_temperature"].values).max() <= 0.01
 
 
@@ -196,11 +196,9 @@ def test_replay_fixed_start_is_exact(tmp_path):
     case = config.load_case(
         small_case(tmp_path, spinup="fixed", spinup_days=10.0, extra_period="initial_temperature_K = 120.0")
     )
-    out = simulate.run_case(case, tmp_path / "run.nc", progress=False)
+    out = runner.run_case(case, tmp_path / "run.nc", progress=False)
     ds = io.open_run(out)
-    T, _ = simulate.replay_fluxes(
-        ds, simulate.resolve_profiles(["1300/1800"]), initial_temperature=120.0, progress=False
-    )
+    T, _ = simulate.replay_fluxes(ds, runner.resolve_profiles(["1300/1800"]), initial_temperature=120.0, progress=False)
     assert np.max(np.abs(T[0] - ds["surface_temperature"].values)) <= 1e-3  # float32 storage of the replay
 
 
@@ -291,9 +289,9 @@ def test_resume_after_kill_matches_uninterrupted(tmp_path):
         every=40,
         extra_period="initial_temperature_K = 100.0",
     )
-    ref = simulate.run_case(config.load_case(path), tmp_path / "ref.nc", progress=False)
+    ref = runner.run_case(config.load_case(path), tmp_path / "ref.nc", progress=False)
     out = tmp_path / "killed.nc"
-    ckpt = Path(simulate.checkpoint_path(out))
+    ckpt = Path(runner.checkpoint_path(out))
     env = dict(os.environ, PYTHONPATH=str(REPO), CRATER_THERMAL_QUIET="1")
     proc = subprocess.Popen(
         [sys.executable, "-m", "crater_thermal", "run", str(path), "-o", str(out)],
@@ -332,7 +330,7 @@ def test_hayne2017_equator(tmp_path):
     """Flat equatorial surface with the hayne2017 property set vs Hayne et al. 2017 (Diviner):
     noon 385 K, midnight 101 K, night minimum 95 K, each within 5 K (heat1d gives 388.5/100.2/93.7)."""
     case = config.load_case(REPO / "cases" / "validation" / "hayne2017_equator.toml")
-    ds = io.open_run(simulate.run_case(case, tmp_path / "eq.nc", progress=False))
+    ds = io.open_run(runner.run_case(case, tmp_path / "eq.nc", progress=False))
     T = ds["surface_temperature"].values.mean(axis=1)
     s = ds["sun_direction"].values
     elev = np.degrees(np.arcsin(s[:, 2]))

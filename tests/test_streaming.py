@@ -5,7 +5,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from crater_thermal import config, io, simulate
+from crater_thermal import config, io, runner, simulate
 
 CASE = """
 name = "{name}"
@@ -61,8 +61,8 @@ def test_tiny_budget_gives_the_same_run(tmp_path):
     """Blocks of a few samples (a tiny chunk_mb) change nothing: the same fluxes and temperatures to
     rounding (uniform start and fixed spin-up: no block-wise means; the scattering solve of a different
     number of right-hand sides differs in the last bit, 1e-9 W m-2 / K is far below anything physical)."""
-    a = simulate.run_case(_case(tmp_path, "big"), tmp_path / "big.nc", progress=False)
-    b = simulate.run_case(_case(tmp_path, "tiny", chunk_mb=0.02), tmp_path / "tiny.nc", progress=False)
+    a = runner.run_case(_case(tmp_path, "big"), tmp_path / "big.nc", progress=False)
+    b = runner.run_case(_case(tmp_path, "tiny", chunk_mb=0.02), tmp_path / "tiny.nc", progress=False)
     da, db = io.open_run(a), io.open_run(b)
     assert simulate.block_rows(60, 0.02 * 2**20) < da.sizes["time"] // 4  # really several blocks
     for name in ("surface_temperature", "ir_incident", "solar_incident", "solar_direct", "spinup_ir_incident"):
@@ -78,14 +78,14 @@ def test_tiny_budget_gives_the_same_run(tmp_path):
 
 def test_streamed_replay_matches_in_memory(tmp_path):
     """Replay in time blocks (tiny budget, several facet batches) = replay held in memory."""
-    run = io.open_run(simulate.run_case(_case(tmp_path, "r"), tmp_path / "r.nc", progress=False))
-    profiles = simulate.resolve_profiles(["1300/1800", "rock"])
+    run = io.open_run(runner.run_case(_case(tmp_path, "r"), tmp_path / "r.nc", progress=False))
+    profiles = runner.resolve_profiles(["1300/1800", "rock"])
     ref, _ = simulate.replay_fluxes(run, profiles, initial_temperature=100.0, progress=False)
     got, _ = simulate.replay_fluxes(
         run, profiles, initial_temperature=100.0, progress=False, chunk_mb=0.01, chunk_columns=25
     )
     np.testing.assert_array_equal(got, ref)
-    out = simulate.replay_file(
+    out = runner.replay_file(
         tmp_path / "r.nc",
         ["1300/1800", "rock"],
         initial_temperature=100.0,
@@ -104,7 +104,7 @@ def test_memory_bounded_by_budget_not_run_length(tmp_path):
     buffers) stays below the budget plus the radiation operator plus a fixed allowance, and does not grow
     when the record is 4x longer."""
     budget_mb, nf = 0.25, 300
-    simulate.run_case(
+    runner.run_case(
         _case(tmp_path, "warm", facets=nf, end="2019-01-03"), tmp_path / "warm.nc", progress=False
     )  # ephemeris tables, view-factor cache, numba: loaded before measuring
     peaks = []
@@ -112,7 +112,7 @@ def test_memory_bounded_by_budget_not_run_length(tmp_path):
         case = _case(tmp_path, "m" + end, facets=nf, end=end, chunk_mb=budget_mb)
         tracemalloc.start()
         try:
-            simulate.run_case(case, tmp_path / f"m{end}.nc", progress=False)
+            runner.run_case(case, tmp_path / f"m{end}.nc", progress=False)
             peaks.append(tracemalloc.get_traced_memory()[1])
         finally:
             tracemalloc.stop()

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from crater_thermal import cli, config, geometry, io, raytrace, simulate, terrain, viewfactors
+from crater_thermal import cli, config, geometry, io, raytrace, runner, terrain, viewfactors
 from crater_thermal.materials import DensityExtrapolationWarning
 
 LAT, LON = -85.0, 0.0
@@ -84,7 +84,7 @@ def test_crater_as_dem_matches_the_generator(crater_dem):
         ("gen", 'kind = "mesh"\nmesh = "gen.ply"'),
         ("dem", f'kind = "dem"\ndem = "crater.tif"\nradius_km = {r_foot_km!r}\nresolution_m = 100.0'),
     ):
-        out = simulate.run_case(_case(tmp, name, crater), tmp / f"{name}.nc", overwrite=True, progress=False)
+        out = runner.run_case(_case(tmp, name, crater), tmp / f"{name}.nc", overwrite=True, progress=False)
         ds = io.open_run(out)
         dark = ds["sun_direction"].values[:, 2] < 0
         floor = np.hypot(ds["centroid"].values[:, 0], ds["centroid"].values[:, 1]) < 300.0
@@ -133,7 +133,7 @@ def test_synthetic_site_end_to_end(tmp_path):
     text = text.replace('end = "2019-01-08"', 'end = "2019-01-03"').replace("spinup_days = 29.53", "spinup_days = 3.0")
     (tmp_path / "site.toml").write_text(text)  # short: a smoke test of the whole chain, not of the physics
     case = config.load_case(tmp_path / "site.toml")
-    run = simulate.run_case(case, tmp_path / "run.nc", progress=False)
+    run = runner.run_case(case, tmp_path / "run.nc", progress=False)
     ds = io.open_run(run)
     inner = io.dataset_inner(ds)
     assert 0 < inner.sum() < inner.size and inner[: inner.sum()].all()
@@ -141,7 +141,7 @@ def test_synthetic_site_end_to_end(tmp_path):
     assert json.loads(ds.attrs["mesh_meta"])["outer_radius_km"] == 2.5
     ds.close()
     with pytest.warns(DensityExtrapolationWarning):  # 800 kg m-3 is below Table 7.2 (the thesis's loose)
-        rep = simulate.replay_file(
+        rep = runner.replay_file(
             run, ["1300/1800", "800/1100"], fixed_spinup=True, output=tmp_path / "replay.nc", progress=False
         )
     rds = io.open_replay(rep)

@@ -24,7 +24,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import config, io, regions, simulate, thermal  # noqa: E402
+from crater_thermal import (  # noqa: E402
+    config,
+    io,
+    regions,
+    runner,  # noqa: E402
+    simulate,
+    thermal,
+)
 
 FLUXES_W_M2 = (0.033, 0.018)
 
@@ -42,7 +49,7 @@ def main() -> None:
         run_nc = REPO / "results" / "geothermal_floor" / "run.nc"
         if not run_nc.exists():
             case = config.load_case(REPO / "cases" / "thesis" / "crater_lat86S.toml")
-            simulate.run_case(case, run_nc, progress=False)
+            runner.run_case(case, run_nc, progress=False)
     ds = io.read_flux_dataset(run_nc)
     run = io.open_run(run_nc)
     night = regions.night_mask(run)

@@ -24,7 +24,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import config, io, simulate  # noqa: E402
+from crater_thermal import (  # noqa: E402
+    config,
+    io,
+    runner,  # noqa: E402
+    simulate,
+)
 
 
 def main() -> None:
@@ -33,9 +38,9 @@ def main() -> None:
     nominal = config.load_case(case_path)
     loose = nominal.with_overrides({"surface.nominal_profile": "800/1100"}, name=nominal.name + "_loose")
     with tempfile.TemporaryDirectory() as tmp:
-        run_nom = io.open_run(simulate.run_case(nominal, Path(tmp) / "nom.nc", progress=False))
-        run_loose = io.open_run(simulate.run_case(loose, Path(tmp) / "loose.nc", progress=False))
-    T_replay, _ = simulate.replay_fluxes(run_nom, simulate.resolve_profiles(["1300/1800", "800/1100"]), progress=False)
+        run_nom = io.open_run(runner.run_case(nominal, Path(tmp) / "nom.nc", progress=False))
+        run_loose = io.open_run(runner.run_case(loose, Path(tmp) / "loose.nc", progress=False))
+    T_replay, _ = simulate.replay_fluxes(run_nom, runner.resolve_profiles(["1300/1800", "800/1100"]), progress=False)
     night = run_nom["sun_direction"].values[:, 2] < 0
     # inside the rim crest only: the outer flank sees little of the crater, so its IR hardly matters
     meta = json.loads(run_nom.attrs["mesh_meta"])

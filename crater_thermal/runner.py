@@ -1,0 +1,414 @@
+"""Drivers of a run and a replay: files, checkpoints, locks and the scratch store around the time loop.
+
+The loop itself (coupled steps, the periodic start, replays of saved fluxes) is :mod:`crater_thermal.simulate`,
+which works on arrays and callbacks. Here a case becomes files:
+
+``run_case`` (``crater-thermal run``, :func:`crater_thermal.api.run`)
+    refuses an output that is one of its inputs, takes the output's lock (:func:`crater_thermal.io.output_lock`),
+    then: sunlight block by block into a crash-safe scratch store ``OUT.partial/``; the spin-up to the
+    start of the record; the recorded period, checkpointed to ``OUT.checkpoint.npz`` every
+    ``[output] checkpoint_interval_steps`` steps (``resume=True`` continues from it and gives the same numbers
+    as an uninterrupted run); ``run.nc`` written from the store block by block (temporary name, then rename).
+``replay_file`` (``crater-thermal replay``, :func:`crater_thermal.api.replay`)
+    the profiles resolved (defaults, density grid, duplicates), the replay streamed into ``replay.nc``.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from crater_thermal import io, profiles, radiosity, simulate, thermal
+from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
+
+
+def checkpoint_path(out_path) -> str:
+    """The checkpoint file of a run writing ``out_path``: ``OUT.checkpoint.npz`` beside it."""
+    return str(out_path) + ".checkpoint.npz"
+
+
+def resolve_profiles(labels: Sequence[str], density_grid: str | None = None, allow_inverted: bool = False):
+    """Profiles from labels and an optional density grid, without duplicates (order kept)."""
+
+    labels = list(labels)
+    if not labels and not density_grid:
+        labels = list(profiles.DEFAULT_REPLAY_PROFILES)
+    chosen = [thermal.parse_profile(lab, allow_inverted=allow_inverted) for lab in labels]
+    if density_grid:
+        chosen += list(thermal.density_grid_profiles(density_grid))
+    return profiles.unique_profiles(chosen)
+
+
+def replay_file(
+    flux_path,
+    labels: Sequence[str],
+    *,
+    density_grid=None,
+    initial_temperature=None,
+    fixed_spinup=False,
+    property_set=None,
+    allow_inverted=False,
+    output,
+    overwrite=False,
+    progress=None,
+    chunk_mb: float = simulate.DEFAULT_CHUNK_MB,
+):
+    """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
+
+    The fluxes are read and the temperatures written block by block (memory about ``chunk_mb`` [MB]
+    plus the solver's columns, whatever the run's length and size).
+    ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
+    """
+
+    io.check_output(output, overwrite, inputs=[flux_path])  # fail before any work
+    with io.output_lock(output):
+        return _replay_file(
+            flux_path,
+            labels,
+            density_grid=density_grid,
+            initial_temperature=initial_temperature,
+            fixed_spinup=fixed_spinup,
+            property_set=property_set,
+            allow_inverted=allow_inverted,
+            output=output,
+            overwrite=overwrite,
+            progress=progress,
+            chunk_mb=chunk_mb,
+        )
+
+
+def _replay_file(
+    flux_path,
+    labels,
+    *,
+    density_grid,
+    initial_temperature,
+    fixed_spinup,
+    property_set,
+    allow_inverted,
+    output,
+    overwrite,
+    progress,
+    chunk_mb,
+):
+
+    io.check_output(output, overwrite, inputs=[flux_path])  # again, under the lock
+    if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
+        raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
+    profiles = resolve_profiles(labels, density_grid, allow_inverted)
+    ds = io.read_flux_dataset(flux_path, load=False)
+    tops, bottoms = zip(*(simulate.profile_densities(p) for p in profiles))
+    skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
+    shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
+    variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
+    with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK) as stream:
+        with simulate.stage(progress, f"replay ({len(profiles)} profiles x {shape[2]} facets)") as report:
+            _, info = simulate.replay_fluxes(
+                ds,
+                profiles,
+                property_set=property_set,
+                initial_temperature=initial_temperature,
+                fixed_spinup=fixed_spinup,
+                progress=report,
+                chunk_mb=chunk_mb,
+                write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T),
+            )
+        stream.set_attrs(
+            {
+                "replay_start": info["start"],
+                "periodic_iterations": info["periodic_iterations"] or None,
+                "periodic_residual_K": info["periodic_residual_K"] or None,
+                "initial_temperature_K": initial_temperature,
+                "ir_assumption": "saved nominal IR (thesis 7.2)",
+            }
+        )
+    ds.close()
+    return Path(output)
+
+
+def _case_fingerprint(case) -> str:
+    import hashlib
+
+    return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
+
+
+def _scratch_path(out_path) -> str:
+    return str(out_path) + ".partial"
+
+
+def run_case(
+    case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None, timer: simulate.Timer | None = None
+):
+    """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
+
+    Memory stays bounded by ``[output] chunk_mb`` (default 256 MB) for the (time, facet) series, not by
+    run length x facets: sunlight is computed, and temperatures and IR are kept, in blocks of time
+    samples, in a crash-safe scratch store ``OUT.partial/`` (one file per block, written atomically);
+    the netCDF file is written from it block by block at the end (temporary name, then rename).
+    The solver state is checkpointed every ``case.output.checkpoint_interval_steps`` flux steps (and
+    when the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the
+    same numbers as an uninterrupted run. Returns the output path.
+
+    ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view factors,
+    horizon map, sunlight, spin-up windows, recorded period, writing); None (or False) for none.
+    """
+    from pathlib import Path
+
+    out_path = Path(out_path)
+    io.refuse_input_as_output(out_path, case_inputs(case))
+    with io.output_lock(out_path):
+        try:
+            return _run_case(case, out_path, resume=resume, overwrite=overwrite, progress=progress, timer=timer)
+        except BaseException:  # failed or interrupted: the scratch store is kept only for a checkpoint
+            if not Path(checkpoint_path(out_path)).exists():
+                shutil.rmtree(_scratch_path(out_path), ignore_errors=True)
+            raise
+
+
+def case_inputs(case) -> list:
+    """The files a case reads: the case file itself, its mesh or its DEM (absent ones left out)."""
+    c = case.crater
+    return [p for p in (case.path, c.mesh, c.dem) if p]
+
+
+def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer):
+    from pathlib import Path
+
+    ckpt_path = Path(checkpoint_path(out_path))
+    if ckpt_path.exists() and not resume:
+        if not overwrite:
+            raise OutputExistsError(
+                f"{ckpt_path} holds an unfinished run of output {out_path}: pass --resume to continue it, or "
+                "--overwrite to discard it and start again"
+            )
+        ckpt_path.unlink()
+    fingerprint = _case_fingerprint(case)
+    ckpt = None
+    if resume and ckpt_path.exists():
+        try:
+            ckpt = dict(np.load(ckpt_path, allow_pickle=False))
+        except Exception as exc:
+            raise FluxFileError(
+                f"checkpoint {ckpt_path} is unreadable ({type(exc).__name__}); run again without --resume"
+            ) from None
+        if str(ckpt["fingerprint"]) != fingerprint:
+            raise ConfigError(f"checkpoint {ckpt_path} belongs to a different case; run without --resume")
+    if ckpt is None:
+        io.check_output(out_path, overwrite)
+    nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
+    timer = timer or simulate.Timer()
+    mesh, tracer, F = simulate.case_geometry(case, timer, progress)
+    spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
+    nf = mesh.n_facets
+    block = simulate.block_rows(nf, simulate.chunk_bytes(case))
+    if ckpt is not None and int(ckpt.get("block", -1)) != block:
+        raise ConfigError(
+            f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
+            f"samples, this run uses {block}; run again without --resume"
+        )
+    scratch = Path(_scratch_path(out_path))
+    store = io.SegmentStore(scratch, block)
+    if ckpt is None:
+        store.remove()
+        store = io.SegmentStore(scratch, block)
+    incidence = case.surface.albedo_model != "constant"
+    fc = simulate.Forcing(
+        mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
+    )
+    n_all = len(sun_dirs)
+    if not store.marked("sunlight"):
+        sunlight = simulate.case_sunlight(case, mesh, tracer, F, timer, progress)
+        with simulate.stage(progress, f"sunlight ({nf} facets)") as report:
+            for k0 in range(0, n_all, block):
+                k1 = min(n_all, k0 + block)
+                direct, solar, absorbed = sunlight.with_absorbed(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
+                with timer("io"):
+                    store.write("direct", k0, direct)
+                    store.write("solar", k0, solar)
+                    if absorbed is not None:
+                        store.write("absorbed", k0, absorbed)
+                del direct, solar, absorbed
+                if report is not None:
+                    report(k1, n_all)
+        store.mark("sunlight")
+    del tracer
+    albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
+    solver_kw = {}
+    if case.steps.conduction_step_s:
+        solver_kw["dt_max"] = float(case.steps.conduction_step_s)
+    solver = thermal.ColumnSolver(
+        [nominal] * nf,
+        property_set=case.surface.property_set,
+        emissivity=eps,
+        geothermal_flux=case.surface.geothermal_flux_W_m2,
+        **solver_kw,
+    )
+    stepper = radiosity.CoupledStepper(
+        solver,
+        fc.F,
+        albedo,
+        eps,
+        solar_is_absorbed=incidence,
+        ir_scheme=case.steps.ir_coupling,
+    )
+    t0 = fc.times[0]
+    spin_t = simulate.seconds_since(fc.spin_times, t0)
+    rec_t = simulate.seconds_since(fc.times, t0)
+    nt, ns, off = len(fc.times), fc.n_spin, fc.record_offset
+    every = case.output.checkpoint_interval_steps
+    save_spin = case.output.save_spinup_fluxes and ns > 0
+
+    def save_ckpt(k, info):
+        hist = stepper.history()  # the IR extrapolation's history: a resumed run steps as the uninterrupted one
+        extra = {} if hist is None else {f"history_{name}": np.asarray(v) for name, v in hist.items()}
+        with timer("io"):
+            io.save_npz_atomic(
+                ckpt_path,
+                fingerprint=np.array(fingerprint),
+                phase=np.array("record"),
+                k=np.array(k),
+                block=np.array(block),
+                state=solver.state(),
+                start_method=np.array(info["start_method"]),
+                iterations=np.array(info["iterations"]),
+                residual=np.asarray(info["residual"], float),
+                **extra,
+            )
+
+    # ---- start of the record
+    if ckpt is not None:
+        spin_info = {
+            "start_method": str(ckpt["start_method"]),
+            "iterations": int(ckpt["iterations"]),
+            "residual": ckpt["residual"],
+        }
+        k0 = int(ckpt["k"])
+        solver.set_state(ckpt["state"])
+        if "history_ir_now" in ckpt:
+            stepper.set_history({name: ckpt[f"history_{name}"] for name in ("ir_now", "ir_before", "dt_before")})
+        ir_k = store.read("ir", k0, k0 + 1)[0]
+    else:
+        with timer("conduction_spinup"):
+            spin_info, ir_start = simulate.spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
+        k0 = 0
+        ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
+        with timer("io"):
+            store.write("T", 0, solver.surface_temperature[None, :])
+            store.write("ir", 0, ir_k[None, :])
+        save_ckpt(0, spin_info)
+    # ---- recorded period, block by block; rows k0+1 .. are buffered and flushed to the store
+    pend_T = np.empty((block, nf))
+    pend_ir = np.empty((block, nf))
+    pend0, n_pend = k0 + 1, 0  # first buffered row, rows buffered
+
+    def flush():
+        nonlocal pend0, n_pend
+        if n_pend:
+            with timer("io"):
+                store.write_rows("T", pend0, pend_T[:n_pend])
+                store.write_rows("ir", pend0, pend_ir[:n_pend])
+        pend0, n_pend = pend0 + n_pend, 0
+
+    sol, w0 = None, 0
+    with simulate.stage(progress, f"record {case.name}") as report:
+        for k in range(k0, nt - 1):
+            if sol is None or k + 1 >= w0 + len(sol):
+                sol = None
+                w0 = k
+                with timer("io"):
+                    sol = fc.rows(fc.drive, off + k, off + min(nt, k + block + 1))
+            with timer("conduction_record"):
+                T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
+            pend_T[n_pend], pend_ir[n_pend] = T1, ir_k
+            n_pend += 1
+            if (pend0 + n_pend) % block == 0:
+                flush()
+            if every and (k + 1) % every == 0 and k + 1 < nt - 1:
+                flush()
+                save_ckpt(k + 1, spin_info)
+            if report is not None:
+                report(k + 1 - k0, nt - 1 - k0)
+        flush()
+    pend_T = pend_ir = sol = None  # free the buffers before the file is written
+    # ---- write run.nc from the store, block by block
+    with timer("io"):
+        from crater_thermal.constants import AU
+
+        _, rec_dirs = fc.split(fc.sun_dirs)
+        _, rec_dist = fc.split(fc.sun_dist_m)
+        extra_vars = {
+            "start_residual": (
+                ("facet",),
+                np.asarray(spin_info["residual"], float),
+                {
+                    "units": "K",
+                    "long_name": "max over the column of |T(end) - T(start)| of the spin-up window's last period",
+                },
+            )
+        }
+        attrs = {
+            "case_name": case.name,
+            "case_toml": case.toml_text,
+            "albedo": albedo,
+            "emissivity": eps,
+            "lat_deg": float(case.location.lat_deg),
+            "lon_deg": float(case.location.lon_deg),
+            "property_set": case.surface.property_set,
+            "nominal_profile": nominal.label,
+            "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
+            "start_method": spin_info["start_method"],
+            "spinup_iterations": int(spin_info["iterations"]),
+            "spinup_years": float(case.period.spinup_years),
+            "initial_temperature_K": case.period.initial_temperature_K,
+            "timing_s": dict(timer.split),
+        }
+        ds = io.run_dataset(
+            mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
+        )
+        if ns:
+            ds = ds.assign_coords(spinup_time=fc.spin_times)
+        # (name, dims, rows, reader of rows k0..k1-1)
+        series = [
+            ("solar_incident", "time", nt, lambda a, b: store.read("solar", off + a, off + b)),
+            ("ir_incident", "time", nt, lambda a, b: store.read("ir", a, b)),
+            ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
+            ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b)),
+        ]
+        if incidence:
+            series.append(("solar_absorbed", "time", nt, lambda a, b: store.read("absorbed", off + a, off + b)))
+        if save_spin:
+            series += [
+                ("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
+                ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b)),
+            ]
+            if incidence:
+                series.append(("spinup_solar_absorbed", "spinup_time", ns, lambda a, b: store.read("absorbed", a, b)))
+        # stored as io.RUN_SERIES_DTYPE (float32; precision and sizes documented there)
+        variables = {
+            name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}), io.RUN_SERIES_DTYPE)
+            for name, dim, n, _ in series
+        }
+        with io.stream_dataset(
+            ds,
+            out_path,
+            variables,
+            overwrite=True if ckpt is not None else overwrite,
+            time_rows=min(simulate.TIME_CHUNK, block),
+        ) as write:
+            n_blocks = sum(-(-n // block) for _, _, n, _ in series)
+            with simulate.stage(progress, f"write {out_path.name}") as report:
+                done = 0
+                for name, _, n, read in series:
+                    for a in range(0, n, block):
+                        b = min(n, a + block)
+                        write(name, (slice(a, b), slice(None)), read(a, b))
+                        done += 1
+                        if report is not None:
+                            report(done, n_blocks)
+    if ckpt_path.exists():
+        ckpt_path.unlink()
+    store.remove()
+    return out_path
