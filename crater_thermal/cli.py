@@ -435,7 +435,33 @@ def report(
         1.0, "--footprint-fraction", help="Loose fraction of the candidate footprint [0-1]."
     ),
     reference_footprints: int = typer.Option(
-        1, "--reference-footprints", help="Nominal footprints averaged as the reference."
+        1, "--reference-footprints", help="Nominal footprints averaged as the reference (m) [-]."
+    ),
+    candidate_footprints: int = typer.Option(
+        1, "--candidate-footprints", help="Footprints spanned by the loose patch, averaged as the candidate (k) [-]."
+    ),
+    patch_area_m2: Optional[float] = typer.Option(
+        None,
+        "--patch-area-m2",
+        help="Area of the loose patch [m2]; with --footprint-area-m2 it sets --candidate-footprints "
+        "(whole footprints in it) and, below one footprint, the loose fraction.",
+    ),
+    footprint_area_m2: Optional[float] = typer.Option(
+        None, "--footprint-area-m2", help="Area of one footprint [m2] (Diviner about 240 m x 480 m = 1.15e5 m2)."
+    ),
+    mode: str = typer.Option(
+        "auto",
+        "--mode",
+        help="auto | stare | passes: a stare (dwell [s]) or repeated orbital passes (number of passes); "
+        "auto: passes for orbital presets (Diviner), stare otherwise.",
+    ),
+    passes: int = typer.Option(
+        100, "--passes", help="Orbital passes of the stated observation in pass mode (P_D maps, local time) [-]."
+    ),
+    pass_integration_s: Optional[float] = typer.Option(
+        None,
+        "--pass-integration-s",
+        help="Integration on each footprint per pass [s] (default: the instrument's, Diviner 0.128 s).",
     ),
     natural_scatter_k: float = typer.Option(
         0.94, "--natural-scatter-k", help="Footprint-to-footprint scatter of true temperatures [K]."
@@ -475,6 +501,12 @@ def report(
         reference_footprints=reference_footprints,
         natural_scatter_K=natural_scatter_k,
         false_alarm=false_alarm,
+        candidate_footprints=candidate_footprints,
+        patch_area_m2=patch_area_m2,
+        footprint_area_m2=footprint_area_m2,
+        mode=mode,
+        passes=passes,
+        pass_integration_s=pass_integration_s,
     )
     path = api.make_report(
         run,

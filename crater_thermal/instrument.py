@@ -17,43 +17,87 @@ to thesis Eq. 8.2 (bolometric T^4 mixing), which is this module's special case
 
 Detection statistics (one criterion)
 ------------------------------------
-The observation: a candidate footprint (fraction ``C`` loose regolith, the rest nominal, mixed in
-band radiance) and ``m`` reference footprints of nominal regolith, each observed for ``dwell_s``.
-The observed difference ``D = T_cand - mean(T_ref)`` [K] carries these terms (all Gaussian,
-independent, standard deviations in K):
+**The observation.** A candidate patch of ``k`` footprints, each a fraction ``C`` loose regolith (the
+rest nominal, mixed in band radiance: brightness temperature ``T_c``), against ``m`` reference
+footprints of nominal regolith (``T_n``). A patch of area ``A`` seen with footprints of area ``a``
+gives ``k = max(1, floor(A / a))`` whole footprints, and for ``A < a`` one footprint with
+``C = A / a`` (:class:`Observation`). Each footprint is observed in one of two modes:
 
-1. **Instrument noise** of one footprint, ``NETD(T) / sqrt(n)`` with n = floor(dwell / integration)
-   independent samples. ``NETD(T) = NETD_ref * L'(T_ref) / L'(T)`` with L' = dL/dT of the band:
-   a detector-noise-limited radiometer has a scene-independent noise-equivalent radiance
-   (thermopiles, microbolometers), so its NETD grows as the band's dB/dT falls at cold scenes.
-2. **Averaging floor** (1/f noise and drift; the minimum of the Allan deviation), set by the knee
-   time ``knee_s``: the instrument variance of one footprint is ``NETD^2 (1/n + t_int / knee_s)``, so
-   the white part falls as 1/n until the dwell reaches the knee and the floor
-   ``NETD sqrt(t_int / knee_s)`` remains. Like the NETD it is a radiance noise, so in kelvin it
-   scales with 1/dB/dT of the band.
-3. **Two scenes**: the candidate's and the references' instrument variances add; the references'
-   are divided by m (m = 1: the sqrt(2) of a plain two-scene difference).
-4. **Natural scatter** of regolith temperatures between footprints, ``natural_scatter_K`` per
-   footprint, in the candidate and in each reference: variance ``s^2 (1 + 1/m)``. It does not
-   average with dwell. Default 0.94 K: the thesis (7.2/7.3, refs [16, 112]) quotes it as the standard
+* **stare** (a rover or lander): a dwell ``t`` [s] on each footprint, ``n = floor(t / t_int)``
+  samples of one integration ``t_int``;
+* **passes** (an orbiting pushbroom such as Diviner): ``P`` overflights, each integrating the
+  footprint for ``t_pass`` [s] (Diviner 0.128 s, one integration), so ``n = P floor(t_pass / t_int)``
+  samples. "6.7 s" of Diviner data on one footprint is about 52 overflights.
+
+Exposures are given in the mode's unit, dwell [s] or passes [-] (:func:`exposure_unit`);
+:func:`exposure_seconds` gives the total time on each footprint [s] in either mode.
+
+**The noise model** (what :func:`detection_probability` states and the tests' independent Monte Carlo
+draws). Per comparison and footprint ``i`` with scene temperature ``T_i`` (``T_c`` or ``T_n``):
+
+1. **Natural scatter**: the footprint's true brightness temperature is ``T_i + s z_i``,
+   ``z_i ~ N(0, 1)`` per footprint, shared by all its samples and passes (it does not average with
+   exposure). Default ``s`` 0.94 K: the thesis (7.2/7.3, refs [16, 112]) quotes it as the standard
    deviation of rock-free lunar regolith temperatures; by the thesis's context ref. [16] is Bandfield et
    al. 2011 (JGR 116, E00H02), Diviner night-time temperatures of the regolith fines between 60 N and
    60 S (scenes of roughly 70-120 K, footprints of ~250 m); the paper itself was not read here. At 40-80 K
-   inside polar craters it has not been measured; what
-   sets temperatures there (scattered and re-emitted light, geothermal flux) differs from the
-   equatorial night, so take it as uncertain by a factor of about 2 either way (the report shows the
-   answer at 0.5x and 2x).
-5. **Calibration gain error** ``gain_error`` (relative, 1 sigma) multiplies the difference of band
-   radiances, so it scales D: standard deviation ``gain_error * |mu|`` (mu = expected D). It is zero
-   under the null hypothesis (no difference), so it widens only the detection distribution.
-   An absolute offset is common to both scenes and cancels in D; it does not enter.
+   inside polar craters it has not been measured; what sets temperatures there (scattered and re-emitted
+   light, geothermal flux) differs from the equatorial night, so take it as uncertain by a factor of
+   about 2 either way (the report shows the answer at 0.5x and 2x).
+2. **Calibration gain**: the instrument reports the band radiance ``(1 + g) L`` with one relative gain
+   error ``g ~ N(0, gain_error)`` per comparison, common to all its footprints and passes (a systematic
+   error of the radiometric scale; it does not average), and the footprint's brightness temperature
+   is inverted from that radiance: ``T_b((1 + g) L(T_i + s z_i))``.
+3. **White instrument noise**: each sample adds ``NETD(T_i) w``, ``w ~ N(0, 1)`` independent per
+   sample, with ``NETD(T) = NETD_ref L'(T_ref) / L'(T)`` (L' = dL/dT of the band): a
+   detector-noise-limited radiometer has a scene-independent noise-equivalent radiance (thermopiles,
+   microbolometers), so its NETD grows as the band's dB/dT falls at cold scenes. The footprint's
+   reading is the mean of its samples.
+4. **Averaging floor** (1/f noise and drift; the minimum of the Allan deviation): one offset
+   ``NETD(T_i) sqrt(t_int / knee_s) f``, ``f ~ N(0, 1)``, per footprint in a stare and per footprint
+   and pass with passes (overflights hours apart are calibrated anew), added to every sample of it.
+   The instrument variance of one footprint is therefore ``NETD^2 (1/n + t_int / knee_s)`` in a stare
+   (the white part falls until the dwell reaches the knee, the floor ``NETD sqrt(t_int/knee_s)``
+   remains) and ``NETD^2 (1/n + t_int / (knee_s P))`` with passes.
 
-The test is **one-sided** in the direction of the expected difference (loose regolith is colder at
-night, warmer by day): declare "different" when ``sign(mu) D > z_{1-a} sigma_0``, with a the false-alarm
-rate (default 1%), sigma_0 the standard deviation of D without a difference, sigma_1 with it. Then
-``P_D = Phi((|mu| - z_{1-a} sigma_0) / sigma_1)``. :func:`dwell_for_detection` gives the shortest dwell
-with ``P_D >= 0.9`` or, when even infinite dwell (sigma_0 -> the floors and the scatter) cannot reach
-it, "not detectable at any dwell" and the term that limits.
+The statistic is ``D = mean_k(T_b,cand) - mean_m(T_b,ref)`` [K], with expectation ``mu = T_c - T_n``.
+Its variance is the sum of (:func:`noise_terms`, variances in K^2)
+
+* ``instrument_white`` ``NETD(T_c)^2 / (n k) + NETD(T_n)^2 / (n m)``,
+* ``allan_floor`` ``(NETD(T_c)^2 / k + NETD(T_n)^2 / m) t_int / knee_s`` (``/ P`` with passes),
+* ``natural_scatter`` ``s^2 (1/k + 1/m)``,
+* ``gain_error`` ``(gain_error (h(T_c) - h(T_n)))^2`` with ``h = L / L'`` [K] (derivation below).
+
+**Gain error on band radiances.** With ``L_hat = (1 + g) L`` the inferred temperature is
+``T_hat = T_b((1 + g) L(T))``; to first order in ``g``, ``L(T_hat) = L(T) + L'(T) (T_hat - T)``, so
+``T_hat = T + g L(T) / L'(T) = T + g h(T)``. The difference of two footprints then reads
+``D_hat = mu + g (h(T_c) - h(T_n))``, and for ``|mu|`` small against the scale on which ``h`` bends,
+``D_hat = mu (1 + g dh/dT)`` with ``dh/dT = d(L/L')/dT = 1 - L L'' / L'^2``. The code keeps the
+difference ``h(T_c) - h(T_n)`` (exact to first order in ``g`` for any ``mu``). ``dh/dT`` is 1 in the
+Rayleigh-Jeans limit (L proportional to T: the former model's ``g mu``, a gain acting on the
+temperature difference), 1/4 for the whole spectrum (L proportional to T^4: h = T / 4) and about
+``2 / x`` on the Wien side (x = h c / (lambda k T) >> 1). At 58 K: 0.10 (microbolometer, 7.5-14 um),
+0.26 (Diviner ch. 7), 0.48 (ch. 8), 0.74 (ch. 9). Under the null hypothesis ``T_c = T_n``, the term
+vanishes. A common radiance offset ``o`` cancels in the radiance difference, but not quite in the
+temperature difference: ``D_hat = mu + o (1/L'(T_c) - 1/L'(T_n))``, a relative error
+``-o L'' / L'^2`` of ``mu``. It is not modelled here; an offset of 5 K at a 50 K scene (Diviner's
+absolute accuracy there, thesis 7.3) would make it about 0.05 of ``mu`` in ch. 9 and 0.5 in ch. 7
+at 58 K.
+
+**The test** is one-sided in the direction of the expected difference (loose regolith is colder at
+night, warmer by day): declare "different" when ``sign(mu) D > z_{1-a} sigma_0``, with ``a`` the
+false-alarm rate (default 1%). The threshold comes from the null hypothesis, "no loose regolith":
+every footprint, candidate and references, at the nominal temperature ``T_n``, so ``sigma_0`` is the
+standard deviation above with ``T_c = T_n`` (NETD(T_n) for both scenes, no gain term;
+:func:`sigma_null`, :func:`detection_threshold`). Under the alternative the candidate is at ``T_c``
+(its NETD there, and the gain term): ``sigma_1``. Then
+``P_D = Phi((|mu| - z_{1-a} sigma_0) / sigma_1)``, and ``P_D -> a`` as ``mu -> 0``.
+P_D increases with the exposure, with ``k`` and with ``m`` wherever ``P_D >= 1/2``; below 1/2 a
+candidate noisier than the references (colder, on the Wien side of its band) can lose P_D with
+averaging, since a noisier alternative crosses a fixed threshold more often. :func:`dwell_for_detection`
+gives the shortest exposure with ``P_D >= 0.9`` (the set where it holds is one interval from infinite
+exposure down) or, when even infinite exposure (white noise gone; in a stare the floor remains) cannot
+reach it, "not detectable" and the term that limits.
 """
 
 from __future__ import annotations
@@ -62,6 +106,7 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
+from typing import Optional
 
 import numpy as np
 import scipy.constants as _sc
@@ -314,8 +359,10 @@ class Instrument:
     t_ref_K : float [K]              scene temperature at which ``netd_ref_K`` is specified.
     integration_s : float [s]        one integration; samples in a dwell are independent.
     knee_s : float [s]               1/f knee: dwell at which white noise equals the averaging floor.
-    gain_error : float [-]           relative 1-sigma calibration gain error on radiance differences.
+    gain_error : float [-]           relative 1-sigma calibration gain error of band radiances.
     source : str                     where the numbers come from.
+    pass_integration_s : float [s]   orbital pushbroom: time one footprint is integrated per overflight;
+                                     None for a staring instrument. Sets the default mode (``passes``).
     """
 
     name: str
@@ -327,9 +374,13 @@ class Instrument:
     knee_s: float
     gain_error: float
     source: str = ""
+    pass_integration_s: Optional[float] = None
 
     def __post_init__(self):
         Band(self.lo_um, self.hi_um)
+        p = self.pass_integration_s
+        if p is not None and not (math.isfinite(p) and p > 0):
+            raise ConfigError(f"pass_integration_s={p} out of range (0, inf)")
         for key in ("netd_ref_K", "t_ref_K", "integration_s", "knee_s"):
             v = getattr(self, key)
             if not (math.isfinite(v) and v > 0):
@@ -361,14 +412,16 @@ class Instrument:
 #: telescope design and the same 21-element thermopile arrays, detector-noise limited: the noise-equivalent
 #: radiance is taken equal for the three channels, anchored on channel 9's NETD of about 2 K at a 50 K
 #: scene (thesis 7.3, citing Paige et al. 2010). Integration 0.128 s (Paige et al. 2010). Absolute
-#: accuracy 0.5-1% of a 300 K scene (Paige, UCLA ESS 265 lecture 2010): gain error 1%. 1/f knee 60 s: an
+#: accuracy 0.5-1% of a 300 K scene (Paige, UCLA ESS 265 lecture 2010): gain error 1%. A pushbroom on LRO: each
+#: footprint is seen for one integration per overflight (thesis 7.3: integration kept short against smearing
+#: at LRO's ground speed), so the presets observe in passes of 0.128 s. 1/f knee 60 s: an
 #: assumption (no published figure found). The per-channel NETDs of Paige et al. 2010 could not be read in
 #: this work; the equal-radiance-noise assumption should be replaced by them.
 _DIVINER_NEDL_SOURCE = (
     "Paige et al. 2010 (Space Sci. Rev. 150:125) passbands and 0.128 s integration; NETD from "
     "the thesis's 2 K at 50 K for channel 9, same noise-equivalent radiance assumed for "
     "channels 7-8 (same thermopile arrays); gain error 1% (0.5-1% accuracy at 300 K); "
-    "1/f knee 60 s assumed"
+    "1/f knee 60 s assumed; orbital pushbroom: 0.128 s on each footprint per pass"
 )
 
 
@@ -386,6 +439,7 @@ def _diviner(ch: int, lo: float, hi: float) -> Instrument:
         knee_s=60.0,
         gain_error=0.01,
         source=_DIVINER_NEDL_SOURCE,
+        pass_integration_s=0.128,
     )
 
 
@@ -426,8 +480,12 @@ def custom_instrument(
     knee_s: float = 60.0,
     gain_error: float = 0.01,
     name: str = "custom",
+    pass_integration_s: Optional[float] = None,
 ) -> Instrument:
-    """A user-defined band/NETD (band edges [um], NETD [K] at ``t_ref_K`` [K], integration [s])."""
+    """A user-defined band/NETD (band edges [um], NETD [K] at ``t_ref_K`` [K], integration [s]).
+
+    ``pass_integration_s`` [s]: an orbital pushbroom's time on each footprint per pass (None: staring).
+    """
     return Instrument(
         name=name,
         lo_um=lo_um,
@@ -438,6 +496,7 @@ def custom_instrument(
         knee_s=knee_s,
         gain_error=gain_error,
         source="user-defined",
+        pass_integration_s=pass_integration_s,
     )
 
 
@@ -450,6 +509,11 @@ def get_instrument(name: str) -> Instrument:
 
 # ------------------------------------------------------------------------------ observation
 
+#: Observing modes: a stare (dwell [s]) or repeated orbital passes (number of passes [-])
+MODES = ("stare", "passes")
+#: Passes of the stated observation when none are given [-]: an assumed campaign of 100 overflights
+DEFAULT_PASSES = 100
+
 
 @dataclass(frozen=True)
 class Observation:
@@ -457,11 +521,22 @@ class Observation:
 
     Attributes
     ----------
-    footprint_fraction : float [-]   fraction of the candidate footprint that is loose (rest nominal).
-    reference_footprints : int       m nominal footprints averaged as the reference.
+    footprint_fraction : float [-]   fraction of each candidate footprint that is loose (rest nominal).
+    reference_footprints : int [-]   m nominal footprints averaged as the reference.
     natural_scatter_K : float [K]    footprint-to-footprint scatter of true temperatures (each footprint).
     false_alarm : float [-]          false-alarm rate of the one-sided test.
-    target_pd : float [-]            detection probability the dwell is computed for.
+    target_pd : float [-]            detection probability the exposure is computed for.
+    candidate_footprints : int [-]   k footprints spanned by the loose patch, averaged as the candidate.
+    patch_area_m2 : float [m2]       area of the loose patch (with ``footprint_area_m2``: sets
+                                     ``candidate_footprints = max(1, floor(A / a))`` and, for a patch
+                                     smaller than one footprint, ``footprint_fraction = A / a``).
+    footprint_area_m2 : float [m2]   area of one footprint (Diviner ~240 m x 480 m = 1.15e5 m2, thesis 7.3).
+    mode : str                       ``stare``, ``passes`` or ``auto`` (each instrument's own: passes for an
+                                     orbital pushbroom, one with ``pass_integration_s``, else stare).
+    passes : int [-]                 overflights of the stated observation in pass mode (where one exposure
+                                     is evaluated, e.g. the report's P_D maps; the exposure needed is searched).
+    pass_integration_s : float [s]   time on each footprint per pass (None: the instrument's, else its
+                                     ``integration_s``).
     """
 
     footprint_fraction: float = 1.0
@@ -469,26 +544,100 @@ class Observation:
     natural_scatter_K: float = NATURAL_SCATTER_K
     false_alarm: float = FALSE_ALARM
     target_pd: float = TARGET_PD
+    candidate_footprints: int = 1
+    patch_area_m2: Optional[float] = None
+    footprint_area_m2: Optional[float] = None
+    mode: str = "auto"
+    passes: int = DEFAULT_PASSES
+    pass_integration_s: Optional[float] = None
 
     def __post_init__(self):
         if not 0.0 <= self.footprint_fraction <= 1.0:
             raise ConfigError(f"footprint_fraction={self.footprint_fraction} out of range [0, 1]")
-        if int(self.reference_footprints) != self.reference_footprints or self.reference_footprints < 1:
-            raise ConfigError(f"reference_footprints={self.reference_footprints} must be an integer >= 1")
+        for key in ("reference_footprints", "candidate_footprints", "passes"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or int(v) != v or v < 1:
+                raise ConfigError(f"{key}={v} must be an integer >= 1")
+            object.__setattr__(self, key, int(v))
         if not (math.isfinite(self.natural_scatter_K) and self.natural_scatter_K >= 0):
             raise ConfigError(f"natural_scatter_K={self.natural_scatter_K} out of range [0, inf)")
         for key in ("false_alarm", "target_pd"):
             v = getattr(self, key)
             if not 0.0 < v < 1.0:
                 raise ConfigError(f"{key}={v} out of range (0, 1)")
+        if self.mode not in ("auto",) + MODES:
+            raise ConfigError(f"mode={self.mode!r} unknown; allowed: auto, {', '.join(MODES)}")
+        p = self.pass_integration_s
+        if p is not None and not (math.isfinite(p) and p > 0):
+            raise ConfigError(f"pass_integration_s={p} out of range (0, inf)")
+        if (self.patch_area_m2 is None) != (self.footprint_area_m2 is None):
+            raise ConfigError("patch_area_m2 and footprint_area_m2 go together: give both or neither")
+        if self.patch_area_m2 is not None:
+            A, a = self.patch_area_m2, self.footprint_area_m2
+            for key, v in (("patch_area_m2", A), ("footprint_area_m2", a)):
+                if not (math.isfinite(v) and v > 0):
+                    raise ConfigError(f"{key}={v} out of range (0, inf)")
+            k = max(1, math.floor(A / a + 1e-9))  # 1e-9: a patch of exactly k footprints is k
+            frac = min(1.0, A / a)
+            if self.candidate_footprints not in (1, k):
+                raise ConfigError(
+                    f"candidate_footprints={self.candidate_footprints} conflicts with patch_area_m2/footprint_area_m2 "
+                    f"(which give {k}); give one or the other"
+                )
+            if self.footprint_fraction not in (1.0, frac):
+                raise ConfigError(
+                    f"footprint_fraction={self.footprint_fraction} conflicts with a patch smaller than one "
+                    f"footprint (fraction {frac:.3g}); give one or the other"
+                )
+            object.__setattr__(self, "candidate_footprints", k)
+            object.__setattr__(self, "footprint_fraction", float(frac))
 
-    def as_dict(self) -> dict:
+    def as_dict(self, instruments: Sequence[Instrument] = ()) -> dict:
+        """The fields, the test, and for each of ``instruments`` the mode and time per pass [s] it resolves to."""
         d = asdict(self)
-        d["test"] = "one-sided Gaussian, in the direction of the expected difference"
+        d["test"] = "one-sided Gaussian, in the direction of the expected difference; threshold from the null"
+        if instruments:
+            d["mode_by_instrument"] = {i.name: observing_mode(i, self) for i in instruments}
+            d["pass_integration_s_by_instrument"] = {
+                i.name: pass_integration(i, self) if observing_mode(i, self) == "passes" else None for i in instruments
+            }
         return d
 
     def with_scatter(self, natural_scatter_K: float) -> Observation:
         return replace(self, natural_scatter_K=float(natural_scatter_K))
+
+
+def observing_mode(instrument: Instrument, obs: Observation) -> str:
+    """``stare`` or ``passes``: the observation's mode, or with ``auto`` the instrument's own."""
+    if obs.mode != "auto":
+        return obs.mode
+    return "passes" if instrument.pass_integration_s is not None else "stare"
+
+
+def pass_integration(instrument: Instrument, obs: Observation) -> float:
+    """Time on each footprint per pass [s]: the observation's, else the instrument's, else one integration."""
+    for v in (obs.pass_integration_s, instrument.pass_integration_s):
+        if v is not None:
+            return float(v)
+    return float(instrument.integration_s)
+
+
+def exposure_unit(instrument: Instrument, obs: Observation) -> str:
+    """Unit of an exposure in this mode: ``"s"`` (dwell, stare) or ``"passes"``."""
+    return "passes" if observing_mode(instrument, obs) == "passes" else "s"
+
+
+def stated_exposure(instrument: Instrument, obs: Observation, stare_dwell_s: float) -> float:
+    """The exposure of a stated observation in the mode's unit: ``stare_dwell_s`` [s], or ``obs.passes``."""
+    return float(obs.passes) if observing_mode(instrument, obs) == "passes" else float(stare_dwell_s)
+
+
+def exposure_seconds(exposure, instrument: Instrument, obs: Observation) -> np.ndarray:
+    """Total time on each footprint [s] of an exposure (dwell [s], or passes x time per pass)."""
+    e = np.asarray(exposure, float)
+    if observing_mode(instrument, obs) == "passes":
+        return _whole_passes(e) * pass_integration(instrument, obs)
+    return e
 
 
 #: Names of the noise terms (variances of D) in :func:`noise_terms`
@@ -496,7 +645,7 @@ TERMS = ("instrument_white", "allan_floor", "natural_scatter", "gain_error")
 
 
 def n_samples(dwell_s, integration_s: float) -> np.ndarray:
-    """Independent samples in a dwell: floor(dwell / integration), at least 1."""
+    """Independent samples in a dwell [s] of integrations [s]: floor(dwell / integration), at least 1."""
     d = np.asarray(dwell_s, float)
     if integration_s <= 0:
         raise ConfigError(f"integration_s={integration_s} out of range (0, inf)")
@@ -505,13 +654,41 @@ def n_samples(dwell_s, integration_s: float) -> np.ndarray:
     return np.maximum(1, np.floor(d / integration_s + 1e-9))  # 1e-9: dwell = n x integration is n
 
 
+def _whole_passes(passes) -> np.ndarray:
+    p = np.asarray(passes, float)
+    if np.any(~(p >= 1)):
+        raise ConfigError(f"passes={p.min() if p.size else p} out of range [1, inf)")
+    return np.floor(p + 1e-9)
+
+
+def averaging(exposure, instrument: Instrument, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+    """(n, r): white-noise samples per footprint, and independent floor offsets averaged per footprint [-].
+
+    Stare (exposure = dwell [s]): ``n = floor(dwell / t_int)``, ``r = 1``. Passes (exposure = passes):
+    ``n = P floor(t_pass / t_int)``, ``r = P``. Infinite exposure gives ``n = inf`` (and ``r = inf``
+    with passes).
+    """
+    if observing_mode(instrument, obs) == "passes":
+        P = _whole_passes(exposure)
+        return P * n_samples(pass_integration(instrument, obs), instrument.integration_s), P
+    n = n_samples(exposure, instrument.integration_s)
+    return n, np.ones_like(n)
+
+
+def gain_lever(T_K, band: Band) -> np.ndarray:
+    """h(T) = L / L' [K]: a relative radiance gain error g moves a brightness temperature by g h (module doc)."""
+    T = _check_T(T_K)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return band_radiance(T, band) / band_radiance_derivative(T, band)
+
+
 def observed_difference(dT_K, T_nominal_K, instrument: Instrument, obs: Observation = Observation()):
-    """Expected observed difference and scene temperatures of candidate minus reference.
+    """Expected observed difference and scene temperature of the candidate minus the reference.
 
     Returns
     -------
-    mu_K : array [K]         band brightness temperature of the mixed candidate minus the nominal's.
-    T_cand_K : array [K]     band brightness temperature of the candidate footprint.
+    mu_K : array [K]         band brightness temperature of a (mixed) candidate footprint minus the nominal's.
+    T_cand_K : array [K]     band brightness temperature of a candidate footprint.
     """
     T_nom = _check_T(T_nominal_K)
     T_off = _check_T(T_nom + np.asarray(dT_K, float))
@@ -519,34 +696,52 @@ def observed_difference(dT_K, T_nominal_K, instrument: Instrument, obs: Observat
     return T_cand - T_nom, T_cand
 
 
-def noise_terms(
-    mu_K, T_cand_K, T_ref_K, dwell_s, instrument: Instrument, obs: Observation = Observation()
-) -> dict[str, np.ndarray]:
-    """Variances [K^2] of the observed difference D, by term (:data:`TERMS`), at a dwell [s].
+def noise_terms(T_cand_K, T_ref_K, exposure, instrument: Instrument, obs: Observation = Observation()) -> dict:
+    """Variances [K^2] of D, by term (:data:`TERMS`), with the candidate at ``T_cand_K`` [K].
 
-    ``instrument_white`` = NETD(T_cand)^2/n + NETD(T_ref)^2/(n m); ``allan_floor`` = the same with
-    1/n replaced by t_int / knee_s;
-    ``natural_scatter`` = s^2 (1 + 1/m); ``gain_error`` = (g mu)^2 (present only with a difference).
+    ``exposure``: dwell [s] (stare) or passes [-] (:func:`observing_mode`). With ``T_cand_K = T_ref_K``
+    these are the null hypothesis's (no gain term). ``instrument_white`` = NETD(T_c)^2/(n k) +
+    NETD(T_r)^2/(n m); ``allan_floor`` = (NETD(T_c)^2/k + NETD(T_r)^2/m) t_int / (knee_s r);
+    ``natural_scatter`` = s^2 (1/k + 1/m); ``gain_error`` = (g (h(T_c) - h(T_r)))^2, h = L/L'
+    (:func:`averaging` gives n and r).
     """
-    m = float(obs.reference_footprints)
-    n = n_samples(dwell_s, instrument.integration_s)
-    e_c = instrument.netd(T_cand_K)
-    e_r = instrument.netd(T_ref_K)
-    with np.errstate(over="ignore"):
-        white = e_c**2 / n + e_r**2 / (n * m)
-        floor = (e_c**2 + e_r**2 / m) * (instrument.integration_s / instrument.knee_s)
-    shape = np.broadcast(white, np.asarray(mu_K, float)).shape
+    k, m = float(obs.candidate_footprints), float(obs.reference_footprints)
+    n, r = averaging(exposure, instrument, obs)
+    e_c, e_r = instrument.netd(T_cand_K), instrument.netd(T_ref_K)
+    band = instrument.band
+    with np.errstate(over="ignore", invalid="ignore"):
+        per = e_c**2 / k + e_r**2 / m
+        white = per / n
+        floor = per * (instrument.integration_s / instrument.knee_s) / r
+        lever = gain_lever(T_cand_K, band) - gain_lever(T_ref_K, band)
+        gain = (instrument.gain_error * lever) ** 2
+    shape = np.broadcast(white, floor, gain).shape
     return {
         "instrument_white": np.broadcast_to(white, shape).astype(float),
         "allan_floor": np.broadcast_to(floor, shape).astype(float),
-        "natural_scatter": np.full(shape, obs.natural_scatter_K**2 * (1 + 1 / m)),
-        "gain_error": np.broadcast_to((instrument.gain_error * np.asarray(mu_K, float)) ** 2, shape).astype(float),
+        "natural_scatter": np.full(shape, obs.natural_scatter_K**2 * (1 / k + 1 / m)),
+        "gain_error": np.broadcast_to(gain, shape).astype(float),
     }
 
 
-def _pd_from_terms(mu, terms, false_alarm):
-    var0 = terms["instrument_white"] + terms["allan_floor"] + terms["natural_scatter"]
-    var1 = var0 + terms["gain_error"]
+def _total(terms) -> np.ndarray:
+    return terms["instrument_white"] + terms["allan_floor"] + terms["natural_scatter"] + terms["gain_error"]
+
+
+def sigma_null(T_nominal_K, exposure, instrument: Instrument, obs: Observation = Observation()) -> np.ndarray:
+    """Standard deviation [K] of D under the null (every footprint at ``T_nominal_K`` [K]) at an exposure.
+
+    ``exposure``: dwell [s] or passes [-] (:func:`exposure_unit`).
+    """
+    return np.sqrt(_total(noise_terms(T_nominal_K, T_nominal_K, exposure, instrument, obs)))
+
+
+def detection_threshold(T_nominal_K, exposure, instrument: Instrument, obs: Observation = Observation()):
+    """Threshold [K] on ``sign(mu) D``: ``z_{1-a} sigma_0`` (false-alarm rate ``obs.false_alarm`` under the null)."""
+    return ndtri(1.0 - obs.false_alarm) * sigma_null(T_nominal_K, exposure, instrument, obs)
+
+
+def _pd(mu, var0, var1, false_alarm):
     z = ndtri(1.0 - false_alarm)
     with np.errstate(invalid="ignore", divide="ignore"):
         arg = (np.abs(mu) - z * np.sqrt(var0)) / np.sqrt(var1)
@@ -554,59 +749,98 @@ def _pd_from_terms(mu, terms, false_alarm):
 
 
 def detection_probability(
-    dT_K, T_nominal_K, dwell_s, instrument: Instrument, obs: Observation = Observation()
+    dT_K, T_nominal_K, exposure, instrument: Instrument, obs: Observation = Observation()
 ) -> np.ndarray:
-    """P_D [-] of the one-sided test at false-alarm rate ``obs.false_alarm``, per dwell [s].
+    """P_D [-] of the one-sided test at false-alarm rate ``obs.false_alarm`` (module docstring).
 
     Parameters
     ----------
-    dT_K : float [K]             true loose minus nominal temperature (the loose part of the footprint).
+    dT_K : float [K]             true loose minus nominal temperature (the loose part of each candidate footprint).
     T_nominal_K : float [K]      nominal scene temperature.
-    dwell_s : array [s]          dwell on each footprint.
+    exposure : array             dwell on each footprint [s] (stare) or number of passes [-] (passes).
     """
     mu, T_cand = observed_difference(dT_K, T_nominal_K, instrument, obs)
-    terms = noise_terms(mu, T_cand, T_nominal_K, dwell_s, instrument, obs)
-    return _pd_from_terms(mu, terms, obs.false_alarm)
+    var0 = _total(noise_terms(T_nominal_K, T_nominal_K, exposure, instrument, obs))
+    var1 = _total(noise_terms(T_cand, T_nominal_K, exposure, instrument, obs))
+    return _pd(mu, var0, var1, obs.false_alarm)
+
+
+def _exposure_words(exposure: float, instrument: Instrument, obs: Observation) -> str:
+    if observing_mode(instrument, obs) == "passes":
+        t = pass_integration(instrument, obs)
+        word = "pass" if round(exposure) == 1 else "passes"
+        return f"{exposure:.0f} {word} ({t:.3g} s on each footprint per pass, {exposure * t:.3g} s in all)"
+    return f"{exposure:.3g} s on each footprint (stare)"
 
 
 def dwell_for_detection(
-    dT_K: float, T_nominal_K: float, instrument: Instrument, obs: Observation = Observation(), max_dwell_s: float = 1e6
+    dT_K: float,
+    T_nominal_K: float,
+    instrument: Instrument,
+    obs: Observation = Observation(),
+    max_dwell_s: float = 1e6,
+    max_passes: int = 100_000,
 ) -> dict:
-    """Shortest dwell [s] on each footprint for P_D >= ``obs.target_pd``, or why there is none.
+    """Shortest exposure for P_D >= ``obs.target_pd``: a dwell [s] (stare) or a number of passes, or why none.
 
     Returns
     -------
-    dict with ``mu_K`` (expected observed difference [K]), ``T_candidate_K``, ``netd_candidate_K`` and
-    ``netd_reference_K`` (one integration [K]), ``detectable`` (bool), ``dwell_s`` ([s] or None),
-    ``n_samples`` (int or None), ``pd_at_dwell`` (P_D at that dwell), ``pd_limit`` (P_D at infinite dwell),
-    ``limiting_term`` (largest variance term at the answer's dwell, or at infinite dwell when not
-    detectable), ``sigma_terms_K`` ({term: standard deviation [K]} at that dwell), ``answer`` (a sentence).
+    dict with ``mu_K`` (expected observed difference [K]), ``T_candidate_K`` [K], ``netd_candidate_K`` and
+    ``netd_reference_K`` (one integration [K]), ``mode`` (stare | passes), ``exposure_unit`` ("s" |
+    "passes"), ``pass_integration_s`` ([s] per pass, None in a stare), ``detectable`` (bool),
+    ``exposure`` (in ``exposure_unit``, or None), ``dwell_s`` (total time on each footprint [s], either
+    mode, or None), ``passes`` (int or None), ``n_samples`` (per footprint, or None), ``threshold_K``
+    (z sigma_0 at that exposure [K], or None), ``pd_at_dwell`` (P_D there), ``pd_limit`` (P_D at infinite
+    exposure), ``limiting_term`` (largest variance term at the answer's exposure, or at infinite exposure
+    when not detectable), ``sigma_terms_K`` ({term: standard deviation [K]} there, under the alternative),
+    ``answer`` (a sentence). The search stops at ``max_dwell_s`` [s] or ``max_passes``.
     """
     mu_a, T_cand_a = observed_difference(dT_K, T_nominal_K, instrument, obs)
     mu, T_cand = float(mu_a), float(T_cand_a)
     inst = instrument
+    mode = observing_mode(inst, obs)
+    passes = mode == "passes"
+    t_pass = pass_integration(inst, obs) if passes else None
     out = {
         "mu_K": mu,
         "T_candidate_K": T_cand,
         "netd_candidate_K": float(inst.netd(T_cand)),
         "netd_reference_K": float(inst.netd(T_nominal_K)),
+        "mode": mode,
+        "exposure_unit": exposure_unit(inst, obs),
+        "pass_integration_s": t_pass,
         "detectable": False,
+        "exposure": None,
         "dwell_s": None,
+        "passes": None,
         "n_samples": None,
+        "threshold_K": None,
         "pd_at_dwell": None,
         "pd_limit": None,
         "limiting_term": None,
         "sigma_terms_K": None,
         "answer": "",
     }
+    # the search runs over whole steps: samples (stare: exposure = steps x t_int) or passes
+    step_s = inst.integration_s
 
-    def terms_at(n):
-        return noise_terms(mu, T_cand, T_nominal_K, n * inst.integration_s, inst, obs)
+    def exposure_of(steps):
+        return steps if passes else steps * step_s
 
-    inf_terms = {k: float(v) for k, v in terms_at(np.inf).items()}
+    def terms_at(steps):
+        return {k: float(v) for k, v in noise_terms(T_cand, T_nominal_K, exposure_of(steps), inst, obs).items()}
+
+    def var0_at(steps):
+        return float(_total(noise_terms(T_nominal_K, T_nominal_K, exposure_of(steps), inst, obs)))
+
+    def pd(steps):
+        return float(_pd(mu, var0_at(steps), _total(terms_at(steps)), obs.false_alarm))
+
+    inf_terms = terms_at(np.inf)
     inf_terms["instrument_white"] = 0.0
-    pd_inf = float(_pd_from_terms(mu, inf_terms, obs.false_alarm))
+    pd_inf = pd(np.inf)
     out["pd_limit"] = pd_inf
+    never = "with any number of passes" if passes else "at any dwell"
     if pd_inf < obs.target_pd:
         lim = max(("allan_floor", "natural_scatter", "gain_error"), key=lambda k: inf_terms[k])
         why = lim.replace("_", " ")
@@ -619,58 +853,67 @@ def dwell_for_detection(
             limiting_term=lim,
             sigma_terms_K={k: math.sqrt(v) for k, v in inf_terms.items()},
             answer=(
-                f"not detectable at any dwell: P_D <= {pd_inf:.2f} < {obs.target_pd:g} at "
-                f"{100 * obs.false_alarm:g}% false alarms; limited by {why}"
+                f"not detectable {never}: P_D {pd_inf:.2f} < {obs.target_pd:g} even at infinite exposure "
+                f"({100 * obs.false_alarm:g}% false alarms); limited by {why}"
             ),
         )
         return out
-    n_max = max(1.0, math.floor(max_dwell_s / inst.integration_s))
-
-    def pd(n):
-        return float(_pd_from_terms(mu, {k: float(v) for k, v in terms_at(n).items()}, obs.false_alarm))
-
+    n_max = float(max_passes) if passes else max(1.0, math.floor(max_dwell_s / step_s))
     if pd(n_max) < obs.target_pd:
-        t = terms_at(n_max)
+        within = f"{n_max:.0f} passes" if passes else f"{max_dwell_s:g} s"
         out.update(
             limiting_term="instrument_white",
             pd_at_dwell=pd(n_max),
-            sigma_terms_K={k: math.sqrt(float(v)) for k, v in t.items()},
+            sigma_terms_K={k: math.sqrt(v) for k, v in terms_at(n_max).items()},
             answer=(
-                f"not detectable within {max_dwell_s:g} s: instrument noise NETD "
+                f"not detectable within {within}: instrument noise NETD "
                 f"{out['netd_candidate_K']:.3g} K per {inst.integration_s:g} s integration"
             ),
         )
         return out
     lo, hi = 1.0, 1.0
-    if pd(1.0) < obs.target_pd:  # bisection on the integer sample count (P_D increases with n)
+    if pd(1.0) < obs.target_pd:  # bisection on whole steps (P_D >= target on one interval, module doc)
         lo, hi = 1.0, 2.0
         while pd(hi) < obs.target_pd:
             lo, hi = hi, min(2 * hi, n_max)
         while hi - lo > 1:
             mid = math.floor(0.5 * (lo + hi))
             lo, hi = (mid, hi) if pd(mid) < obs.target_pd else (lo, mid)
-    n = hi
-    t = {k: float(v) for k, v in terms_at(n).items()}
+    steps = hi
+    t = terms_at(steps)
     lim = max(t, key=t.get)
-    dwell = n * inst.integration_s
+    expo = exposure_of(steps)
+    n, _ = averaging(expo, inst, obs)
     out.update(
         detectable=True,
-        dwell_s=dwell,
+        exposure=float(expo),
+        dwell_s=float(exposure_seconds(expo, inst, obs)),
+        passes=int(steps) if passes else None,
         n_samples=int(n),
-        pd_at_dwell=pd(n),
+        threshold_K=float(ndtri(1.0 - obs.false_alarm) * math.sqrt(var0_at(steps))),
+        pd_at_dwell=pd(steps),
         limiting_term=lim,
         sigma_terms_K={k: math.sqrt(v) for k, v in t.items()},
         answer=(
-            f"P_D >= {obs.target_pd:g} at {100 * obs.false_alarm:g}% false alarms after {dwell:.3g} s "
-            f"on each footprint; largest noise term there: {lim.replace('_', ' ')}"
+            f"P_D >= {obs.target_pd:g} at {100 * obs.false_alarm:g}% false alarms after "
+            f"{_exposure_words(expo, inst, obs)}; largest noise term there: {lim.replace('_', ' ')}"
         ),
     )
     return out
 
 
 def dwell_grid(instrument: Instrument, max_s: float = 3600.0, n: int = 60) -> np.ndarray:
-    """Log-spaced dwell times [s] from one integration to ``max_s`` (for P_D versus dwell curves)."""
+    """Log-spaced dwell times [s] from one integration to ``max_s`` [s] (stare: P_D versus dwell curves)."""
     return np.geomspace(instrument.integration_s, max(max_s, 2 * instrument.integration_s), n)
+
+
+def exposure_grid(
+    instrument: Instrument, obs: Observation, max_s: float = 3600.0, max_passes: int = 10_000, n: int = 60
+) -> np.ndarray:
+    """Exposures for P_D curves in the mode's unit: :func:`dwell_grid` [s], or whole passes 1..``max_passes``."""
+    if observing_mode(instrument, obs) == "passes":
+        return np.unique(np.round(np.geomspace(1.0, max(2.0, float(max_passes)), n)))
+    return dwell_grid(instrument, max_s, n)
 
 
 def band_table(T_K: Sequence[float], instruments: Sequence[Instrument]) -> dict[str, dict]:
@@ -688,9 +931,3 @@ def band_table(T_K: Sequence[float], instruments: Sequence[Instrument]) -> dict[
         }
         for i in instruments
     }
-
-
-def sigma_null(T_cand_K, T_ref_K, dwell_s, instrument: Instrument, obs: Observation = Observation()) -> np.ndarray:
-    """Standard deviation [K] of D without a difference (instrument, floor, scatter) at a dwell [s]."""
-    t = noise_terms(0.0, T_cand_K, T_ref_K, dwell_s, instrument, obs)
-    return np.sqrt(t["instrument_white"] + t["allan_floor"] + t["natural_scatter"])

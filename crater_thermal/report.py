@@ -118,17 +118,25 @@ SUMMARY_KEYS = {
     ),
     "latitude_detection_dwell_s": "{lat_deg (str): {instrument: {region: float|null}}} [s]: dwell on each "
     "footprint for P_D >= target per latitude (null = not detectable at any dwell).",
-    "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source}}: "
+    "instruments": "{name: {name, lo_um, hi_um, netd_ref_K, t_ref_K, integration_s, knee_s, gain_error, source, "
+    "pass_integration_s (orbital pushbroom [s] per pass, null = staring)}}: "
     "instrument channels (instrument.Instrument; presets instrument.PRESETS).",
-    "observation": "{footprint_fraction, reference_footprints, natural_scatter_K, false_alarm, target_pd, test}: "
-    "how the candidate is compared with nominal (instrument.Observation).",
-    "detection_reference_dwell_s": "float [s]: dwell at which |dT|/sigma is evaluated for the best local time.",
-    "detection_dwell_grid_s": "{instrument: [float]} [s]: dwell times of the P_D curves.",
+    "observation": "{footprint_fraction, reference_footprints, natural_scatter_K [K], false_alarm, target_pd, "
+    "candidate_footprints (k), patch_area_m2 [m2], footprint_area_m2 [m2] (null = k given), mode (auto | stare | "
+    "passes), passes (of the stated observation), pass_integration_s [s] (null = the instrument's), test, "
+    "mode_by_instrument {instrument: stare | passes}, pass_integration_s_by_instrument {instrument: [s] | null}}: "
+    "how the candidate patch is compared with nominal (instrument.Observation).",
+    "detection_reference_dwell_s": "float [s]: stare dwell at which |dT|/sigma is evaluated for the best local "
+    "time (instruments in pass mode: observation.passes).",
+    "detection_dwell_grid_s": "{instrument: [float]} [s]: total time on each footprint of the P_D curves' "
+    "exposures (pass mode: whole passes x pass_integration_s).",
     "band_signal_night_floor": "{instrument: {band_um, T_K, band_radiance_W_m2_sr, dL_dT_W_m2_sr_K, netd_K, "
     "netd_ref_K, t_ref_K}}: what each band receives from the night-time nominal floor "
     "(and at 300 K).",
     "detection": "{instrument: {region: {dT_median_K, dT_q1_K, dT_q3_K, T_nominal_K, mu_K (observed, band-mixed), "
-    "netd_candidate_K, netd_reference_K, detectable, dwell_s (null = none), n_samples, pd_at_dwell, "
+    "netd_candidate_K, netd_reference_K, mode (stare | passes), exposure_unit (s | passes), pass_integration_s, "
+    "detectable, exposure (dwell [s] or passes; null = none), dwell_s (total time on each footprint [s], "
+    "null = none), passes (null in a stare), n_samples, threshold_K, pd_at_dwell, "
     "pd_limit (infinite dwell), limiting_term (instrument.TERMS), sigma_terms_K {term: K}, answer "
     "(sentence), pd_vs_dwell [-] on detection_dwell_grid_s, best_local_time_h (null = no samples), "
     "best_snr, best_dT_K, best_T_nominal_K, snr_by_local_time [-] (24 lunar-hour bins, |mu|/sigma_0 at "
@@ -246,8 +254,8 @@ def _best_local_time(bins, inst: ins.Instrument, obs: ins.Observation) -> dict:
     snr = np.full(_LT_BINS, np.nan)
     ok = np.isfinite(dT) & np.isfinite(Tn) & (Tn > 0) & (Tn + dT > 0)
     if ok.any():
-        mu, Tc = ins.observed_difference(dT[ok], Tn[ok], inst, obs)
-        snr[ok] = np.abs(mu) / ins.sigma_null(Tc, Tn[ok], REFERENCE_DWELL_S, inst, obs)
+        mu, _ = ins.observed_difference(dT[ok], Tn[ok], inst, obs)
+        snr[ok] = np.abs(mu) / ins.sigma_null(Tn[ok], ins.stated_exposure(inst, obs, REFERENCE_DWELL_S), inst, obs)
     if not np.isfinite(snr).any():
         return dict(best_local_time_h=None, best_snr=None, best_dT_K=None, best_T_nominal_K=None, snr_by_local_time=snr)
     j = int(np.nanargmax(snr))
@@ -265,7 +273,7 @@ def _detection(A, instruments: Sequence[ins.Instrument], obs: ins.Observation, w
     out = {}
     bins = {r: _local_time_bins(A, r) for r in A.regions} if with_time else {}
     for inst in instruments:
-        grid = ins.dwell_grid(inst)
+        grid = ins.exposure_grid(inst, obs)
         per = {}
         for r in A.regions:
             st = A.night_stats[A.loose][r] if A.loose is not None else {}
@@ -352,9 +360,9 @@ def _summary(
         latitude_day_median_dT_K=lat_day,
         latitude_detection_dwell_s=lat_dwell,
         instruments={i.name: i.as_dict() for i in instruments},
-        observation=obs.as_dict(),
+        observation=obs.as_dict(instruments),
         detection_reference_dwell_s=REFERENCE_DWELL_S,
-        detection_dwell_grid_s={i.name: ins.dwell_grid(i) for i in instruments},
+        detection_dwell_grid_s={i.name: ins.exposure_seconds(ins.exposure_grid(i, obs), i, obs) for i in instruments},
         band_signal_night_floor=ins.band_table(band_T, instruments),
         detection=det,
         figures=list(figures),
@@ -649,6 +657,9 @@ def _fig_detectability(summary: dict, path):
     for k, name in enumerate(names):
         a = ax[k // ncol, k % ncol]
         x = np.asarray(grids[name], float)
+        t_pass = (obs.get("pass_integration_s_by_instrument") or {}).get(name)
+        if t_pass is not None:  # pass mode: the grid is whole passes x time per pass
+            x = x / t_pass
         for r, row in det[name].items():
             if row.get("pd_vs_dwell") is None:
                 continue
@@ -659,7 +670,11 @@ def _fig_detectability(summary: dict, path):
         a.set_ylim(0, 1)
         inst = summary["instruments"][name]
         a.set_title(f"{name} ({inst['lo_um']:g}-{inst['hi_um']:g} um)", fontsize=9)
-        a.set_xlabel("dwell on each footprint [s]")
+        a.set_xlabel(
+            f"orbital passes ({t_pass:.3g} s on each footprint per pass)"
+            if t_pass is not None
+            else "dwell on each footprint (stare) [s]"
+        )
         a.set_ylabel("P_D")
     for k in range(len(names), nrow * ncol):
         ax[k // ncol, k % ncol].set_visible(False)
@@ -668,7 +683,7 @@ def _fig_detectability(summary: dict, path):
         f"Lat {summary['lat_deg']:g} deg, loose vs nominal, night medians: one-sided test at "
         f"{100 * obs['false_alarm']:g}% false alarms "
         f"(dotted); dashed: P_D = {obs['target_pd']:g}; natural scatter {obs['natural_scatter_K']:g} K, "
-        f"{obs['reference_footprints']} reference footprint(s)",
+        f"{obs.get('candidate_footprints', 1)} candidate vs {obs['reference_footprints']} reference footprint(s)",
         fontsize=9,
     )
     fig.savefig(path)
@@ -705,9 +720,11 @@ def _fig_local_time(summary: dict, path):
             lw=0.8,
             label=f"needed for P_D {obs['target_pd']:g} (no gain error)",
         )
+        at = f"{summary['detection_reference_dwell_s']:g} s dwell"
+        if (obs.get("mode_by_instrument") or {}).get(name) == "passes":
+            at = f"{obs['passes']} passes"
         a.set_title(
-            f"{name}: |observed dT| / sigma at {summary['detection_reference_dwell_s']:g} s dwell, by local "
-            f"solar time (lat {summary['lat_deg']:g} deg)",
+            f"{name}: |observed dT| / sigma at {at}, by local solar time (lat {summary['lat_deg']:g} deg)",
             fontsize=9,
         )
         a.legend(fontsize=6, ncol=2)
@@ -773,13 +790,13 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
             inst = instruments[0]
             ok = np.isfinite(dT) & np.isfinite(T_night) & (T_night + np.nan_to_num(dT) > 0)
             pd = np.full(len(f), np.nan)
+            expo = ins.stated_exposure(inst, observation, REFERENCE_DWELL_S)
             for k in np.flatnonzero(ok & inner):
                 pd[k] = float(
-                    np.ravel(
-                        ins.detection_probability(dT[k], T_night[k], np.array([REFERENCE_DWELL_S]), inst, observation)
-                    )[0]
+                    np.ravel(ins.detection_probability(dT[k], T_night[k], np.array([expo]), inst, observation))[0]
                 )
-            panels.append((pd, f"P(detect) in {REFERENCE_DWELL_S:g} s, {inst.name}", "viridis", (0.0, 1.0)))
+            at = f"{expo:.0f} passes" if ins.observing_mode(inst, observation) == "passes" else f"{expo:g} s"
+            panels.append((pd, f"P(detect) in {at}, {inst.name}", "viridis", (0.0, 1.0)))
     n = len(panels)
     fig, ax = _figure(1, n, (5.0 * n + 0.6, 4.9))
     for k, (vals, label, cmap, clim) in enumerate(panels):
@@ -899,19 +916,37 @@ def _fmt(v, spec=".2f"):
     return "-" if v is None else format(v, spec)
 
 
+def _exposure_text(seconds, t_pass) -> str:
+    """A total time on each footprint [s] as the mode states it: "52 passes (6.66 s)" or "6.66 s"."""
+    if seconds is None:
+        return "-"
+    if t_pass is None:
+        return f"{seconds:.3g} s"
+    P = round(seconds / t_pass)
+    return f"{P} {'pass' if P == 1 else 'passes'} ({seconds:.3g} s)"
+
+
 def _html_detection(summary: dict) -> str:
     """The detectability section: which bands see the difference, and per instrument and region the answer."""
     obs = summary["observation"]
+    t_passes = obs.get("pass_integration_s_by_instrument") or {}
+    modes = [
+        f"{n}: {t:.3g} s on each footprint per orbital pass" if t is not None else f"{n}: stare (dwell [s])"
+        for n, t in t_passes.items()
+    ]
     parts = [
         "<h2>Can an instrument tell loose from nominal regolith?</h2>",
-        f"<p>Candidate footprint ({100 * obs['footprint_fraction']:g}% loose, mixed with nominal in band "
-        f"radiance) against {obs['reference_footprints']} nominal reference footprint(s), each observed for the "
-        f"same dwell. Noise terms: instrument NETD(T) (scaled with the band's dB/dT) averaged over the dwell down "
-        f"to a 1/f floor, in both scenes; natural scatter {obs['natural_scatter_K']:g} K per footprint (measured "
-        f"by Diviner on night-time regolith between 60 N and 60 S, about 80-120 K; uncertain by a factor ~2 at "
-        f"40-80 K); calibration gain error on the radiance difference (an offset cancels). Test: "
-        f"{html.escape(obs['test'])}, false-alarm rate {100 * obs['false_alarm']:g}%; the dwell is the shortest "
-        f"with P_D &ge; {obs['target_pd']:g}. Night-time medians of loose minus nominal.</p>",
+        f"<p>Candidate patch of {obs.get('candidate_footprints', 1)} footprint(s) "
+        f"({100 * obs['footprint_fraction']:g}% loose each, mixed with nominal in band radiance) against "
+        f"{obs['reference_footprints']} nominal reference footprint(s), each observed alike. Observation: "
+        f"{html.escape('; '.join(modes) or 'stare')}. Noise terms: instrument NETD(T) (scaled with the band's "
+        f"dB/dT) averaged over the samples down to a 1/f floor (per pass with passes), in both scenes; natural "
+        f"scatter {obs['natural_scatter_K']:g} K per footprint (measured by Diviner on night-time regolith "
+        f"between 60 N and 60 S, about 80-120 K; uncertain by a factor ~2 at 40-80 K); calibration gain error on "
+        f"band radiances (its effect on the temperature difference is g &middot; dT &middot; d(L/L')/dT). Test: "
+        f"{html.escape(obs['test'])} (every footprint nominal), false-alarm rate {100 * obs['false_alarm']:g}%; "
+        f"the exposure (dwell or passes) is the shortest with P_D &ge; {obs['target_pd']:g}. Night-time medians "
+        f"of loose minus nominal.</p>",
     ]
     sees, blind = [], []
     for name, per in summary["detection"].items():
@@ -919,7 +954,9 @@ def _html_detection(summary: dict) -> str:
         if row.get("dT_median_K") is None:
             continue
         if row.get("dwell_s_no_scatter") is not None:
-            sees.append(f"{name} (instrument noise alone: {row['dwell_s_no_scatter']:.3g} s)")
+            sees.append(
+                f"{name} (instrument noise alone: {_exposure_text(row['dwell_s_no_scatter'], t_passes.get(name))})"
+            )
         else:
             blind.append(f"{name} (NETD {row['netd_candidate_K']:.3g} K at {row['T_candidate_K']:.1f} K)")
     parts.append(
@@ -938,6 +975,7 @@ def _html_detection(summary: dict) -> str:
     )
     for name, per in summary["detection"].items():
         inst = summary["instruments"][name]
+        t_pass = t_passes.get(name)
         rows = []
         for r, d in per.items():
             lt = d.get("best_local_time_h")
@@ -948,18 +986,21 @@ def _html_detection(summary: dict) -> str:
                     f"{_fmt(d.get('dT_q1_K'))} .. {_fmt(d.get('dT_q3_K'))}",
                     _fmt(d.get("T_nominal_K"), ".1f"),
                     _fmt(d.get("netd_candidate_K"), ".3g"),
-                    _fmt(d.get("dwell_s"), ".3g") if d.get("detectable") else "never",
+                    _exposure_text(d.get("dwell_s"), t_pass) if d.get("detectable") else "never",
                     _fmt(d.get("pd_limit")),
                     str(d.get("limiting_term") or "-").replace("_", " "),
                     "-" if lt is None else f"{lt:.1f} h (|dT|/sigma {d['best_snr']:.2g})",
-                    f"{_fmt(d.get('dwell_s_scatter_half'), '.3g')} / {_fmt(d.get('dwell_s_scatter_double'), '.3g')}",
+                    f"{_exposure_text(d.get('dwell_s_scatter_half'), t_pass)} / "
+                    f"{_exposure_text(d.get('dwell_s_scatter_double'), t_pass)}",
                     d.get("answer", ""),
                 ]
             )
         parts.append(
             f"<h3>{html.escape(name)}: {inst['lo_um']:g}-{inst['hi_um']:g} um, NETD "
             f"{inst['netd_ref_K']:.3g} K at {inst['t_ref_K']:g} K per {inst['integration_s']:.3g} s, "
-            f"1/f knee {inst['knee_s']:g} s, gain error {100 * inst['gain_error']:g}%</h3>"
+            f"1/f knee {inst['knee_s']:g} s, gain error {100 * inst['gain_error']:g}%; "
+            + (f"orbital passes of {t_pass:.3g} s on each footprint" if t_pass is not None else "stare")
+            + "</h3>"
             f"<p><small>{html.escape(inst['source'])}</small></p>"
         )
         parts.append(
@@ -971,11 +1012,11 @@ def _html_detection(summary: dict) -> str:
                     "quartiles [K]",
                     "T nominal [K]",
                     "NETD at candidate [K]",
-                    "dwell for P_D [s]",
-                    "P_D at infinite dwell",
+                    "passes for P_D (time on footprint)" if t_pass is not None else "dwell for P_D [s]",
+                    "P_D at infinite exposure",
                     "limiting term",
                     "best local time",
-                    "dwell with scatter x0.5 / x2 [s]",
+                    "passes with scatter x0.5 / x2" if t_pass is not None else "dwell with scatter x0.5 / x2 [s]",
                     "answer",
                 ],
             )
