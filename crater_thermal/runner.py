@@ -175,9 +175,49 @@ def case_inputs(case) -> list:
 
 
 def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer):
-    from pathlib import Path
-
+    """The steps of a run, in order: checkpoint, geometry and Sun, sunlight, start of the record, record, write."""
     ckpt_path = Path(checkpoint_path(out_path))
+    ckpt = _read_checkpoint(case, out_path, ckpt_path, resume, overwrite)
+    nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
+    timer = timer or simulate.Timer()
+    mesh, tracer, F = simulate.case_geometry(case, timer, progress)
+    spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
+    block = simulate.block_rows(mesh.n_facets, simulate.chunk_bytes(case))
+    if ckpt is not None and int(ckpt.get("block", -1)) != block:
+        raise ConfigError(
+            f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
+            f"samples, this run uses {block}; run again without --resume"
+        )
+    store = io.SegmentStore(_scratch_path(out_path), block)
+    if ckpt is None:  # a fresh start: nothing of an earlier attempt is reused
+        store.remove()
+        store = io.SegmentStore(_scratch_path(out_path), block)
+    incidence = case.surface.albedo_model != "constant"
+    fc = simulate.Forcing(
+        mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
+    )
+    if not store.marked("sunlight"):
+        _sunlight_into_store(case, fc, tracer, store, block, timer, progress)
+    del tracer
+    solver, stepper = _coupled_solver(case, nominal, fc, incidence)
+    checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer)
+    spin_info, k0, ir_k = _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints, timer, progress)
+    _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, timer, progress)
+    _write_run(
+        case, fc, store, block, out_path, nominal, spin_info, incidence, ckpt is not None or overwrite, timer, progress
+    )
+    if ckpt_path.exists():
+        ckpt_path.unlink()
+    store.remove()
+    return out_path
+
+
+def _read_checkpoint(case, out_path, ckpt_path: Path, resume: bool, overwrite: bool):
+    """The checkpoint to continue from (``resume``), or None for a fresh start (output checked then).
+
+    A plain run over an unfinished run's checkpoint is refused (``--resume`` continues it, ``--overwrite``
+    discards it); a checkpoint of another case, or unreadable, is refused.
+    """
     if ckpt_path.exists() and not resume:
         if not overwrite:
             raise OutputExistsError(
@@ -185,7 +225,6 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
                 "--overwrite to discard it and start again"
             )
         ckpt_path.unlink()
-    fingerprint = _case_fingerprint(case)
     ckpt = None
     if resume and ckpt_path.exists():
         try:
@@ -194,91 +233,85 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
             raise FluxFileError(
                 f"checkpoint {ckpt_path} is unreadable ({type(exc).__name__}); run again without --resume"
             ) from None
-        if str(ckpt["fingerprint"]) != fingerprint:
+        if str(ckpt["fingerprint"]) != _case_fingerprint(case):
             raise ConfigError(f"checkpoint {ckpt_path} belongs to a different case; run without --resume")
     if ckpt is None:
         io.check_output(out_path, overwrite)
-    nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
-    timer = timer or simulate.Timer()
-    mesh, tracer, F = simulate.case_geometry(case, timer, progress)
-    spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
-    nf = mesh.n_facets
-    block = simulate.block_rows(nf, simulate.chunk_bytes(case))
-    if ckpt is not None and int(ckpt.get("block", -1)) != block:
-        raise ConfigError(
-            f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
-            f"samples, this run uses {block}; run again without --resume"
-        )
-    scratch = Path(_scratch_path(out_path))
-    store = io.SegmentStore(scratch, block)
-    if ckpt is None:
-        store.remove()
-        store = io.SegmentStore(scratch, block)
-    incidence = case.surface.albedo_model != "constant"
-    fc = simulate.Forcing(
-        mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
-    )
-    n_all = len(sun_dirs)
-    if not store.marked("sunlight"):
-        sunlight = simulate.case_sunlight(case, mesh, tracer, F, timer, progress)
-        with simulate.stage(progress, f"sunlight ({nf} facets)") as report:
-            for k0 in range(0, n_all, block):
-                k1 = min(n_all, k0 + block)
-                direct, solar, absorbed = sunlight.with_absorbed(sun_dirs[k0:k1], sun_dist[k0:k1], timer)
-                with timer("io"):
-                    store.write("direct", k0, direct)
-                    store.write("solar", k0, solar)
-                    if absorbed is not None:
-                        store.write("absorbed", k0, absorbed)
-                del direct, solar, absorbed
-                if report is not None:
-                    report(k1, n_all)
-        store.mark("sunlight")
-    del tracer
-    albedo, eps = float(case.surface.albedo), float(case.surface.emissivity)
-    solver_kw = {}
-    if case.steps.conduction_step_s:
-        solver_kw["dt_max"] = float(case.steps.conduction_step_s)
+    return ckpt
+
+
+def _sunlight_into_store(case, fc, tracer, store, block: int, timer, progress) -> None:
+    """Direct, scattered (and absorbed) sunlight [W m-2] of every sample, block by block into the store."""
+    nf, n_all = fc.mesh.n_facets, len(fc.sun_dirs)
+    sunlight = simulate.case_sunlight(case, fc.mesh, tracer, fc.F, timer, progress)
+    with simulate.stage(progress, f"sunlight ({nf} facets)") as report:
+        for k0 in range(0, n_all, block):
+            k1 = min(n_all, k0 + block)
+            direct, solar, absorbed = sunlight.with_absorbed(fc.sun_dirs[k0:k1], fc.sun_dist_m[k0:k1], timer)
+            with timer("io"):
+                store.write("direct", k0, direct)
+                store.write("solar", k0, solar)
+                if absorbed is not None:
+                    store.write("absorbed", k0, absorbed)
+            del direct, solar, absorbed
+            if report is not None:
+                report(k1, n_all)
+    store.mark("sunlight")
+
+
+def _coupled_solver(case, nominal, fc, incidence: bool):
+    """The columns (one per facet, the nominal profile) and the coupled stepper of a case."""
+    kw = {"dt_max": float(case.steps.conduction_step_s)} if case.steps.conduction_step_s else {}
     solver = thermal.ColumnSolver(
-        [nominal] * nf,
+        [nominal] * fc.mesh.n_facets,
         property_set=case.surface.property_set,
-        emissivity=eps,
+        emissivity=float(case.surface.emissivity),
         geothermal_flux=case.surface.geothermal_flux_W_m2,
-        **solver_kw,
+        **kw,
     )
     stepper = radiosity.CoupledStepper(
         solver,
         fc.F,
-        albedo,
-        eps,
+        float(case.surface.albedo),
+        float(case.surface.emissivity),
         solar_is_absorbed=incidence,
         ir_scheme=case.steps.ir_coupling,
     )
-    t0 = fc.times[0]
-    spin_t = simulate.seconds_since(fc.spin_times, t0)
-    rec_t = simulate.seconds_since(fc.times, t0)
-    nt, ns, off = len(fc.times), fc.n_spin, fc.record_offset
-    every = case.output.checkpoint_interval_steps
-    save_spin = case.output.save_spinup_fluxes and ns > 0
+    return solver, stepper
 
-    def save_ckpt(k, info):
-        hist = stepper.history()  # the IR extrapolation's history: a resumed run steps as the uninterrupted one
+
+class _Checkpoints:
+    """Writes the run's checkpoint: the solver's state at record sample ``k``, the IR extrapolation's history
+    (so that a resumed run steps exactly as the uninterrupted one) and the start's diagnostics."""
+
+    def __init__(self, path: Path, fingerprint: str, block: int, solver, stepper, timer):
+        self.path, self.fingerprint, self.block = path, fingerprint, block
+        self.solver, self.stepper, self.timer = solver, stepper, timer
+
+    def save(self, k: int, info: dict) -> None:
+        hist = self.stepper.history()
         extra = {} if hist is None else {f"history_{name}": np.asarray(v) for name, v in hist.items()}
-        with timer("io"):
+        with self.timer("io"):
             io.save_npz_atomic(
-                ckpt_path,
-                fingerprint=np.array(fingerprint),
+                self.path,
+                fingerprint=np.array(self.fingerprint),
                 phase=np.array("record"),
                 k=np.array(k),
-                block=np.array(block),
-                state=solver.state(),
+                block=np.array(self.block),
+                state=self.solver.state(),
                 start_method=np.array(info["start_method"]),
                 iterations=np.array(info["iterations"]),
                 residual=np.asarray(info["residual"], float),
                 **extra,
             )
 
-    # ---- start of the record
+
+def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints, timer, progress):
+    """The state at the first sample to compute: from the checkpoint, or the spin-up (then checkpointed).
+
+    Returns ``(spin_info, k0, ir_k0)``: the start's diagnostics, the record sample the state belongs to,
+    and the IR [W m-2] at it.
+    """
     if ckpt is not None:
         spin_info = {
             "start_method": str(ckpt["start_method"]),
@@ -289,29 +322,49 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
         solver.set_state(ckpt["state"])
         if "history_ir_now" in ckpt:
             stepper.set_history({name: ckpt[f"history_{name}"] for name in ("ir_now", "ir_before", "dt_before")})
-        ir_k = store.read("ir", k0, k0 + 1)[0]
-    else:
-        with timer("conduction_spinup"):
-            spin_info, ir_start = simulate.spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
-        k0 = 0
-        ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
-        with timer("io"):
-            store.write("T", 0, solver.surface_temperature[None, :])
-            store.write("ir", 0, ir_k[None, :])
-        save_ckpt(0, spin_info)
-    # ---- recorded period, block by block; rows k0+1 .. are buffered and flushed to the store
-    pend_T = np.empty((block, nf))
-    pend_ir = np.empty((block, nf))
-    pend0, n_pend = k0 + 1, 0  # first buffered row, rows buffered
+        return spin_info, k0, store.read("ir", k0, k0 + 1)[0]
+    spin_t = simulate.seconds_since(fc.spin_times, fc.times[0])
+    save_spin = case.output.save_spinup_fluxes and fc.n_spin > 0
+    with timer("conduction_spinup"):
+        spin_info, ir_start = simulate.spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
+    ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
+    with timer("io"):
+        store.write("T", 0, solver.surface_temperature[None, :])
+        store.write("ir", 0, ir_k[None, :])
+    checkpoints.save(0, spin_info)
+    return spin_info, 0, ir_k
 
-    def flush():
-        nonlocal pend0, n_pend
-        if n_pend:
-            with timer("io"):
-                store.write_rows("T", pend0, pend_T[:n_pend])
-                store.write_rows("ir", pend0, pend_ir[:n_pend])
-        pend0, n_pend = pend0 + n_pend, 0
 
+class _RecordRows:
+    """Buffers the record's surface temperatures and IR, row by row, and flushes them to the store in blocks."""
+
+    def __init__(self, store, block: int, nf: int, first: int, timer):
+        self.store, self.block, self.timer = store, block, timer
+        self.T = np.empty((block, nf))
+        self.ir = np.empty((block, nf))
+        self.first, self.n = first, 0  # first buffered row, rows buffered
+
+    def append(self, T, ir) -> None:
+        self.T[self.n], self.ir[self.n] = T, ir
+        self.n += 1
+        if (self.first + self.n) % self.block == 0:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.n:
+            with self.timer("io"):
+                self.store.write_rows("T", self.first, self.T[: self.n])
+                self.store.write_rows("ir", self.first, self.ir[: self.n])
+        self.first, self.n = self.first + self.n, 0
+
+
+def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, timer, progress) -> None:
+    """The recorded period from sample ``k0``: coupled steps, rows into the store, a checkpoint every
+    ``[output] checkpoint_interval_steps`` steps."""
+    nt, off = len(fc.times), fc.record_offset
+    rec_t = simulate.seconds_since(fc.times, fc.times[0])
+    every = case.output.checkpoint_interval_steps
+    rows = _RecordRows(store, block, fc.mesh.n_facets, k0 + 1, timer)
     sol, w0 = None, 0
     with simulate.stage(progress, f"record {case.name}") as report:
         for k in range(k0, nt - 1):
@@ -322,21 +375,22 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
                     sol = fc.rows(fc.drive, off + k, off + min(nt, k + block + 1))
             with timer("conduction_record"):
                 T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
-            pend_T[n_pend], pend_ir[n_pend] = T1, ir_k
-            n_pend += 1
-            if (pend0 + n_pend) % block == 0:
-                flush()
+            rows.append(T1, ir_k)
             if every and (k + 1) % every == 0 and k + 1 < nt - 1:
-                flush()
-                save_ckpt(k + 1, spin_info)
+                rows.flush()
+                checkpoints.save(k + 1, spin_info)
             if report is not None:
                 report(k + 1 - k0, nt - 1 - k0)
-        flush()
-    pend_T = pend_ir = sol = None  # free the buffers before the file is written
-    # ---- write run.nc from the store, block by block
-    with timer("io"):
-        from crater_thermal.constants import AU
+        rows.flush()
 
+
+def _write_run(case, fc, store, block, out_path, nominal, spin_info, incidence, overwrite, timer, progress) -> None:
+    """``run.nc`` from the store, block by block (series as ``io.RUN_SERIES_DTYPE``)."""
+    from crater_thermal.constants import AU
+
+    nt, ns, off, nf = len(fc.times), fc.n_spin, fc.record_offset, fc.mesh.n_facets
+    save_spin = case.output.save_spinup_fluxes and ns > 0
+    with timer("io"):
         _, rec_dirs = fc.split(fc.sun_dirs)
         _, rec_dist = fc.split(fc.sun_dist_m)
         extra_vars = {
@@ -352,8 +406,8 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
         attrs = {
             "case_name": case.name,
             "case_toml": case.toml_text,
-            "albedo": albedo,
-            "emissivity": eps,
+            "albedo": float(case.surface.albedo),
+            "emissivity": float(case.surface.emissivity),
             "lat_deg": float(case.location.lat_deg),
             "lon_deg": float(case.location.lon_deg),
             "property_set": case.surface.property_set,
@@ -366,49 +420,40 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
             "timing_s": dict(timer.split),
         }
         ds = io.run_dataset(
-            mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
+            fc.mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
         )
         if ns:
             ds = ds.assign_coords(spinup_time=fc.spin_times)
-        # (name, dims, rows, reader of rows k0..k1-1)
+        # (name, dims, rows, store series, offset of its rows)
         series = [
-            ("solar_incident", "time", nt, lambda a, b: store.read("solar", off + a, off + b)),
-            ("ir_incident", "time", nt, lambda a, b: store.read("ir", a, b)),
-            ("solar_direct", "time", nt, lambda a, b: store.read("direct", off + a, off + b)),
-            ("surface_temperature", "time", nt, lambda a, b: store.read("T", a, b)),
+            ("solar_incident", "time", nt, "solar", off),
+            ("ir_incident", "time", nt, "ir", 0),
+            ("solar_direct", "time", nt, "direct", off),
+            ("surface_temperature", "time", nt, "T", 0),
         ]
         if incidence:
-            series.append(("solar_absorbed", "time", nt, lambda a, b: store.read("absorbed", off + a, off + b)))
+            series.append(("solar_absorbed", "time", nt, "absorbed", off))
         if save_spin:
             series += [
-                ("spinup_solar_incident", "spinup_time", ns, lambda a, b: store.read("solar", a, b)),
-                ("spinup_ir_incident", "spinup_time", ns, lambda a, b: store.read("spin_ir", a, b)),
+                ("spinup_solar_incident", "spinup_time", ns, "solar", 0),
+                ("spinup_ir_incident", "spinup_time", ns, "spin_ir", 0),
             ]
             if incidence:
-                series.append(("spinup_solar_absorbed", "spinup_time", ns, lambda a, b: store.read("absorbed", a, b)))
-        # stored as io.RUN_SERIES_DTYPE (float32; precision and sizes documented there)
+                series.append(("spinup_solar_absorbed", "spinup_time", ns, "absorbed", 0))
         variables = {
             name: ((dim, "facet"), (n, nf), io.RUN_SERIES_ATTRS.get(name, {"units": "W m-2"}), io.RUN_SERIES_DTYPE)
-            for name, dim, n, _ in series
+            for name, dim, n, _, _ in series
         }
         with io.stream_dataset(
-            ds,
-            out_path,
-            variables,
-            overwrite=True if ckpt is not None else overwrite,
-            time_rows=min(simulate.TIME_CHUNK, block),
+            ds, out_path, variables, overwrite=overwrite, time_rows=min(simulate.TIME_CHUNK, block)
         ) as write:
-            n_blocks = sum(-(-n // block) for _, _, n, _ in series)
+            n_blocks = sum(-(-n // block) for _, _, n, _, _ in series)
             with simulate.stage(progress, f"write {out_path.name}") as report:
                 done = 0
-                for name, _, n, read in series:
+                for name, _, n, stored, shift in series:
                     for a in range(0, n, block):
                         b = min(n, a + block)
-                        write(name, (slice(a, b), slice(None)), read(a, b))
+                        write(name, (slice(a, b), slice(None)), store.read(stored, shift + a, shift + b))
                         done += 1
                         if report is not None:
                             report(done, n_blocks)
-    if ckpt_path.exists():
-        ckpt_path.unlink()
-    store.remove()
-    return out_path
