@@ -4,13 +4,13 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint install thesis bench clean
+.PHONY: run test lint docs install thesis bench clean
 
 # constraints.txt pins the versions the benchmarks were measured with (numba/numpy set the speed figures).
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[viz,distributed,test]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[viz,distributed,test,docs]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -28,7 +28,13 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports
 
-test: lint
+# The documentation (Sphinx + MyST, docs/conf.py) into docs/_build/html/. Strict: any warning, an unresolved
+# cross-reference included (-n), fails the build; -E re-reads every page and docstring each time.
+docs: $(STAMP)
+	$(VENV)/bin/sphinx-build -W --keep-going -n -E -q -b html docs docs/_build/html
+	@echo "open docs/_build/html/index.html"
+
+test: lint docs
 	$(PY) -m pytest -q tests
 
 thesis: $(STAMP)
@@ -40,4 +46,4 @@ bench: $(STAMP)
 	$(PY) bench/thesis.py
 
 clean:
-	rm -rf $(VENV) results .pytest_cache
+	rm -rf $(VENV) results .pytest_cache docs/_build docs/_generated

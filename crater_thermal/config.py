@@ -851,7 +851,7 @@ class Steps:
 
 @_section("surface")
 class Surface:
-    """Surface and subsurface properties (see PHYSICS.md): albedo, emissivity, property set,
+    """Surface and subsurface properties (see docs/physics.md): albedo, emissivity, property set,
     geothermal flux [W m-2], nominal density profile label."""
 
 

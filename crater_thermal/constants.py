@@ -1,7 +1,7 @@
 """Physical constants and thesis defaults, SI units, each with its source.
 
 Every value here is a *default*: functions take it as a keyword argument so
-that users can override it. See ``../shared/design/PHYSICS.md``.
+that users can override it. See ``docs/physics.md``.
 """
 
 import scipy.constants as _sc
@@ -10,7 +10,7 @@ import scipy.constants as _sc
 SIGMA = _sc.Stefan_Boltzmann
 #: Astronomical unit [m] (IAU 2012 resolution B2)
 AU = _sc.astronomical_unit
-#: Solar constant at 1 au [W m-2] (Kopp & Lean 2011; PHYSICS.md)
+#: Solar constant at 1 au [W m-2] (Kopp & Lean 2011; docs/physics.md)
 SOLAR_CONSTANT = 1361.0
 #: Nominal solar radius [m] (IAU 2015 resolution B3)
 SUN_RADIUS = 695_700e3

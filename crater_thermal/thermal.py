@@ -1,7 +1,7 @@
 """Subsurface heat conduction under every facet: density profiles, grid, column solver,
 periodic steady state.
 
-Model (thesis 7.1.2, with the conventions of PHYSICS.md)
+Model (thesis 7.1.2, with the conventions of docs/physics.md)
 --------------------------------------------------------
 Each facet has an independent 1-D column, z positive downward, 2 m deep:
 

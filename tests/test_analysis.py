@@ -100,7 +100,7 @@ def test_region_needs_meta_radii():
 
 
 def test_poleward_upper_wall_is_the_sunlit_one(pair):
-    """At -86 deg the wall on the pole side faces the equator/Sun (PHYSICS.md 'Where in the crater')."""
+    """At -86 deg the wall on the pole side faces the equator/Sun (docs/physics.md 'Where in the crater')."""
     run, _ = pair
     reg = regions.regions_of(run)
     lit = ~regions.shadow_mask(run)

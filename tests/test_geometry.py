@@ -55,7 +55,7 @@ def test_table_coefficients_match_thesis():
         "floor_diameter": (0.031, 1.765),
     }
     d = crater_dimensions(10.0)
-    # PHYSICS.md: D = 10 km -> crest +0.372 km, depth/diameter about 0.2
+    # docs/physics.md: D = 10 km -> crest +0.372 km, depth/diameter about 0.2
     assert d["rim_height"] == pytest.approx(0.3718, abs=5e-4)
     assert d["depth"] / 10.0 == pytest.approx(0.2, abs=0.005)
     assert d["floor_z"] == pytest.approx(d["rim_height"] - d["depth"])

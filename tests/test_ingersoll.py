@@ -28,7 +28,7 @@ GAMMA, E0, A, EPS, S = 0.2, np.deg2rad(10.0), 0.12, 0.95, 1365.0
 def test_analytic_values():
     t_ours = rs.ingersoll_shadow_temperature(E0, GAMMA, A, EPS, S, ir_reflection=False)
     t_ing = rs.ingersoll_shadow_temperature(E0, GAMMA, A, EPS, S, ir_reflection=True)
-    assert t_ours == pytest.approx(154.38, abs=0.005)  # PHYSICS.md
+    assert t_ours == pytest.approx(154.38, abs=0.005)  # docs/physics.md
     assert t_ing == pytest.approx(154.66, abs=0.005)  # Ingersoll et al. 1992; Topo3D
     assert abs(t_ing - t_ours) / t_ours < 0.002
     # without infrared (eps = 1) the two formulas are the same physics

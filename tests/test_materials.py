@@ -9,7 +9,7 @@ from crater_thermal.errors import ProfileError
 
 def test_heat_capacity_reference_values():
     # Hemingway 1973 in J/kg/K (thesis Eq. 7.3 x 1000, the unit erratum); reference values
-    # from PHYSICS.md (Ledlow 1992 / Robie 1970): 758, 276, 112 J/kg/K; 0.5 J/kg/K is the
+    # from docs/physics.md (Ledlow 1992 / Robie 1970): 758, 276, 112 J/kg/K; 0.5 J/kg/K is the
     # rounding of those published values.
     assert mat.heat_capacity(300.0) == pytest.approx(757.9, abs=0.5)
     assert mat.heat_capacity(100.0) == pytest.approx(276.0, abs=1.0)

@@ -113,7 +113,7 @@ def test_coupled_black_box_map(periodic):
 
 
 def test_expected_result_floor_differences():
-    """Expected result (thesis 7.2, PHYSICS.md): under floor-like forcing (no sun, IR of a few W/m2
+    """Expected result (thesis 7.2, docs/physics.md): under floor-like forcing (no sun, IR of a few W/m2
     from the walls) night-time loose (800/1100) minus nominal (1300/1800) is negative and of order a
     few K (thesis: 2-3 K at ~50 K), and rock is > 20 K away from regolith (thesis: > 20 K).
 
@@ -139,7 +139,7 @@ def test_non_convergence_is_reported():
 
 
 def test_hayne2017_equator_validation():
-    """Peer validation (PHYSICS.md): the equator with the Hayne et al. 2017 property set and profile
+    """Peer validation (docs/physics.md): the equator with the Hayne et al. 2017 property set and profile
     (emissivity 0.95, G = 0.018 W/m2, incidence-dependent albedo, S = 1361 W/m2, 4-hour samples).
     Hayne 2017 (Diviner): noon 385 K, midnight 101 K, night minimum 95 K; heat1d: 388.5 / 100.2 /
     93.7 K. Measured here: 385.2 / 100.3 / 93.8 K. Tolerances: 1 K at night against heat1d (the
