@@ -495,164 +495,191 @@ def spinup_ir_method(method: str, F, n_facets: int) -> str:
 def spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
     """Bring the columns to the start of the record, streaming the spin-up window in blocks.
 
-    Writes the spin-up IR series to ``fc.store`` (series ``spin_ir``) when ``save_spin``.
-    Returns (info, IR at the record's first sample or None when there is no spin-up window).
+    ``[period] spinup``: "periodic" (the periodic steady state over the window, with the window's IR
+    coupled or lagged: :func:`spinup_ir_method`) or "fixed" (one pass, the thesis procedure); with no
+    spin-up window, a uniform or equilibrium start. Writes the spin-up IR series to ``fc.store`` (series
+    ``spin_ir``) when ``save_spin``. Returns (info, IR [W m-2] at the record's first sample, or None
+    when there is no spin-up window).
     """
     from crater_thermal import thermal
 
-    ns = len(spin_t)
-    T0 = case.period.initial_temperature_K
-    tol_K = case.period.periodic_tol_K
-    mode = case.period.spinup
-    es = stepper.emissivity * SIGMA
-    if ns == 0:
+    period = case.period
+    T0 = period.initial_temperature_K
+    if len(spin_t) == 0:
         if T0 is not None:
             solver.set_uniform(float(T0))
             method = f"uniform {float(T0)} K, no spin-up"
         else:
-            n_all = len(fc.sun_dirs)
             ts = _mean_over_rows(
-                fc, 0, n_all, block, lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, 0.0))
+                fc, 0, len(fc.sun_dirs), block, lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, 0.0))
             )
             solver.set_equilibrium(surface_K=ts)
             method = "equilibrium estimate, no spin-up"
         return {"start_method": method, "iterations": 0, "residual": np.full(fc.mesh.n_facets, np.nan)}, None
-    # first guess of the absorbed flux: sunlight plus the IR of a radiative-equilibrium crater
-    guess_T = _mean_over_rows(
-        fc, 0, ns, block, lambda sol: np.mean((np.maximum(stepper.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0)
-    )
-    guess_ir = stepper.ir(guess_T) if fc.F is not None else 0.0
-    eq_surface = _mean_over_rows(
-        fc, 0, ns, block, lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, guess_ir))
-    )
-    holder: dict = {}
-
-    def keep_ir(k0, rows):
-        if save_spin:
-            fc.store.write("spin_ir", k0, rows)
-        if k0 + len(rows) == ns:
-            holder["ir"] = rows[-1].copy()
-
-    n_maps = [0]
-
-    def one_window(report, expected):
-        """One pass through the window; progress in steps, out of ``expected`` windows (more if needed)."""
-        n_maps[0] += 1
-        done0 = (n_maps[0] - 1) * (ns - 1)
-        total = max(expected, n_maps[0]) * (ns - 1)
-        run_window(
-            stepper,
-            spin_t,
-            lambda a, b: fc.rows(fc.drive, a, b),
-            block,
-            on_ir=keep_ir,
-            on_step=None if report is None else lambda k: report(done0 + k, total),
-        )
-
-    if mode == "periodic" and spinup_ir_method(case.period.spinup_ir, fc.F, fc.mesh.n_facets) == "lagged":
-        if T0 is not None:
-            solver.set_uniform(float(T0))
-        else:
-            solver.set_equilibrium(surface_K=eq_surface)
-        # Lagged IR: the first window is coupled (as below) and records its IR series; every later window
-        # is driven by the IR series of the window before it (kept in the store as "lag_ir0" / "lag_ir1"
-        # alternately), so its columns are independent: one conduction solve per step instead of the
-        # coupled step's two, a block of samples per kernel call, and the IR products done a block of
-        # samples at a time. At the fixed point the IR is that of the periodic temperatures at every
-        # sample. The last window's input series is the saved spin-up IR (a replay re-runs it exactly).
-        lag = {"in": None, "out": "lag_ir0"}
-
-        def lagged_window(report, expected):
-            n_maps[0] += 1
-            done0 = (n_maps[0] - 1) * (ns - 1)
-            total = max(expected, n_maps[0]) * (ns - 1)
-            if lag["in"] is None:
-                # the first window is coupled: it makes the IR series the next windows start from
-
-                def keep(k0, rows):
-                    fc.store.write(lag["out"], k0, rows)
-                    if k0 + len(rows) == ns:
-                        holder["ir"] = rows[-1].copy()
-
-                run_window(
-                    stepper,
-                    spin_t,
-                    lambda a, b: fc.rows(fc.drive, a, b),
-                    block,
-                    on_ir=keep,
-                    on_step=None if report is None else lambda k: report(done0 + k, total),
-                )
-                lag["in"], lag["out"] = lag["out"], "lag_ir1"
-                return
-            for b0 in range(0, ns, block):
-                b1 = min(ns, b0 + block)
-                e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
-                sol = fc.rows(fc.drive, b0, e)
-                ir = fc.store.read(lag["in"], b0, e)
-                T = solver.run_series(spin_t[b0:e], stepper.absorbed(sol, ir), record=True)
-                rows = stepper.ir_rows(T[: b1 - b0])
-                fc.store.write(lag["out"], b0, rows)
-                if b1 == ns:  # the IR of the window's last state: the record's first sample
-                    holder["ir"] = rows[-1].copy()
-                del sol, ir, T, rows
-                if report is not None:
-                    report(done0 + e - 1, total)
-            lag["in"], lag["out"] = lag["out"], ("lag_ir1" if lag["out"] == "lag_ir0" else "lag_ir0")
-
-        with stage(progress, "spin-up (periodic state, lagged IR)") as report:
-
-            def period_map_lagged(x):
-                solver.set_state(x)
-                lagged_window(report, 5)
-                return solver.state()
-
-            # no Anderson mixing: successive windows have different forcing (the IR moves with them),
-            # and mixing their steps cost a window (measured: 7 instead of 6 on a 1,500-facet crater)
-            info = thermal.periodic_state(solver, period_map_lagged, tol_K=tol_K, anderson=False)
-        # the forcing the last window ran with is the spin-up IR to save (replays re-run the spin-up
-        # from it): a lagged window's input, named "out" after its swap; the coupled first window's own
-        used = lag["in"] if n_maps[0] == 1 else lag["out"]
-        if save_spin:
-            for b0 in range(0, ns, block):
-                fc.store.write("spin_ir", b0, fc.store.read(used, b0, min(ns, b0 + block)))
-        residual = np.asarray(info["residual_K"], float)
-        return {
-            "start_method": (
-                f"periodic steady state over {case.period.spinup_years} yr (tolerance {tol_K} K), "
-                "each spin-up window driven by the previous window's IR"
-            ),
-            "iterations": int(info["iterations"]),
-            "residual": residual,
-        }, holder["ir"]
-    if mode == "periodic":
-        if T0 is not None:
-            solver.set_uniform(float(T0))
-        else:
-            solver.set_equilibrium(surface_K=eq_surface)
-        # ETA: the shooting usually converges in about 4-6 windows; the bar grows if it needs more
-        with stage(progress, "spin-up (periodic state)") as report:
-
-            def period_map(x):
-                solver.set_state(x)
-                one_window(report, 5)
-                return solver.state()
-
-            info = thermal.periodic_state(solver, period_map, tol_K=tol_K)
-        residual = np.asarray(info["residual_K"], float)
-        return {
-            "start_method": f"periodic steady state over {case.period.spinup_years} yr (tolerance {tol_K} K)",
-            "iterations": int(info["iterations"]),
-            "residual": residual,
-        }, holder["ir"]
-    # fixed spin-up, the thesis procedure
+    window = _SpinUpWindow(fc, solver, stepper, spin_t, block, save_spin)
     if T0 is not None:
         solver.set_uniform(float(T0))
-        method = f"fixed spin-up {case.period.spinup_years} yr from uniform {float(T0)} K"
     else:
-        solver.set_equilibrium(surface_K=eq_surface)
-        method = f"fixed spin-up {case.period.spinup_years} yr from the equilibrium estimate"
+        solver.set_equilibrium(surface_K=window.equilibrium_start())
+    years, tol_K = period.spinup_years, period.periodic_tol_K
+    if period.spinup == "periodic" and spinup_ir_method(period.spinup_ir, fc.F, fc.mesh.n_facets) == "lagged":
+        with stage(progress, "spin-up (periodic state, lagged IR)") as report:
+            # no Anderson mixing: successive windows have different forcing (the IR moves with them),
+            # and mixing their steps cost a window (measured: 7 instead of 6 on a 1,500-facet crater)
+            info = thermal.periodic_state(solver, window.period_map(window.lagged, report), tol_K=tol_K, anderson=False)
+        window.save_lagged_spin_ir()
+        method = (
+            f"periodic steady state over {years} yr (tolerance {tol_K} K), "
+            "each spin-up window driven by the previous window's IR"
+        )
+        return {
+            "start_method": method,
+            "iterations": int(info["iterations"]),
+            "residual": info["residual_K"],
+        }, window.ir_end
+    if period.spinup == "periodic":
+        # ETA: the shooting usually converges in about 4-6 windows; the bar grows if it needs more
+        with stage(progress, "spin-up (periodic state)") as report:
+            info = thermal.periodic_state(solver, window.period_map(window.coupled, report), tol_K=tol_K)
+        method = f"periodic steady state over {years} yr (tolerance {tol_K} K)"
+        return {
+            "start_method": method,
+            "iterations": int(info["iterations"]),
+            "residual": info["residual_K"],
+        }, window.ir_end
+    # fixed spin-up, the thesis procedure
+    start = f"uniform {float(T0)} K" if T0 is not None else "the equilibrium estimate"
     x0 = solver.state()
     with stage(progress, "spin-up (fixed)") as report:
-        one_window(report, 1)
+        window.coupled(report, 1)
     residual = np.max(np.abs(solver.state() - x0), axis=1)
-    return {"start_method": method, "iterations": 1, "residual": residual}, holder["ir"]
+    return {
+        "start_method": f"fixed spin-up {years} yr from {start}",
+        "iterations": 1,
+        "residual": residual,
+    }, window.ir_end
+
+
+class _SpinUpWindow:
+    """Passes through the spin-up window from the solver's state, block by block, coupled or lagged.
+
+    Coupled (:meth:`coupled`): every step exchanges IR with the current temperatures (:func:`run_window`).
+    Lagged (:meth:`lagged`): the first window is coupled and records its IR series; every later window is
+    driven by the IR series of the window before it (kept in the store as "lag_ir0" / "lag_ir1"
+    alternately), so its columns are independent: one conduction solve per step instead of the coupled
+    step's two, a block of samples per kernel call, and the IR products done a block of samples at a time.
+    At the fixed point the IR is that of the periodic temperatures at every sample. The last window's input
+    series is the saved spin-up IR (a replay re-runs it exactly).
+
+    ``ir_end``: the IR [W m-2] at the window's last sample after the latest pass (the record's first).
+    """
+
+    def __init__(self, fc, solver, stepper, spin_t, block: int, save_spin: bool):
+        self.fc, self.solver, self.stepper, self.t, self.block, self.save_spin = (
+            fc,
+            solver,
+            stepper,
+            spin_t,
+            block,
+            save_spin,
+        )
+        self.n = len(spin_t)
+        self.passes = 0
+        self.ir_end = None
+        self.lag_in, self.lag_out = None, "lag_ir0"
+
+    def equilibrium_start(self) -> np.ndarray:
+        """Surface temperatures [K] of the equilibrium start: sunlight plus the IR of a radiative-equilibrium
+        crater as the first guess of the absorbed flux, averaged over the window."""
+        fc, st, block, ns = self.fc, self.stepper, self.block, self.n
+        es = st.emissivity * SIGMA
+        guess_T = _mean_over_rows(
+            fc, 0, ns, block, lambda sol: np.mean((np.maximum(st.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0)
+        )
+        guess_ir = st.ir(guess_T) if fc.F is not None else 0.0
+        return _mean_over_rows(
+            fc, 0, ns, block, lambda sol: self.solver.equilibrium_surface(st.absorbed(sol, guess_ir))
+        )
+
+    def period_map(self, one_pass, report):
+        """The map x -> state after one pass from state x (what :func:`thermal.periodic_state` iterates)."""
+
+        def phi(x):
+            self.solver.set_state(x)
+            one_pass(report, 5)
+            return self.solver.state()
+
+        return phi
+
+    def _progress(self, report, expected: int):
+        """A pass's ``on_step(k)`` in steps, out of ``expected`` passes (more if needed); None without a report."""
+        self.passes += 1
+        if report is None:
+            return None
+        done0 = (self.passes - 1) * (self.n - 1)
+        total = max(expected, self.passes) * (self.n - 1)
+        return lambda k: report(done0 + k, total)
+
+    def _keep(self, series: str):
+        def on_ir(k0, rows):
+            self.fc.store.write(series, k0, rows)
+            if k0 + len(rows) == self.n:
+                self.ir_end = rows[-1].copy()
+
+        return on_ir
+
+    def coupled(self, report, expected: int) -> None:
+        """One coupled pass; its IR series saved as ``spin_ir`` when ``save_spin``."""
+        on_step = self._progress(report, expected)
+        keep = self._keep("spin_ir") if self.save_spin else self._keep_end_only
+        run_window(
+            self.stepper,
+            self.t,
+            lambda a, b: self.fc.rows(self.fc.drive, a, b),
+            self.block,
+            on_ir=keep,
+            on_step=on_step,
+        )
+
+    def _keep_end_only(self, k0, rows):
+        if k0 + len(rows) == self.n:
+            self.ir_end = rows[-1].copy()
+
+    def lagged(self, report, expected: int) -> None:
+        """One lagged pass (the first one coupled, recording the IR series the next passes start from)."""
+        on_step = self._progress(report, expected)
+        fc, ns, block = self.fc, self.n, self.block
+        if self.lag_in is None:
+            run_window(
+                self.stepper,
+                self.t,
+                lambda a, b: fc.rows(fc.drive, a, b),
+                block,
+                on_ir=self._keep(self.lag_out),
+                on_step=on_step,
+            )
+            self.lag_in, self.lag_out = self.lag_out, "lag_ir1"
+            return
+        for b0 in range(0, ns, block):
+            b1 = min(ns, b0 + block)
+            e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
+            sol = fc.rows(fc.drive, b0, e)
+            ir = fc.store.read(self.lag_in, b0, e)
+            T = self.solver.run_series(self.t[b0:e], self.stepper.absorbed(sol, ir), record=True)
+            rows = self.stepper.ir_rows(T[: b1 - b0])
+            fc.store.write(self.lag_out, b0, rows)
+            if b1 == ns:  # the IR of the window's last state: the record's first sample
+                self.ir_end = rows[-1].copy()
+            del sol, ir, T, rows
+            if on_step is not None:
+                on_step(e - 1)
+        self.lag_in, self.lag_out = self.lag_out, ("lag_ir1" if self.lag_out == "lag_ir0" else "lag_ir0")
+
+    def save_lagged_spin_ir(self) -> None:
+        """Save as ``spin_ir`` the IR series the last lagged pass ran with (replays re-run the spin-up from
+        it): a lagged pass's input, named ``lag_out`` after its swap; the coupled first pass's own output."""
+        if not self.save_spin:
+            return
+        used = self.lag_in if self.passes == 1 else self.lag_out
+        for b0 in range(0, self.n, self.block):
+            self.fc.store.write("spin_ir", b0, self.fc.store.read(used, b0, min(self.n, b0 + self.block)))
