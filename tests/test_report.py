@@ -206,6 +206,37 @@ def test_cli_report_quiet_when_not_a_terminal(files, tmp_path):
     assert (tmp_path / "r" / "report.html").is_file()
 
 
+def test_cli_report_states_the_patch_and_the_observing_mode(files, tmp_path):
+    """Issue 25: a patch area and footprint area give k; Diviner is observed in passes, the camera stares;
+    summary.json's observation block and each detection row say which, and in what unit."""
+    d, _, _ = files
+    a = 240.0 * 480.0  # Diviner footprint [m2]
+    out = cli(
+        "report", d / "run.nc", d / "replay.nc", "-o", tmp_path / "r", "--no-snapshots",
+        "--instrument", "diviner_ch9", "--instrument", "microbolometer",
+        "--patch-area-m2", 3.5 * a, "--footprint-area-m2", a, "--reference-footprints", "3", "--passes", "40",
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    s = _strict_json(tmp_path / "r" / "summary.json")
+    o = s["observation"]
+    assert (o["candidate_footprints"], o["reference_footprints"], o["passes"], o["mode"]) == (3, 3, 40, "auto")
+    assert o["patch_area_m2"] == pytest.approx(3.5 * a) and o["footprint_area_m2"] == pytest.approx(a)
+    assert o["mode_by_instrument"] == {"diviner_ch9": "passes", "microbolometer": "stare"}
+    assert o["pass_integration_s_by_instrument"] == {"diviner_ch9": 0.128, "microbolometer": None}
+    ch9 = s["detection"]["diviner_ch9"]["floor"]
+    assert ch9["mode"] == "passes" and ch9["exposure_unit"] == "passes"
+    # the synthetic floor's night contrast, 3 vs 3 footprints: detectable within the passes searched
+    assert ch9["detectable"] and ch9["exposure"] == ch9["passes"] and f"{ch9['passes']} passes" in ch9["answer"]
+    assert ch9["dwell_s"] == pytest.approx(ch9["passes"] * 0.128)
+    grid = np.asarray(s["detection_dwell_grid_s"]["diviner_ch9"]) / 0.128  # whole passes
+    np.testing.assert_allclose(grid, np.round(grid), atol=1e-9)
+    assert s["detection"]["microbolometer"]["floor"]["exposure_unit"] == "s"
+    page = (tmp_path / "r" / "report.html").read_text()
+    assert "Candidate patch of 3 footprint(s)" in page and "passes for P_D" in page
+    bad = cli("report", d / "run.nc", d / "replay.nc", "-o", tmp_path / "r2", "--patch-area-m2", "1e5")
+    assert bad.returncode != 0 and "footprint_area_m2" in bad.stderr
+
+
 @pytest.mark.parametrize(
     "case, match",
     [
