@@ -151,10 +151,7 @@ def replay_fluxes(
     out = None
     if write is None:
         out = np.empty((n_prof, nt, nf), np.float32)
-
-        def write(ps, ts, fs, T):
-            out[ps, ts, fs] = T
-
+        write = _ArrayWriter(out)
     n_fb = max(1, min(nf, int(chunk_columns)))  # facets per batch
     per_chunk = max(1, int(chunk_columns) // n_fb)  # profiles per batch
     fixed = initial_temperature is not None or fixed_spinup
@@ -162,95 +159,131 @@ def replay_fluxes(
         ("uniform" if initial_temperature is not None else "equilibrium") + " + fixed spin-up" if fixed else "periodic"
     )
     info = {"start": start, "periodic_iterations": [], "periodic_residual_K": []}
-    names = {
-        "spin": ("spinup_solar_incident", "spinup_ir_incident") if has_spin else None,
-        "rec": ("solar_incident", "ir_incident"),
-    }
     n_batches = -(-nf // n_fb) * -(-n_prof // per_chunk)
     spin_windows = 1 if fixed else 5  # ETA: a periodic start usually takes about 4-6 windows
     work = n_batches * ((spin_windows * (len(t_spin) - 1) if (has_spin or not fixed) else 0) + nt - 1)
-    done = [0]
-    report = progress or None
+    counter = _WorkCounter(work, progress)
     for f0 in range(0, nf, n_fb):
         f1 = min(nf, f0 + n_fb)
-        nfb = f1 - f0
-        ncols_max = nfb * min(per_chunk, n_prof)
-        # per sample: two float64 flux reads + absorbed (3 x 8 B per facet), float32 T per column
-        rows = max(2, int(chunk_mb * 2**20 // (24 * nfb + 8 * ncols_max)))
-        cache: dict = {}
-
-        def absorbed(which, k0, k1, f0=f0, f1=f1, rows=rows, cache=cache):
-            """Absorbed flux [W m-2] of samples k0..k1-1 of the spin-up or record window, this batch's facets."""
-            n_all = len(t_spin) if which == "spin" else nt
-            if n_all <= rows:  # the whole window fits the budget: read it once
-                if which not in cache:
-                    sol, ir = names[which]
-                    cache[which] = (
-                        absorbed_solar_of(flux_ds, sol, slice(None), slice(f0, f1)) + eps * flux_ds[ir][:, f0:f1].values
-                    )
-                return cache[which][k0:k1]
-            sol, ir = names[which]
-            return (
-                absorbed_solar_of(flux_ds, sol, slice(k0, k1), slice(f0, f1)) + eps * flux_ds[ir][k0:k1, f0:f1].values
-            )
-
+        ncols_max = (f1 - f0) * min(per_chunk, n_prof)
+        batch = _ReplayForcing(flux_ds, eps, f0, f1, t_rec, t_spin if has_spin else None, chunk_mb, ncols_max, counter)
         spin_which = "spin" if has_spin else "rec"
-
-        def window(solver, which, t, record_into=None, rows=rows, absorbed=absorbed):
-            """Run the columns through a window block by block (rows overlap by one sample)."""
-            n = len(t)
-            for a in range(0, n - 1, rows - 1):
-                b = min(n, a + rows)
-                T = solver.run_series(t[a:b], absorbed(which, a, b), record=record_into is not None)
-                if record_into is not None:
-                    record_into(a, T)
-                done[0] += b - 1 - a
-                if report is not None:
-                    report(done[0], max(work, done[0]))
-
         for p0 in range(0, n_prof, per_chunk):
             chunk = list(profiles[p0 : p0 + per_chunk])
-            cols = [p for p in chunk for _ in range(nfb)]
-            solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
-            n_sp = len(t_spin)
-            eq = None
-            if initial_temperature is None:
-                eq = (
-                    sum(
-                        solver.equilibrium_surface(absorbed(spin_which, a, min(n_sp, a + rows)))
-                        * (min(n_sp, a + rows) - a)
-                        for a in range(0, n_sp, rows)
-                    )
-                    / n_sp
-                )
             # (nt, nfb) forcing serves every profile: column j of the solver uses forcing column j % nfb
+            cols = [p for p in chunk for _ in range(f1 - f0)]
+            solver = thermal.ColumnSolver(cols, property_set=pset, emissivity=eps, geothermal_flux=qgeo)
+            eq = batch.equilibrium_surface(solver, spin_which) if initial_temperature is None else None
             if fixed:
                 if initial_temperature is not None:
                     solver.set_uniform(float(initial_temperature))
                 else:
                     solver.set_equilibrium(surface_K=eq)
                 if has_spin:
-                    window(solver, "spin", t_spin)
+                    batch.window(solver, "spin")
             else:
                 solver.set_equilibrium(surface_K=eq)
-
-                def period_map(x, solver=solver, window=window, spin_which=spin_which):
-                    solver.set_state(x)
-                    window(solver, spin_which, t_spin)
-                    return solver.state()
-
-                pinfo = thermal.periodic_state(solver, period_map, tol_K=tol_K)
+                pinfo = thermal.periodic_state(solver, batch.period_map(solver, spin_which), tol_K=tol_K)
                 info["periodic_iterations"].append(int(pinfo["iterations"]))
                 info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
-
-            def record_into(a, T, p0=p0, nch=len(chunk), f0=f0, f1=f1):
-                T = np.asarray(T, np.float32).reshape(len(T), nch, f1 - f0).transpose(1, 0, 2)
-                lo = 0 if a == 0 else 1  # blocks overlap by one sample
-                write(slice(p0, p0 + nch), slice(a + lo, a + len(T[0])), slice(f0, f1), T[:, lo:])
-
-            window(solver, "rec", t_rec, record_into)
+            batch.window(solver, "rec", _ReplayRecorder(write, p0, len(chunk), f0, f1))
             del solver
     return out, info
+
+
+class _ArrayWriter:
+    """``write(profiles, times, facets, T)`` into a (profile, time, facet) array."""
+
+    def __init__(self, out: np.ndarray):
+        self.out = out
+
+    def __call__(self, ps, ts, fs, T) -> None:
+        self.out[ps, ts, fs] = T
+
+
+class _WorkCounter:
+    """Column-batch time steps done, reported as ``progress(done, total)`` (the total grows if needed)."""
+
+    def __init__(self, total: int, progress):
+        self.total, self.done, self.progress = total, 0, progress or None
+
+    def add(self, steps: int) -> None:
+        self.done += steps
+        if self.progress is not None:
+            self.progress(self.done, max(self.total, self.done))
+
+
+class _ReplayRecorder:
+    """Hands a batch's recorded block (time, profiles x facets) to ``write`` as (profiles, time, facets)
+    float32 [K]; consecutive blocks overlap by one sample, which is written once."""
+
+    def __init__(self, write, p0: int, n_profiles: int, f0: int, f1: int):
+        self.write, self.p0, self.n, self.f0, self.f1 = write, p0, n_profiles, f0, f1
+
+    def __call__(self, a: int, T) -> None:
+        T = np.asarray(T, np.float32).reshape(len(T), self.n, self.f1 - self.f0).transpose(1, 0, 2)
+        lo = 0 if a == 0 else 1  # blocks overlap by one sample
+        self.write(slice(self.p0, self.p0 + self.n), slice(a + lo, a + len(T[0])), slice(self.f0, self.f1), T[:, lo:])
+
+
+class _ReplayForcing:
+    """The saved forcing of one batch of facets ``f0:f1``: absorbed flux [W m-2] of the spin-up window
+    (``"spin"``) or the record (``"rec"``), read in blocks of samples sized to ``chunk_mb`` [MB] (a window
+    that fits is read once and kept), and passes of a solver's columns through either window."""
+
+    def __init__(self, flux_ds, eps, f0, f1, t_rec, t_spin, chunk_mb, ncols_max, counter: _WorkCounter):
+        self.ds, self.eps, self.f0, self.f1, self.counter = flux_ds, eps, f0, f1, counter
+        self.t = {"rec": t_rec, "spin": t_rec if t_spin is None else t_spin}
+        self.names = {"rec": ("solar_incident", "ir_incident")}
+        if t_spin is not None:
+            self.names["spin"] = ("spinup_solar_incident", "spinup_ir_incident")
+        # per sample: two float64 flux reads + absorbed (3 x 8 B per facet), float32 T per column
+        self.rows = max(2, int(chunk_mb * 2**20 // (24 * (f1 - f0) + 8 * ncols_max)))
+        self.cache: dict = {}
+
+    def absorbed(self, which: str, k0: int, k1: int) -> np.ndarray:
+        """Absorbed flux [W m-2] of samples k0..k1-1 of the window ``which``, this batch's facets."""
+        sol, ir = self.names[which]
+        cols = slice(self.f0, self.f1)
+        if len(self.t[which]) <= self.rows:  # the whole window fits the budget: read it once
+            if which not in self.cache:
+                self.cache[which] = (
+                    absorbed_solar_of(self.ds, sol, slice(None), cols) + self.eps * self.ds[ir][:, cols].values
+                )
+            return self.cache[which][k0:k1]
+        return absorbed_solar_of(self.ds, sol, slice(k0, k1), cols) + self.eps * self.ds[ir][k0:k1, cols].values
+
+    def equilibrium_surface(self, solver, which: str) -> np.ndarray:
+        """The columns' equilibrium surface temperature [K], time-averaged over the window ``which``."""
+        n, rows = len(self.t[which]), self.rows
+        return (
+            sum(
+                solver.equilibrium_surface(self.absorbed(which, a, min(n, a + rows))) * (min(n, a + rows) - a)
+                for a in range(0, n, rows)
+            )
+            / n
+        )
+
+    def window(self, solver, which: str, record_into=None) -> None:
+        """Run the columns through a window block by block (blocks overlap by one sample)."""
+        t, rows = self.t[which], self.rows
+        n = len(t)
+        for a in range(0, n - 1, rows - 1):
+            b = min(n, a + rows)
+            T = solver.run_series(t[a:b], self.absorbed(which, a, b), record=record_into is not None)
+            if record_into is not None:
+                record_into(a, T)
+            self.counter.add(b - 1 - a)
+
+    def period_map(self, solver, which: str):
+        """The map x -> state after one pass through the window from state x (for thermal.periodic_state)."""
+
+        def phi(x):
+            solver.set_state(x)
+            self.window(solver, which)
+            return solver.state()
+
+        return phi
 
 
 # ----------------------------------------------------------------------------- coupled crater run
