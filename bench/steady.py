@@ -47,7 +47,7 @@ from crater_thermal.reference import grid_mesh, spherical_bowl  # noqa: E402
 
 #: Terrain [m]: side of the square plain, diameter of the bowl; the bowl's depth/diameter [-].
 SIZE_M, DIAMETER_M, DEPTH_TO_DIAMETER = 20_000.0, 10_000.0, 0.2
-#: What ``run`` reached at 100k facets (README, Scale): peak resident set [MB] of a whole year's run.
+#: What ``run`` reached at 100k facets (docs/performance.md, Scale): peak resident set [MB] of a whole year's run.
 RUN_PEAK_100K_MB = 1853
 
 

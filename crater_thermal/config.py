@@ -516,7 +516,7 @@ SCHEMA: Tuple[Key, ...] = (
         "extrapolated",
         "IR at the end of a coupled step: extrapolated in time from the exact IR of the two samples before "
         "(one conduction solve per step), or predictor-corrector (a predictor solve, then the step again "
-        "with the predicted IR: two solves); README: accuracy of each",
+        "with the predicted IR: two solves); docs/model.md: accuracy of each",
         choices=choices.IR_COUPLING_SCHEMES,
     ),
     # [surface]
@@ -618,7 +618,7 @@ SCHEMA: Tuple[Key, ...] = (
         "choice",
         "horizon",
         "direct sunlight: one ray per disk patch, facet and step (the "
-        "reference) / horizon map per facet, traced once per mesh and cached (README: cost and accuracy)",
+        "reference) / horizon map per facet, traced once per mesh and cached (docs/performance.md: cost and accuracy)",
         choices=choices.SUN_METHODS,
     ),
     K(

@@ -71,7 +71,7 @@ def test_conductivity_rejects_impossible_density(rho):
 
 def test_rock_conductivity_erratum_values():
     # adopted reading: alpha = 3.05e-7 + 4.0e-6/T m2/s (thesis 3.05, 0.040 in 1e-3 cm2/s and cm2 K/s),
-    # rho = 3070, Hemingway c(T): numbers stated in materials.py and the README
+    # rho = 3070, Hemingway c(T): numbers stated in materials.py and docs/physics.md
     for T, k_want, inertia_want in ((100.0, 0.292, 497.0), (300.0, 0.741, 1313.0)):
         k = mat.rock_conductivity(T)
         c = mat.heat_capacity(T)

@@ -4,7 +4,7 @@ Usage::
 
     python validation/detectability.py [T_NOMINAL_K DT_K]
 
-Defaults: the -86 deg crater floor of the README results table (night-time median nominal 58.1 K,
+Defaults: the -86 deg crater floor of the results table in docs/results.md (night-time median nominal 58.1 K,
 loose - nominal -2.77 K). For every preset (crater_thermal.instrument.PRESETS): band radiance and NETD at
 the scene, the observed difference, the dwell for P_D >= 0.9 at 1% false alarms (one-sided) or "not
 detectable at any dwell" with the limiting term, and the same with the natural scatter halved, with 10

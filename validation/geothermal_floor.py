@@ -1,4 +1,4 @@
-"""How much does the geothermal flux set the night-time floor temperature? (README, issue 12)
+"""How much does the geothermal flux set the night-time floor temperature? (docs/results.md, issue 12)
 
 Usage::
 

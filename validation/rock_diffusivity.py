@@ -1,4 +1,4 @@
-"""The rock column of the README's thesis table before and after the rock-diffusivity reading of issue 12.
+"""The rock column of the thesis table in docs/results.md before and after the rock-diffusivity reading of issue 12.
 
 Usage::
 
@@ -7,7 +7,7 @@ Usage::
 Replays the nominal 1300/1800 profile and rock on RUN.nc's saved fluxes (a thesis crater run, e.g. the
 one validation/geothermal_floor.py writes for 86 S) with the adopted rock diffusivity
 (materials.ROCK_D1 = 4.0e-6 m2 K s-1) and with the earlier 4.0e-5, and prints the median over the
-recorded year of |rock - nominal| on the floor (the README table's column, as in
+recorded year of |rock - nominal| on the floor (the docs/results.md table's column, as in
 validation/thesis_results.py). Writes validation/results/rock_diffusivity.json.
 """
 
