@@ -49,12 +49,8 @@ Periodic steady state
 :func:`periodic_state` (quasi-Newton shooting with a per-column linearised Jacobian and Anderson
 mixing) reaches max |Phi(x) - x| <= 0.01 K in 4-5 periods from the equilibrium estimate, 100 K or
 250 K starts (a plain spin-up needs 300-400 years for the same accuracy on sunlit walls: the 2 m
-column's slowest mode decays over ~30-80 years). Measured on the shared 2-core machine with
-synthetic 4-hour forcing over one year: 9,100 columns, 4 periods in 23 s (4.8 s per period + 0.9 s
-of linear algebra) plus the recorded year in 9.9 s; 91 profiles x 502 facets = 45,682 columns:
-4 periods in 199 s plus the recorded year in 33 s at load ~2.5 (1.2 GB resident; measured before
-the adaptive refinement, which adds ~18%), but 11.4 min in
-all when other jobs held the machine at load 5-6.
+column's slowest mode decays over ~30-80 years). Its cost is a few plain periods plus the linear
+algebra of the Jacobians; the measured times are in ``docs/performance.md``.
 """
 
 from __future__ import annotations

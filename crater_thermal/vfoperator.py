@@ -42,12 +42,11 @@ scaled to ``D G D`` with ``d_i = min(1, 1 / rowsum_i)``, which keeps the symmetr
 
 Cost: memory and product cost grow like the number of stored entries: near blocks O(N * LEAF_SIZE),
 far blocks O(N log N * rank) when visibility is smooth.  On crater terrain occlusion raises the ranks
-with block size (mean rank 7 at 10k facets, 17 at 100k, after recompression), and blocks above
-MAX_BLOCK_ENTRIES are split: measured memory 8.3 MB at 10k, 29 MB at 25k, 329 MB at 100k (exact
-matrix: 53 MB, 284 MB, ~3.5 GB), i.e. ~N^1.75 from 25k to 100k
-(``bench/results/viewfactor_operator_c2.json``; before recompression 8.8, 32 and 381 MB,
-``viewfactor_operator.json``); the build evaluates every facing pair once (rays like the exact matrix,
-O(N^2) time, but never more than one block of entries in memory per thread) plus the cross
+with block size, and blocks above MAX_BLOCK_ENTRIES are split, so memory grows faster than N log N (about
+N^1.75 on the generator's crater terrain from 25k to 100k facets; the measured sizes and build times
+against the exact matrix are in ``docs/performance.md``); the build evaluates every facing pair once
+(rays like the exact matrix, O(N^2) time, but never more than one block of entries in memory per thread)
+plus the cross
 approximation and its recompression (O(entries * rank)).  Products run in numba
 (:mod:`crater_thermal.kernels.vfoperator`), one pass over the stored entries per product, for any
 number of right-hand sides at once, split between :data:`PRODUCT_THREADS` threads (rows of the sparse
@@ -103,8 +102,8 @@ NEAR_BATCH_PAIRS = 1 << 18
 #: entries into its own array, the arrays are summed).
 PRODUCT_THREADS = max(1, min(os.cpu_count() or 1, 8))
 #: Multiply-adds (stored entries x right-hand sides) below which a product stays on one thread.  The
-#: pool's threads are kept, so a split costs little: one right-hand side on two cores, measured on the
-#: generator crater, 0.84 M entries (5k facets): 1.36 -> 0.96 ms; 1.9 M (10k): 3.1 -> 1.9 ms.
+#: pool's threads are kept, so a split costs little; the threshold was set by timing products on the
+#: generator crater at 5k and 10k facets (docs/performance.md).
 PARALLEL_MIN_WORK = 500_000
 #: Part of the cache key of a compressed operator: bump it when the numbers change.
 ALGORITHM_VERSION = "c2"
