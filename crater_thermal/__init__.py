@@ -24,6 +24,7 @@ __all__ = [
     "run",
     "replay",
     "analyse",
+    "steady_state",
     "make_report",
     "run_sweep",
     "progress_callback",

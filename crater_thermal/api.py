@@ -360,6 +360,54 @@ def make_report(
     return rp.make_report(run, replay, out_dir, overwrite=overwrite, progress=flag, **options)
 
 
+def steady_state(
+    mesh: Union["Mesh", PathLike],
+    sun_elevation_deg: float,
+    sun_azimuth_deg: float = 180.0,
+    *,
+    out: Optional[PathLike] = None,
+    overwrite: bool = False,
+    progress: Any = None,
+    **options,
+) -> Dataset:
+    """Radiative equilibrium of a mesh under a fixed Sun at 1 au (no conduction; ``crater-thermal steady``).
+
+    Parameters
+    ----------
+    mesh : Mesh or path-like
+        A mesh (:func:`mesh_crater`, :func:`mesh_dem`, ...) or a mesh file (.ply, .obj, .stl) [m].
+    sun_elevation_deg, sun_azimuth_deg : float [deg]
+        The Sun's elevation and its azimuth from north, clockwise.
+    out : path-like, optional
+        Write the result there (netCDF); default: in memory.
+    options :
+        Those of :func:`crater_thermal.steady.steady_file`: ``albedo``, ``emissivity`` [-],
+        ``solar_constant`` [W m-2], ``point_sun``, ``limb_darkening``, ``n_rings``, ``method`` and
+        ``n_bounces`` (scattering), ``view_factors`` and ``tolerance`` (the operator, chosen by size as a
+        run does), ``solver``, ``flip``.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``surface_temperature(facet)`` [K], ``solar_direct``, ``solar_incident``, ``ir_incident`` [W m-2],
+        the mesh, and attributes naming the methods used.
+    """
+    from crater_thermal import steady as st
+
+    flag = None if progress is None else bool(progress)
+    with _scratch_folder() as d:
+        path = mesh
+        if isinstance(mesh, geometry.Mesh):
+            path = geometry.save_mesh(mesh, d / "mesh.ply")
+        target = d / "steady.nc" if out is None else out
+        written, _ = st.steady_file(
+            path, target, sun_elevation_deg, sun_azimuth_deg, overwrite=overwrite, progress=flag, **options
+        )
+        if out is None:
+            return _in_memory(written, io.open_written)
+    return io.open_written(written)
+
+
 def run_sweep(
     cases: Sequence[PathLike], out_dir: PathLike, *, scheduler: Optional[str] = None, workers=None, progress=None
 ):

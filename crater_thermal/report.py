@@ -1194,12 +1194,28 @@ def make_report(
     out_dir = Path(out_dir)
     inputs = [p for p in _as_list(run_ds) + _as_list(replay_ds) if isinstance(p, (str, os.PathLike))]
     _refuse_existing(out_dir, overwrite, inputs)
-    created = not out_dir.exists()
-    try:
-        with ctio.output_lock(out_dir):
-            return _locked_report(
-                run_ds,
-                replay_ds,
+    with _report_folder(out_dir):
+        instruments = list(ins.PRESETS.values()) if instruments is None else list(instruments)
+        if not instruments:
+            raise ConfigError("need at least one instrument")
+        if replay_ds is None:
+            run_ds, replay_ds = sweep_pairs(run_ds)
+        if night_definition not in regions.NIGHT_DEFINITIONS:
+            raise ConfigError(
+                f"night definition {night_definition!r} not one of {', '.join(regions.NIGHT_DEFINITIONS)}"
+            )
+        if not (np.isfinite(min_dark_hours) and min_dark_hours >= 0):
+            raise ConfigError(f"min_dark_hours={min_dark_hours} out of range [0, inf)")
+        runs, reps = _as_list(run_ds), _as_list(replay_ds)
+        if len(runs) != len(reps) or not runs:
+            raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
+        opened = []
+        try:
+            runs = [_track(ctio.open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
+            reps = [_track(ctio.open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
+            return _make_report(
+                runs,
+                reps,
                 out_dir,
                 overwrite,
                 progress,
@@ -1210,57 +1226,22 @@ def make_report(
                 night_definition,
                 min_dark_hours,
             )
+        finally:
+            for ds in opened:
+                ds.close()
+
+
+@contextlib.contextmanager
+def _report_folder(out_dir: Path):
+    """Hold the report folder's lock; a failed or interrupted report leaves no empty folder it created."""
+    created = not out_dir.exists()
+    try:
+        with ctio.output_lock(out_dir):
+            yield
     except BaseException:
         if created and out_dir.is_dir() and not any(out_dir.iterdir()):
-            out_dir.rmdir()  # an interrupted or failed report leaves no empty folder behind
+            out_dir.rmdir()
         raise
-
-
-def _locked_report(
-    run_ds,
-    replay_ds,
-    out_dir,
-    overwrite,
-    progress,
-    instruments,
-    threshold_K,
-    observation,
-    snapshots,
-    night_definition,
-    min_dark_hours,
-) -> Path:
-    instruments = list(ins.PRESETS.values()) if instruments is None else list(instruments)
-    if not instruments:
-        raise ConfigError("need at least one instrument")
-    if replay_ds is None:
-        run_ds, replay_ds = sweep_pairs(run_ds)
-    if night_definition not in regions.NIGHT_DEFINITIONS:
-        raise ConfigError(f"night definition {night_definition!r} not one of {', '.join(regions.NIGHT_DEFINITIONS)}")
-    if not (np.isfinite(min_dark_hours) and min_dark_hours >= 0):
-        raise ConfigError(f"min_dark_hours={min_dark_hours} out of range [0, inf)")
-    runs, reps = _as_list(run_ds), _as_list(replay_ds)
-    if len(runs) != len(reps) or not runs:
-        raise ConfigError(f"need one replay per run, got {len(runs)} runs and {len(reps)} replays")
-    opened = []
-    try:
-        runs = [_track(ctio.open_run(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in runs]
-        reps = [_track(ctio.open_replay(r), opened) if isinstance(r, (str, os.PathLike)) else r for r in reps]
-        return _make_report(
-            runs,
-            reps,
-            out_dir,
-            overwrite,
-            progress,
-            instruments,
-            threshold_K,
-            observation,
-            snapshots,
-            night_definition,
-            min_dark_hours,
-        )
-    finally:
-        for ds in opened:
-            ds.close()
 
 
 def summarize(
