@@ -15,6 +15,7 @@ which works on arrays and callbacks. Here a case becomes files:
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 from pathlib import Path
 from typing import Sequence
@@ -130,8 +131,6 @@ def _replay_file(
 
 
 def _case_fingerprint(case) -> str:
-    import hashlib
-
     return hashlib.sha256(case.toml_text.encode()).hexdigest()[:16]
 
 

@@ -27,13 +27,14 @@ Start of the recorded period
 from __future__ import annotations
 
 import contextlib
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 
-from crater_thermal import cache, radiosity, sunlight
+from crater_thermal import cache, ephemeris, geometry, radiosity, raytrace, sunlight, terrain, thermal, vfoperator
 from crater_thermal.constants import SIGMA
 
 # ----------------------------------------------------------------------------- memory budget
@@ -136,8 +137,6 @@ def replay_fluxes(
     -------
     T : (n_profiles, n_times, n_facets) float32 surface temperatures [K] (None with ``write``); info : dict
     """
-    from crater_thermal import thermal
-
     eps = float(flux_ds.attrs["emissivity"])
     pset = property_set or str(flux_ds.attrs.get("property_set", "apollo"))
     qgeo = float(flux_ds.attrs.get("geothermal_flux", 0.033) if geothermal_flux is None else geothermal_flux)
@@ -297,8 +296,6 @@ class Timer:
 
     @contextmanager
     def __call__(self, name: str):
-        import time
-
         t = time.perf_counter()
         try:
             yield
@@ -308,8 +305,6 @@ class Timer:
 
 def case_mesh(case):
     """The mesh a case asks for: an idealized crater, a flat patch, a mesh file, or a DEM site [m]."""
-    from crater_thermal import geometry
-
     c = case.crater
     if c.mesh:
         location = (case.location.lat_deg, case.location.lon_deg)  # a DEM site mesh must be centred there
@@ -317,8 +312,6 @@ def case_mesh(case):
     if c.kind == "flat":
         return geometry.flat_mesh()
     if c.kind == "dem":
-        from crater_thermal import terrain
-
         return terrain.site_mesh(
             c.dem,
             case.location.lat_deg,
@@ -386,16 +379,12 @@ class Forcing:
 
 def view_factor_settings(case) -> tuple[str, float]:
     """(method, tolerance) of a case's view factors: ``[radiation] view_factors`` and ``tolerance``."""
-    from crater_thermal import vfoperator
-
     method, tol = case.radiation.view_factors, case.radiation.tolerance
     return method, float(vfoperator.DEFAULT_TOLERANCE if tol is None else tol)
 
 
 def case_geometry(case, timer: Timer, progress=None):
     """Mesh, ray tracer and radiation operator (None for flat ground or no visible pairs)."""
-    from crater_thermal import raytrace, vfoperator
-
     with timer("geometry"):
         mesh = case_mesh(case)
         tracer = raytrace.RayTracer(mesh)
@@ -415,8 +404,6 @@ def case_geometry(case, timer: Timer, progress=None):
 
 def case_sun(case, timer: Timer):
     """Spin-up and record times (datetime64[ns]) and the Sun's direction and distance [m] over both."""
-    from crater_thermal import ephemeris
-
     step_s = float(case.steps.flux_step_hours) * 3600.0
     with timer("ephemeris"):
         times = ephemeris.time_grid(case.period.start, case.period.end, step_s)
@@ -534,8 +521,6 @@ def spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
     ``spin_ir``) when ``save_spin``. Returns (info, IR [W m-2] at the record's first sample, or None
     when there is no spin-up window).
     """
-    from crater_thermal import thermal
-
     period = case.period
     T0 = period.initial_temperature_K
     if len(spin_t) == 0:
