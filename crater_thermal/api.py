@@ -293,6 +293,11 @@ class Results:
     night_median_dT_K: dict
     night_median_T_nominal_K: dict
 
+    @property
+    def headline(self) -> str:
+        """The answer in plain words, as the report opens on it (:func:`crater_thermal.answer.headline`)."""
+        return self.summary["headline"]
+
     def __repr__(self) -> str:
         lines = [f"Results(nominal={self.nominal!r}, loose={self.loose!r}; night median loose - nominal [K]:"]
         for region, dT in self.night_median_dT_K.items():

@@ -521,6 +521,48 @@ def report(
         min_dark_hours=min_dark_hours,
     )
     typer.echo(str(path))
+    typer.echo(_summary_text(path.parent / "summary.json"))
+
+
+def _summary_text(summary_json: Path) -> str:
+    """The headline of a report's summary.json, wrapped for a terminal."""
+    import json
+    import textwrap
+
+    from crater_thermal.errors import FluxFileError
+
+    try:
+        headline = json.loads(summary_json.read_text(encoding="utf-8"))["headline"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise FluxFileError(
+            f"{summary_json} is not a crater_thermal summary with a headline (write one with crater-thermal report)"
+        ) from None
+    return textwrap.fill(headline, width=100)
+
+
+@app.command()
+def summary(
+    source: Path = typer.Argument(
+        ..., help="A report folder (or its summary.json), or a run dataset (netCDF) with its replay as REPLAY."
+    ),
+    replay: Optional[Path] = typer.Argument(None, help="Replay dataset made from the run (when SOURCE is a run)."),
+) -> None:
+    """Print the answer: how much colder loose regolith is at night, where, when, and which instrument sees it."""
+    from crater_thermal import answer, api
+    from crater_thermal.errors import ConfigError
+
+    if source.is_dir():
+        source = source / "summary.json"
+    if source.suffix.lower() == ".json":
+        typer.echo(_summary_text(source))
+        return
+    if replay is None:
+        raise ConfigError(
+            f"{source} is a run: give its replay too (crater-thermal summary RUN.nc REPLAY.nc), or a report folder"
+        )
+    import textwrap
+
+    typer.echo(textwrap.fill(answer.headline(api.analyse(source, replay).summary), width=100))
 
 
 @app.command()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import dataclasses
 import html
 import json
 import math
@@ -28,9 +29,9 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from crater_thermal import analysis as an
+from crater_thermal import answer, profiles, regions
 from crater_thermal import instrument as ins
 from crater_thermal import io as ctio
-from crater_thermal import profiles, regions
 from crater_thermal.errors import ConfigError, CraterThermalError, MissingExtraError
 from crater_thermal.progress import bar
 
@@ -57,6 +58,9 @@ FIGURES = {
     "instrument and region, at the stated false-alarm rate (instrument.py).",
     "detection_local_time.png": "Signal-to-noise |dT|/sigma against local solar time per region (best instrument), "
     "at the reference dwell.",
+    "detectability_scatter.png": "Time on each footprint needed for P_D >= 0.9 against the natural scatter between "
+    "footprints, per instrument, on the headline's region (a missing point: not detectable at that scatter); "
+    "the dashed line is the scatter the report assumes.",
 }
 SNAPSHOTS = {
     "map3d_temperature.png": (
@@ -145,7 +149,22 @@ SUMMARY_KEYS = {
     "from night-time medians (instrument.dwell_for_detection).",
     "figures": "list[str]: files written under figures/.",
     "snapshot_note": "str|null: why 3-D snapshots are missing, if they are.",
+    "headline": "str: the answer in plain words (answer.headline of this summary): the report's first paragraph, "
+    "printed by `report` and `summary`.",
+    "detectability_vs_scatter": "{region, scatter_K [K], dwell_s {instrument: [s|null]}, exposure {instrument: "
+    "[s|passes|null]}, exposure_unit {instrument: s|passes}}|null: the exposure for P_D >= target_pd on the "
+    "headline's region (answer.focus_region) as the natural scatter runs over SCATTER_SWEEP_K (null: not "
+    "detectable at that scatter).",
+    "detection_larger_patch": "{candidate_footprints, reference_footprints, region, by_instrument {instrument: "
+    "{detectable, exposure, exposure_unit, dwell_s, passes, pd_limit}}}|null: the same test for a loose patch of "
+    "LARGER_PATCH footprints against as many references (the patch size a rover team asks about).",
 }
+
+#: Natural scatter values [K] of the detectability-versus-scatter figure and summary entry: its plausible range
+#: (Diviner's 0.94 K was measured at 70-120 K outside the polar craters; half and twice that bracket it).
+SCATTER_SWEEP_K = tuple(round(0.2 + 0.1 * i, 2) for i in range(19))
+#: Footprints of the larger loose patch the summary also tests (k = m; thesis: one footprint against one).
+LARGER_PATCH = 3
 
 PathOrDs = Union[str, os.PathLike, object]
 
@@ -368,8 +387,51 @@ def _summary(
         figures=list(figures),
         snapshot_note=snapshot_note,
     )
+    s = _clean(s)
+    focus = answer.focus_region(s)
+    s["detectability_vs_scatter"] = _clean(_scatter_sweep(s, focus, instruments, obs))
+    s["detection_larger_patch"] = _clean(_larger_patch(s, focus, instruments, obs))
+    s["headline"] = answer.headline(s)  # from the cleaned numbers: the headline says what summary.json says
     assert set(s) == set(SUMMARY_KEYS), set(s) ^ set(SUMMARY_KEYS)
-    return _clean(s)
+    return s
+
+
+def _focus_values(s: dict, focus: Optional[str]):
+    """(night median loose - nominal [K], nominal night temperature [K]) of the headline's region, or None."""
+    if focus is None or not s.get("loose_profile"):
+        return None
+    dT = s["night_median_dT_K"][s["loose_profile"]].get(focus)
+    Tn = s["night_median_T_nominal_K"].get(focus)
+    return None if dT is None or not Tn or not Tn + dT > 0 else (dT, Tn)
+
+
+def _scatter_sweep(s: dict, focus, instruments, obs: ins.Observation) -> Optional[dict]:
+    """Exposure for P_D >= target on the headline's region across :data:`SCATTER_SWEEP_K` (summary key)."""
+    vals = _focus_values(s, focus)
+    if vals is None:
+        return None
+    out = {"region": focus, "scatter_K": list(SCATTER_SWEEP_K), "dwell_s": {}, "exposure": {}, "exposure_unit": {}}
+    for inst in instruments:
+        rows = [ins.dwell_for_detection(*vals, inst, obs.with_scatter(x)) for x in SCATTER_SWEEP_K]
+        out["dwell_s"][inst.name] = [r["dwell_s"] for r in rows]
+        out["exposure"][inst.name] = [r["exposure"] for r in rows]
+        out["exposure_unit"][inst.name] = rows[0]["exposure_unit"]
+    return out
+
+
+def _larger_patch(s: dict, focus, instruments, obs: ins.Observation) -> Optional[dict]:
+    """The detection test for a loose patch of :data:`LARGER_PATCH` footprints against as many references."""
+    vals = _focus_values(s, focus)
+    if vals is None:
+        return None
+    k = LARGER_PATCH
+    m = max(k, obs.reference_footprints)
+    o = dataclasses.replace(
+        obs, candidate_footprints=k, reference_footprints=m, patch_area_m2=None, footprint_area_m2=None
+    )
+    keys = ("detectable", "exposure", "exposure_unit", "dwell_s", "passes", "pd_limit", "pass_integration_s")
+    by = {inst.name: {key: ins.dwell_for_detection(*vals, inst, o).get(key) for key in keys} for inst in instruments}
+    return {"candidate_footprints": k, "reference_footprints": m, "region": focus, "by_instrument": by}
 
 
 # ------------------------------------------------------------------------------------ figures
@@ -701,6 +763,40 @@ def _best_instrument(summary: dict) -> Optional[str]:
     return min(det, key=key) if det else None
 
 
+def _fig_detectability_scatter(summary: dict, path) -> None:
+    sweep, obs = summary["detectability_vs_scatter"], summary["observation"]
+    x = np.asarray(sweep["scatter_K"], float)
+    fig, ax = _figure(1, 1, (7.0, 4.2))
+    a = ax[0, 0]
+    from matplotlib import colormaps
+
+    colors = colormaps["tab10"]
+    for k, (name, secs) in enumerate(sweep["dwell_s"].items()):
+        y = np.array([np.nan if v is None else v for v in secs], float)
+        unit = sweep["exposure_unit"][name]
+        a.plot(
+            x,
+            y,
+            "o-",
+            ms=3,
+            lw=1.3,
+            color=colors(k % 10),
+            label=f"{name} ({'passes' if unit == 'passes' else 'stare'})",
+        )
+    a.axvline(obs["natural_scatter_K"], color="k", ls="--", lw=0.8)
+    a.set_yscale("log")
+    a.set_xlabel("natural scatter between footprints [K]")
+    a.set_ylabel(f"time on each footprint for P_D >= {obs['target_pd']:g} [s]")
+    a.set_title(
+        f"{answer.region_words(sweep['region'])}: {obs.get('candidate_footprints', 1)} loose vs "
+        f"{obs['reference_footprints']} reference footprints, {100 * obs['false_alarm']:g}% false alarms",
+        fontsize=9,
+    )
+    a.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    a.grid(True, which="both", alpha=0.3)
+    fig.savefig(path, dpi=110)
+
+
 def _fig_local_time(summary: dict, path):
     name = _best_instrument(summary)
     obs = summary["observation"]
@@ -906,9 +1002,15 @@ def _snapshots(A: _Analysis, fig_dir: Path) -> List[str]:
 # --------------------------------------------------------------------------------------- HTML
 
 
-def _table(rows: List[List[str]], header: List[str]) -> str:
+def _table(rows: List[List[str]], header: List[str], markup_first: bool = False) -> str:
+    """An HTML table of text cells (escaped; with ``markup_first`` the first column is HTML already)."""
     h = "".join(f"<th>{html.escape(c)}</th>" for c in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+    body = "".join(
+        "<tr>"
+        + "".join(f"<td>{c if (markup_first and j == 0) else html.escape(c)}</td>" for j, c in enumerate(r))
+        + "</tr>"
+        for r in rows
+    )
     return f"<table><tr>{h}</tr>{body}</table>"
 
 
@@ -1024,44 +1126,85 @@ def _html_detection(summary: dict) -> str:
     return "\n".join(parts)
 
 
+def _night_words(summary: dict) -> str:
+    """What "night" means in this report, from summary.json."""
+    if summary["night_definition"] == "facet":
+        return (
+            f"night = no direct sunlight on the facet for at least {summary['night_min_dark_hours']:g} h, day = "
+            "the facet directly lit (a never-lit facet has no day)"
+        )
+    if summary["night_definition"] == "centre":
+        return "night = Sun's centre below the horizon at the crater centre (thesis)"
+    return f"night definition {html.escape(str(summary['night_definition']))} (see summary.json)"
+
+
+def _figure_html(name: str, fig_dir: Path, caption: str) -> str:
+    data = base64.b64encode((fig_dir / name).read_bytes()).decode("ascii")
+    return (
+        f"<figure><img alt='figures/{name}' src='data:image/png;base64,{data}'>"
+        f"<figcaption><a href='figures/{name}'>figures/{name}</a>: {html.escape(caption)}</figcaption></figure>"
+    )
+
+
+#: The figure beside the headline: the plan-view map of the night contrast (a DEM site: its site maps).
+KEY_FIGURES = ("fig7_8_night_map.png", "site_maps.png")
+
+
 def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>crater_thermal report</title>",
-        "<style>body{font-family:sans-serif;max-width:1100px;margin:auto;padding:1em}"
-        "img{max-width:100%;border:1px solid #ccc}table{border-collapse:collapse;font-size:90%}"
-        "td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}figure{margin:1.5em 0}</style></head><body>",
-        f"<h1>Crater thermal report: lat {summary['lat_deg']:g} deg, lon {summary['lon_deg']:g} deg</h1>",
-        f"<p>{summary['time_start_utc']} to {summary['time_end_utc']}, {summary['n_times']} samples, "
+    """report.html: the answer and its key figure on the first screen, then the figures, then the tables
+    (collapsed), a glossary and the summary.json keys."""
+    key = next((n for n in KEY_FIGURES if n in summary["figures"]), None)
+    about = (
+        f"{summary['time_start_utc']} to {summary['time_end_utc']}, {summary['n_times']} samples, "
         f"{summary['n_facets']} facets (mesh {html.escape(summary['mesh_hash'])}); night fraction "
         f"{summary['night_fraction']:.2f}. Differences are replayed profile minus nominal "
         f"({html.escape(summary['nominal_profile'])}); "
-        + (
-            f"night = no direct sunlight on the facet for at least {summary['night_min_dark_hours']:g} h, day = "
-            "the facet directly lit (a never-lit facet has no day)"
-            if summary["night_definition"] == "facet"
-            else "night = Sun's centre below the horizon at the crater centre (thesis)"
-        )
+        + _night_words(summary)
         + f" ({summary['night_fraction_samples']:.2f} of the samples are night). "
         + (
             "Regions: classes by slope, by the azimuth the slope faces (+-45 deg sectors; <i>level</i> below 5 deg) "
             "and by direct sunlight (never / rarely (&lt; 10% of samples) / often lit), over the analysed facets "
-            "only. Regions may overlap.</p>"
+            "only. Regions may overlap."
             if summary.get("site")
             else "Regions: floor; lower/upper wall (below/above half the wall's height); top wall ring (the facets at "
             "the crest); rim (outer flank); surround; each wall/rim part split into +-45 deg sectors by the "
             "azimuth its slope faces (<i>equator_facing</i>: on the pole side, facing the equator and the Sun); "
-            "never / rarely (&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap.</p>"
-        ),
+            "never / rarely (&lt; 10% of samples) / often lit by direct sunlight. Regions may overlap."
+        )
+    )
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>crater_thermal report</title>",
+        "<style>body{font-family:sans-serif;max-width:1200px;margin:auto;padding:0.6em 1em}"
+        "h1{font-size:1.35em;margin:0.2em 0 0.4em}img{max-width:100%;border:1px solid #ccc}"
+        "table{border-collapse:collapse;font-size:90%}td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}"
+        "td:first-child{text-align:left}figure{margin:1.2em 0}.answer{display:flex;gap:1.2em;align-items:flex-start;"
+        "flex-wrap:wrap}.answer .text{flex:1 1 380px}.answer figure{flex:1 1 480px;margin:0}"
+        ".headline{font-size:1.08em;line-height:1.45}.about{font-size:85%;color:#444}"
+        "details{margin:0.8em 0}summary{cursor:pointer;font-weight:bold}</style></head><body>",
+        f"<h1>Loose vs compact regolith at night: lat {summary['lat_deg']:g} deg, lon {summary['lon_deg']:g} deg</h1>",
+        "<div class='answer' id='answer'><div class='text'>",
+        f"<p class='headline' id='headline'>{html.escape(summary['headline'])}</p>",
+        f"<p class='about'>{about}</p>",
+        "</div>",
+        _figure_html(key, fig_dir, captions.get(key, "")) if key else "",
+        "</div>",
     ]
-    if summary.get("site"):  # a DEM site: say what was meshed (no crater radii here)
-        parts.append(_html_site(summary["site"]))
+    if summary["snapshot_note"]:
+        parts.append(f"<p><b>Note:</b> {html.escape(summary['snapshot_note'])}</p>")
+    parts.append("<h2>Figures</h2>")
+    for name in summary["figures"]:
+        if name != key:
+            parts.append(_figure_html(name, fig_dir, captions.get(name, "")))
     loose = summary["loose_profile"]
+    tables = []
+    if summary.get("site"):  # a DEM site: say what was meshed (no crater radii here)
+        tables.append(_html_site(summary["site"]))
     if loose:
         rows = []
         for r in summary["regions"]:
             rows.append(
                 [
-                    r,
+                    f"<span title='{html.escape(r)}'>{html.escape(answer.region_words(r))}</span>",
                     str(summary["region_facet_count"][r]),
                     _fmt(summary["night_median_T_nominal_K"][r], ".1f"),
                     _fmt(summary["night_median_dT_K"][loose][r]),
@@ -1070,8 +1213,8 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
                     _fmt(summary["night_frac_abs_dT_above_threshold"][loose][r]),
                 ]
             )
-        parts.append(f"<h2>{html.escape(loose)} minus nominal by region</h2>")
-        parts.append(
+        tables.append(f"<h3>{html.escape(loose)} minus nominal by region</h3>")
+        tables.append(
             _table(
                 rows,
                 [
@@ -1083,22 +1226,23 @@ def _html(summary: dict, fig_dir: Path, captions: Dict[str, str]) -> str:
                     "day median dT [K]",
                     f"night frac |dT|>{summary['threshold_K']:g} K",
                 ],
+                markup_first=True,
             )
         )
-        parts.append(_html_detection(summary))
-    if summary["snapshot_note"]:
-        parts.append(f"<p><b>Note:</b> {html.escape(summary['snapshot_note'])}</p>")
-    for name in summary["figures"]:
-        data = base64.b64encode((fig_dir / name).read_bytes()).decode("ascii")
-        parts.append(
-            f"<figure><img alt='figures/{name}' src='data:image/png;base64,{data}'>"
-            f"<figcaption><a href='figures/{name}'>figures/{name}</a>: "
-            f"{html.escape(captions.get(name, ''))}</figcaption></figure>"
-        )
+        tables.append(_html_detection(summary))
+    if tables:
+        parts.append("<details id='tables'><summary>Tables: regions and detection statistics</summary>")
+        parts.extend(tables)
+        parts.append("</details>")
     parts.append(
-        "<h2>summary.json keys</h2><dl>"
+        "<details id='glossary'><summary>Glossary</summary><dl>"
+        + "".join(f"<dt>{html.escape(k)}</dt><dd>{html.escape(v)}</dd>" for k, v in answer.GLOSSARY.items())
+        + "</dl></details>"
+    )
+    parts.append(
+        "<details><summary>summary.json keys</summary><dl>"
         + "".join(f"<dt><code>{html.escape(k)}</code></dt><dd>{html.escape(v)}</dd>" for k, v in SUMMARY_KEYS.items())
-        + "</dl>"
+        + "</dl></details>"
     )
     parts.append("</body></html>")
     return "\n".join(parts)
@@ -1342,6 +1486,10 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         advance()
         _fig_local_time(summary, fig_dir / "detection_local_time.png")
         figures.append("detection_local_time.png")
+        advance()
+        if summary["detectability_vs_scatter"]:
+            _fig_detectability_scatter(summary, fig_dir / "detectability_scatter.png")
+            figures.append("detectability_scatter.png")
         advance()
         if snapshots:
             try:
