@@ -3,14 +3,19 @@
 Conventions (thesis sections 7.2-7.3; issue 10)
 -----------------------------------------------
 * **Night** is a property of the (time, facet) sample (:func:`night_day_masks`, default
-  ``definition="facet"``): a sample is night for a facet when that facet has had no direct sunlight
-  (``solar_direct == 0``) for at least :data:`MIN_DARK_HOURS` (24 h), so the hours after the facet's own
-  sunset, when it is still cooling, are excluded, and so is a facet that is lit while the crater centre is
-  dark (at -86 deg the pole-side outer flank is lit in much of the centre's "night"). Its **day** is the
-  samples with direct sunlight on it; a never-lit facet (a PSR floor) has night all the time (after the
-  first 24 h of the record) and no day. The thesis's definition, night when the Sun's centre is below the
-  crater centre's horizon (``sun_direction[:, 2] < 0``, the same for all facets), is
-  ``definition="centre"`` (:func:`night_mask`), kept for comparisons with the thesis.
+  ``definition="dark"``): a sample is night for a facet when that facet has had no sunlight at all, direct
+  or scattered (``solar_incident <= DARK_THRESHOLD_W_M2``), for at least :data:`MIN_DARK_HOURS` (24 h), so
+  the hours after the facet's own sunset, when it is still cooling, are excluded, and so are the weeks in
+  which a permanently shadowed floor is warmed by the light its sunlit walls scatter. Its **day** is the
+  samples in which it receives sunlight (direct or scattered) and that are not night. A facet whose dark
+  night covers less than :data:`NIGHT_FALLBACK_FRACTION` of the record (near the pole a floor may never go a
+  day without scattered light) falls back to that fraction of its samples of least sunlight among those
+  without direct sunlight for ``min_dark_hours`` (:func:`dark_night_mask`), and is flagged.
+  ``definition="facet"`` counts only direct sunlight (``solar_direct == 0`` for ``min_dark_hours``): a
+  never-lit facet (a PSR floor) then has night all the time (after the first 24 h of the record) and no
+  day. The thesis's definition, night when the Sun's centre is below the crater centre's horizon
+  (``sun_direction[:, 2] < 0``, the same for all facets), is ``definition="centre"`` (:func:`night_mask`),
+  kept for comparisons with the thesis.
 * **Regions** are named facet masks (:func:`region_masks`, :func:`crater_region_masks`); they may overlap.
   ``floor``; ``lower_wall`` / ``upper_wall``: the wall below / above half of its *vertical* extent;
   ``top_wall_ring``: the wall facets touching the rim crest (part of the upper wall); ``rim``: the outer
@@ -28,7 +33,7 @@ Conventions (thesis sections 7.2-7.3; issue 10)
 
 from __future__ import annotations
 
-from typing import Dict, Mapping, Sequence, Tuple
+from typing import Dict, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -164,10 +169,14 @@ def regions_of(ds, wall_split: float = 0.5) -> np.ndarray:
 # named boolean masks over facets (they may overlap: the top wall ring is part of the upper wall,
 # the illumination classes cut across everything).
 
-#: Night definitions: "facet" (default; no direct sunlight on that facet for ``min_dark_hours``) and
-#: "centre" (the thesis: the Sun's centre below the crater centre's horizon, the same for every facet) and
-#: "facet_and_centre" (both: the coldest, most stable samples; a PSR floor's night is then the centre's).
-NIGHT_DEFINITIONS: Tuple[str, ...] = ("facet", "centre", "facet_and_centre")
+#: Night definitions: "dark" (default; no sunlight at all, direct or scattered, on that facet for
+#: ``min_dark_hours``, with the least-lit fallback: :func:`dark_night_mask`), "facet" (no direct sunlight on
+#: that facet for ``min_dark_hours``; a PSR floor is then "night" all year), "centre" (the thesis: the Sun's
+#: centre below the crater centre's horizon, the same for every facet) and "facet_and_centre" (both "facet"
+#: and "centre": a PSR floor's night is then the centre's).
+NIGHT_DEFINITIONS: Tuple[str, ...] = ("dark", "facet", "centre", "facet_and_centre")
+#: The default night definition.
+DEFAULT_NIGHT = "dark"
 #: Default darkness a facet needs before its samples count as night [h]: one Earth day excludes the
 #: first hours after sunset, when the surface is still cooling from the day (thesis Fig. 7.5).
 MIN_DARK_HOURS = 24.0
@@ -175,6 +184,17 @@ MIN_DARK_HOURS = 24.0
 #: a facet that sees no part of the solar disk (the flux is a sum of positive patch weights times
 #: max(0, cos i) over visible patches), so no tolerance is needed: any sliver of disk counts as lit.
 LIT_THRESHOLD_W_M2 = 0.0
+#: Total sunlight (direct + scattered, ``solar_incident``) [W m-2] at or below which a facet counts as dark
+#: ("dark" night). Absorbed, (1 - 0.12) x 1e-3 = 8.8e-4 W m-2 is 2.7% of the 0.033 W m-2 geothermal flux
+#: and 0.6% of what a surface at 40 K emits (0.98 sigma 40^4 = 0.142 W m-2); in radiative equilibrium it
+#: warms such a surface by 8.8e-4 / (4 x 0.142 / 40 K) = 0.06 K, against night-time loose - nominal
+#: contrasts of 1-3 K. Scattered light while any wall in view is sunlit is 1e-1 to 1e1 W m-2, so the
+#: threshold separates the two. The radiosity solve gives exactly 0 when nothing is lit; the threshold
+#: also absorbs round-off.
+DARK_THRESHOLD_W_M2 = 1e-3
+#: Fraction of the record [-]: a facet whose "dark" night holds fewer samples than this falls back to this
+#: fraction of its samples of least sunlight (among those with no direct sunlight for ``min_dark_hours``).
+NIGHT_FALLBACK_FRACTION = 0.1
 #: |lat| at and above which the pole direction is undefined in practice and sectors are named by the
 #: Sun's mean azimuth over the run [deg].
 POLAR_LIMIT_DEG = 89.5
@@ -237,15 +257,19 @@ def facet_night_mask(
         from there. Before the record the facet's history is unknown and taken as lit, so the first
         ``min_dark_hours`` of a record are never night (conservative; 6 of 2190 samples of a year at 4 h).
     """
+    return _dark_for(lit_mask(solar_direct, threshold_W_m2), time, min_dark_hours, "solar_direct")
+
+
+def _dark_for(lit, time, min_dark_hours: float, name: str) -> np.ndarray:
+    """(nt, nf) bool: unlit and unlit since at least ``min_dark_hours`` [h] (see :func:`facet_night_mask`)."""
     if not (np.isfinite(min_dark_hours) and min_dark_hours >= 0):
         raise ConfigError(f"min_dark_hours={min_dark_hours} out of range [0, inf)")
-    lit = lit_mask(solar_direct, threshold_W_m2)
     if lit.ndim != 2:
-        raise FluxFileError(f"solar_direct must have shape (time, facet), got {lit.shape}")
+        raise FluxFileError(f"{name} must have shape (time, facet), got {lit.shape}")
     t = seconds_of(time)
     if t.shape != (lit.shape[0],):
-        raise FluxFileError(f"time has {t.size} samples, solar_direct {lit.shape[0]}")
-    nt, nf = lit.shape
+        raise FluxFileError(f"time has {t.size} samples, {name} {lit.shape[0]}")
+    nt = lit.shape[0]
     idx = np.arange(nt)[:, None]
     # index of the first dark sample of the current dark spell: (last lit sample) + 1, or 0 at the start
     last_lit = np.maximum.accumulate(np.where(lit, idx, -1), axis=0)
@@ -254,31 +278,157 @@ def facet_night_mask(
     return ~lit & (dark_for >= min_dark_hours * 3600.0 - 1e-6)
 
 
-def night_day_masks(
-    run, definition: str = "facet", min_dark_hours: float = MIN_DARK_HOURS, threshold_W_m2: float = LIT_THRESHOLD_W_M2
-) -> Tuple[np.ndarray, np.ndarray]:
-    """(night, day) masks of shape (nt, nf) for a run dataset.
+def least_lit_mask(solar_incident, candidates, fraction: float = NIGHT_FALLBACK_FRACTION) -> np.ndarray:
+    """(nt, nf) bool: per facet, the ``fraction`` of the record with the least sunlight among ``candidates``.
 
-    ``definition="facet"`` (default): night = :func:`facet_night_mask`, day = the facet is directly lit
-    (the samples in between, the first ``min_dark_hours`` after the facet's sunset, are in neither).
-    A facet that is never lit has no day. ``"centre"``: the thesis definition, the Sun's centre below
-    / above the crater centre's horizon (:func:`night_mask`), the same for every facet.
-    ``"facet_and_centre"``: night by both definitions (a never-lit floor is then night only while the Sun
-    is below the centre's horizon, when no sunlit wall scatters light or IR onto it); day as "facet".
+    Parameters
+    ----------
+    solar_incident : (nt, nf) float [W m-2]
+        Total sunlight (direct + scattered) per sample and facet.
+    candidates : (nt, nf) bool
+        Samples that may be chosen (e.g. no direct sunlight for ``min_dark_hours``).
+    fraction : float [-]
+        In (0, 1]: ``ceil(fraction * nt)`` samples per facet, or all its candidates if it has fewer.
+
+    Returns
+    -------
+    (nt, nf) bool
+        Deterministic: candidates sorted by flux, ties by time (earliest first); every chosen sample has
+        no more sunlight than any candidate left out. A facet without candidates gets none.
+    """
+    if not (np.isfinite(fraction) and 0.0 < fraction <= 1.0):
+        raise ConfigError(f"fallback fraction={fraction} out of range (0, 1]")
+    e = np.asarray(solar_incident, float)
+    c = np.asarray(candidates, bool)
+    if e.ndim != 2 or c.shape != e.shape:
+        raise FluxFileError(f"solar_incident {e.shape} and candidates {c.shape} must both be (time, facet)")
+    nt = e.shape[0]
+    k = int(np.ceil(fraction * nt - 1e-9))
+    order = np.argsort(np.where(c, e, np.inf), axis=0, kind="stable")  # non-candidates last
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.arange(nt)[:, None].repeat(e.shape[1], axis=1), axis=0)
+    return c & (rank < k)
+
+
+class NightSelection(NamedTuple):
+    """Night and day samples of a run, and how they were chosen (:func:`night_selection`).
+
+    night, day : (nt, nf) bool; fallback : (nf,) bool, facets whose night is the least-lit fallback;
+    definition : str; min_dark_hours [h]; threshold_W_m2 [W m-2] (on ``solar_incident`` for "dark", on
+    ``solar_direct`` otherwise); fallback_fraction [-] (None unless "dark").
+    """
+
+    night: np.ndarray
+    day: np.ndarray
+    fallback: np.ndarray
+    definition: str
+    min_dark_hours: float
+    threshold_W_m2: Optional[float]
+    fallback_fraction: Optional[float]
+
+
+def dark_night_mask(
+    solar_incident,
+    solar_direct,
+    time,
+    min_dark_hours: float = MIN_DARK_HOURS,
+    threshold_W_m2: float = DARK_THRESHOLD_W_M2,
+    fallback_fraction: float = NIGHT_FALLBACK_FRACTION,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Per-facet night without any sunlight ("dark"), with the least-lit fallback.
+
+    Parameters
+    ----------
+    solar_incident : (nt, nf) float [W m-2]
+        Direct + scattered sunlight per sample and facet (a run's ``solar_incident``).
+    solar_direct : (nt, nf) float [W m-2]
+        Direct sunlight (a run's ``solar_direct``), for the fallback's candidates.
+    time : (nt,) datetime64 or float [s]
+    min_dark_hours : float [h]
+        Darkness required (counted as in :func:`facet_night_mask`).
+    threshold_W_m2 : float [W m-2]
+        Dark means ``solar_incident <= threshold_W_m2`` (:data:`DARK_THRESHOLD_W_M2`).
+    fallback_fraction : float [-]
+        A facet whose dark night has fewer than ``ceil(fallback_fraction * nt)`` samples uses instead the
+        ``fallback_fraction`` of the record with the least ``solar_incident`` among its samples without
+        direct sunlight for ``min_dark_hours`` (:func:`least_lit_mask`): never a directly lit sample, nor
+        one in the ``min_dark_hours`` after direct light. A facet directly lit in every such window has no
+        night. With one albedo for scattered light the least incident sunlight is the least absorbed.
+
+    Returns
+    -------
+    night : (nt, nf) bool
+    fallback : (nf,) bool
+        Facets whose night is the fallback.
+    """
+    if not (np.isfinite(threshold_W_m2) and threshold_W_m2 >= 0):
+        raise ConfigError(f"dark threshold_W_m2={threshold_W_m2} out of range [0, inf)")
+    e = np.asarray(solar_incident, float)
+    night = _dark_for(e > float(threshold_W_m2), time, min_dark_hours, "solar_incident")
+    candidates = facet_night_mask(solar_direct, time, min_dark_hours)
+    if candidates.shape != night.shape:
+        raise FluxFileError(f"solar_direct {candidates.shape} and solar_incident {night.shape} differ in shape")
+    least = least_lit_mask(e, candidates, fallback_fraction)  # also checks fallback_fraction
+    fallback = night.sum(axis=0) < int(np.ceil(fallback_fraction * e.shape[0] - 1e-9))
+    night[:, fallback] = least[:, fallback]
+    return night, fallback
+
+
+def night_selection(
+    run,
+    definition: str = DEFAULT_NIGHT,
+    min_dark_hours: float = MIN_DARK_HOURS,
+    threshold_W_m2: Optional[float] = None,
+    fallback_fraction: float = NIGHT_FALLBACK_FRACTION,
+) -> NightSelection:
+    """Night and day masks of shape (nt, nf) for a run dataset, with the facets that fell back.
+
+    ``definition="dark"`` (default): night = :func:`dark_night_mask` (no sunlight, direct or scattered,
+    ``solar_incident <= threshold_W_m2``, default :data:`DARK_THRESHOLD_W_M2`, for ``min_dark_hours`` [h];
+    the least-lit ``fallback_fraction`` of the record where a facet has fewer dark samples than that); day =
+    the facet receives sunlight (``solar_incident > threshold_W_m2``) and the sample is not night.
+    ``"facet"``: night = :func:`facet_night_mask` (direct sunlight only, threshold default
+    :data:`LIT_THRESHOLD_W_M2`), day = the facet is directly lit (the samples in between, the first
+    ``min_dark_hours`` after the facet's sunset, are in neither); a facet that is never lit has no day.
+    ``"centre"``: the thesis definition, the Sun's centre below / above the crater centre's horizon
+    (:func:`night_mask`), the same for every facet. ``"facet_and_centre"``: night by both "facet" and
+    "centre" (a never-lit floor is then night only while the Sun is below the centre's horizon); day as
+    "facet". Only "dark" falls back.
     """
     if definition not in NIGHT_DEFINITIONS:
         raise ConfigError(f"night definition {definition!r} not one of {', '.join(NIGHT_DEFINITIONS)}")
     nf = run["surface_temperature"].shape[1]
+    none = np.zeros(nf, bool)
     if definition == "centre":
         n = night_mask(run)
-        return np.repeat(n[:, None], nf, axis=1), np.repeat(~n[:, None], nf, axis=1)
+        night, day = np.repeat(n[:, None], nf, axis=1), np.repeat(~n[:, None], nf, axis=1)
+        return NightSelection(night, day, none, definition, float(min_dark_hours), None, None)
     if not io.has_variable(run, "solar_direct"):
         raise FluxFileError("run dataset has no solar_direct: per-facet night needs it (use definition='centre')")
     e = run["solar_direct"].values
-    night = facet_night_mask(e, run["time"].values, min_dark_hours, threshold_W_m2)
+    if definition == "dark":
+        if not io.has_variable(run, "solar_incident"):
+            raise FluxFileError("run dataset has no solar_incident: the 'dark' night needs it")
+        thr = DARK_THRESHOLD_W_M2 if threshold_W_m2 is None else float(threshold_W_m2)
+        ei = np.asarray(run["solar_incident"].values, float)
+        night, fallback = dark_night_mask(ei, e, run["time"].values, min_dark_hours, thr, fallback_fraction)
+        day = (ei > thr) & ~night
+        return NightSelection(night, day, fallback, definition, float(min_dark_hours), thr, float(fallback_fraction))
+    thr = LIT_THRESHOLD_W_M2 if threshold_W_m2 is None else float(threshold_W_m2)
+    night = facet_night_mask(e, run["time"].values, min_dark_hours, thr)
     if definition == "facet_and_centre":
         night &= night_mask(run)[:, None]
-    return night, lit_mask(e, threshold_W_m2)
+    return NightSelection(night, lit_mask(e, thr), none, definition, float(min_dark_hours), thr, None)
+
+
+def night_day_masks(
+    run, definition: str = DEFAULT_NIGHT, min_dark_hours: float = MIN_DARK_HOURS, threshold_W_m2: Optional[float] = None
+) -> Tuple[np.ndarray, np.ndarray]:
+    """(night, day) masks of shape (nt, nf) for a run dataset (:func:`night_selection`, which also says
+    which facets fell back). ``threshold_W_m2`` [W m-2]: default :data:`DARK_THRESHOLD_W_M2` on
+    ``solar_incident`` for "dark", :data:`LIT_THRESHOLD_W_M2` on ``solar_direct`` otherwise."""
+    sel = night_selection(run, definition, min_dark_hours, threshold_W_m2)
+    return sel.night, sel.day
 
 
 def lit_fraction(solar_direct, threshold_W_m2: float = LIT_THRESHOLD_W_M2) -> np.ndarray:
