@@ -1454,6 +1454,24 @@ def _make_report(
         return _write_report(all_A, out_dir, overwrite, advance, instruments, observation, snapshots)
 
 
+def _figures_without_data(A) -> set:
+    """The figures a run and replay have nothing to draw in: no loose profile (a rock-only or single-profile
+    replay), or no density grid (fewer than three replayed two-layer profiles)."""
+    skip = set()
+    if A.loose is None:  # the figures of loose - nominal
+        skip |= {
+            "fig7_6_loose_minus_nominal.png",
+            "fig7_7b_regions.png",
+            "fig7_8_night_map.png",
+            "fig7_9_quartiles.png",
+        }
+    _, _, grid = A.density_grid()
+    cells = [v for row in grid for v in row if v is not None and np.isfinite(v)] if grid is not None else []
+    if len(cells) < 3:
+        skip.add("fig7_7a_density_grid.png")
+    return skip
+
+
 def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observation, snapshots) -> Path:
     """Write figures/, summary.json and report.html, each through io.atomic_output (report.html last)."""
     A = all_A[0]
@@ -1474,6 +1492,7 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         if is_site(A):  # a DEM site: maps in the DEM's own coordinates replace the crater-centred plan view
             jobs = [(n, j) for n, j in jobs if n != "fig7_8_night_map.png"]
             jobs.append(("site_maps.png", lambda p: _fig_site_maps(A, p, instruments, observation)))
+        jobs = [(n, j) for n, j in jobs if n not in _figures_without_data(A)]
         figures: List[str] = []
         note = None
         for name, job in jobs:
@@ -1481,11 +1500,13 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
             figures.append(name)
             advance()
         summary = _summary(A, all_A[1:], instruments, observation, figures, None)
-        _fig_detectability(summary, fig_dir / "detectability.png")
-        figures.append("detectability.png")
+        if A.loose is not None:  # detection needs a loose profile
+            _fig_detectability(summary, fig_dir / "detectability.png")
+            figures.append("detectability.png")
         advance()
-        _fig_local_time(summary, fig_dir / "detection_local_time.png")
-        figures.append("detection_local_time.png")
+        if A.loose is not None:
+            _fig_local_time(summary, fig_dir / "detection_local_time.png")
+            figures.append("detection_local_time.png")
         advance()
         if summary["detectability_vs_scatter"]:
             _fig_detectability_scatter(summary, fig_dir / "detectability_scatter.png")

@@ -143,3 +143,30 @@ def test_first_screen_in_a_real_browser(made, tmp_path):
     assert 0 <= layout["headline"][0] and layout["headline"][1] <= vh, layout
     assert layout["key"] is not None and layout["key"][0] < vh and layout["key"][1] <= vh, layout
     assert layout["images"] and all(ok for _, ok in layout["images"]), layout["images"]
+
+
+def test_rock_only_report_has_only_the_sections_with_data(made, tmp_path):
+    """A replay without a loose profile: no loose - nominal figure, no detection figure, and no warning (the
+    suite turns every warning into an error)."""
+    d, _ = made
+    import xarray as xr
+
+    rep = xr.open_dataset(d / "replay.nc").load()
+    labels = [str(p) for p in rep["profile"].values]
+    keep = [i for i, p in enumerate(labels) if p == "rock" or p == rep.attrs.get("nominal_profile", "1300/1800")]
+    rep.isel(profile=keep).to_netcdf(tmp_path / "rock.nc")
+    rp.make_report(d / "run.nc", tmp_path / "rock.nc", tmp_path / "r", progress=False, snapshots=False)
+    s = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert s["loose_profile"] is None and "no loose profile" in s["headline"]
+    loose_figures = {
+        "fig7_6_loose_minus_nominal.png",
+        "fig7_7b_regions.png",
+        "fig7_8_night_map.png",
+        "fig7_9_quartiles.png",
+        "detectability.png",
+        "detection_local_time.png",
+        "detectability_scatter.png",
+        "fig7_7a_density_grid.png",
+    }
+    assert not loose_figures & set(s["figures"]) and s["figures"]
+    assert sorted(p.name for p in (tmp_path / "r" / "figures").iterdir()) == sorted(s["figures"])
