@@ -27,6 +27,7 @@ __all__ = [
     "steady_state",
     "make_report",
     "run_sweep",
+    "export_map",
     "progress_callback",
     "Results",
 ]

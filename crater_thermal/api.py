@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional, Sequence, Union
 
-from crater_thermal import config, geometry, io, progress, runner
+from crater_thermal import config, geometry, gis, io, progress, runner
 from crater_thermal.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -421,3 +421,40 @@ def run_sweep(
     from crater_thermal import sweep as sw
 
     return sw.sweep(cases, out_dir, scheduler=scheduler, workers=workers, progress=progress)
+
+def export_map(
+    source: PathLike,
+    output: PathLike,
+    variable: str = "surface_temperature",
+    statistic: str = "night_median",
+    *,
+    time: Optional[str] = None,
+    profile: Optional[str] = None,
+    run: Optional[PathLike] = None,
+    pixel_m: Optional[float] = None,
+    night: Optional[str] = None,
+    overwrite: bool = False,
+) -> Path:
+    """Rasterize a per-facet statistic of a run or replay file to a GeoTIFF (``crater-thermal export``).
+
+    ``variable``: a run's ``surface_temperature`` [K] or a flux (``solar_incident``, ``solar_direct``,
+    ``ir_incident``, ``solar_absorbed`` [W m-2]); a replay's ``surface_temperature`` of ``profile`` [K] or
+    ``profile_minus_nominal`` [K] (``profile="800/1100"``: loose - nominal). ``statistic``:
+    ``night_median`` (per-facet night, :func:`crater_thermal.regions.night_day_masks`; a replay needs its
+    ``run``), ``mean``, ``min``, ``max`` or ``at`` with ``time`` (ISO UTC, nearest sample). The map is in
+    the DEM's CRS for a DEM site (its analysed facets only), else in a crater-centred lunar azimuthal
+    equidistant CRS [m]; ``pixel_m`` [m] defaults to the mean facet edge; NaN outside the mesh. See
+    :mod:`crater_thermal.gis`. Returns the GeoTIFF's path.
+    """
+    return gis.export_map(
+        source,
+        output,
+        variable,
+        statistic,
+        time=time,
+        profile=profile,
+        run=run,
+        pixel_m=pixel_m,
+        night=night,
+        overwrite=overwrite,
+    )

@@ -602,6 +602,55 @@ def show(
             typer.echo(res[key])
 
 
+@app.command()
+def export(
+    source: Path = typer.Argument(..., help="Run or replay dataset (netCDF)."),
+    output: Path = typer.Option(..., "-o", "--output", help="GeoTIFF to write (.tif)."),
+    variable: str = typer.Option(
+        "surface_temperature",
+        "--variable",
+        help="Run: surface_temperature [K] | solar_incident | solar_direct | ir_incident | solar_absorbed "
+        "[W m-2]. Replay: surface_temperature [K] | profile_minus_nominal [K].",
+    ),
+    statistic: str = typer.Option(
+        "night_median",
+        "--statistic",
+        help="Over time, per facet: night_median (per-facet night) | mean | min | max | at (with --time).",
+    ),
+    time: Optional[str] = typer.Option(None, "--time", help="ISO UTC time for --statistic at (nearest sample)."),
+    profile: Optional[str] = typer.Option(
+        None,
+        "--profile",
+        help="Replay profile: TOP/BOTTOM [kg m-3] or a label (default: nominal; loose 800/1100 for "
+        "profile_minus_nominal, in [K]).",
+    ),
+    run: Optional[Path] = typer.Option(
+        None, "--run", help="The run a replay was made from (needed for night_median of a replay)."
+    ),
+    pixel_m: Optional[float] = typer.Option(None, "--pixel-m", help="Pixel size [m]; default: the mean facet edge."),
+    night: Optional[str] = typer.Option(
+        None, "--night", help="Night definition for night_median, as report's --night; default: the report's."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
+) -> None:
+    """Rasterize a per-facet quantity to a GeoTIFF (DEM's CRS, or a crater-centred lunar CRS) for QGIS."""
+    from crater_thermal import api
+
+    api.export_map(
+        source,
+        output,
+        variable,
+        statistic,
+        time=time,
+        profile=profile,
+        run=run,
+        pixel_m=pixel_m,
+        night=night,
+        overwrite=overwrite,
+    )
+    typer.echo(f"wrote {output}")
+
+
 # ---------------------------------------------------------------- cache
 
 cache_app = typer.Typer(

@@ -1204,3 +1204,86 @@ def write_pds3(
     ).encode("ascii")
     _write_atomic({img: dn.tobytes(), lbl: label}, overwrite)
     return lbl
+
+
+# ------------------------------------------------------------------------------------- map export
+
+
+def local_crs(lat_deg: float, lon_deg: float):
+    """The crater-centred map CRS of an idealized crater (pyproj CRS).
+
+    Azimuthal equidistant, centred on (``lat_deg``, ``lon_deg``) [deg] (planetocentric, east longitude), on
+    the Moon's IAU 2015 sphere (R = 1,737,400 m), metres. Its x, y are the crater frame's east and north
+    coordinates [m]: distances from the centre are true geodesic distances and azimuths are true, which is
+    how a flat idealized crater is laid on the Moon (at a pole, north points along ``lon_deg``, as in
+    :func:`enu_basis`).
+    """
+    return _aeqd(polar_crs(lat_deg).geodetic_crs, float(lat_deg), float(lon_deg))
+
+
+def map_frame(meta: dict, lat_deg: float, lon_deg: float) -> tuple[str, float]:
+    """The CRS of a plan-view map of a mesh, as ``(crs_wkt, unit_m)``.
+
+    A DEM site (``meta["crs_wkt"]``): its DEM's own CRS; any other mesh: :func:`local_crs` of the centre
+    (``lat_deg``, ``lon_deg``) [deg]. ``unit_m`` is the size of the CRS's linear unit [m].
+    """
+    _, pyproj = _libs()
+    if meta.get("crs_wkt"):
+        crs = pyproj.CRS.from_wkt(meta["crs_wkt"])
+    else:
+        crs = local_crs(lat_deg, lon_deg)
+    return crs.to_wkt(), _axis_metres(crs)
+
+
+def to_map_xy(points, meta: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh points [m] (site or crater frame) to the map coordinates of :func:`map_frame` [CRS units].
+
+    A DEM site: :func:`local_to_dem_xy`; any other mesh: the frame's east and north coordinates, which
+    are the :func:`local_crs` coordinates [m].
+    """
+    pts = np.asarray(points, float)
+    if meta.get("crs_wkt"):
+        x, y = local_to_dem_xy(pts, meta)
+        return np.asarray(x, float), np.asarray(y, float)
+    return pts[..., 0].copy(), pts[..., 1].copy()
+
+
+def write_map_geotiff(
+    path, grid: np.ndarray, transform: tuple, crs_wkt: str, units: str, description: str, tags: dict
+) -> Path:
+    """Write one map band as a float32 GeoTIFF (nodata NaN) at ``path`` (not atomically: give it the
+    temporary of :func:`crater_thermal.io.atomic_output`).
+
+    Parameters
+    ----------
+    grid : (ny, nx) float
+        Values [``units``], NaN where there is no data; row 0 is the north (top) row.
+    transform : tuple of 6 float
+        Affine pixel -> map (a, b, c, d, e, f) [CRS units].
+    crs_wkt : str
+        The map's CRS.
+    units, description : str
+        The band's unit (e.g. ``"K"``) and description.
+    tags : dict
+        Dataset-level metadata (GDAL metadata items; values written as text).
+    """
+    rasterio, _ = _libs()
+    z = np.asarray(grid, dtype=np.float32)
+    prof = dict(
+        driver="GTiff",
+        width=z.shape[1],
+        height=z.shape[0],
+        count=1,
+        dtype="float32",
+        crs=rasterio.crs.CRS.from_wkt(crs_wkt),
+        transform=rasterio.Affine(*transform),
+        nodata=float("nan"),
+        compress="deflate",
+    )
+    with rasterio.open(Path(path), "w", **prof) as dst:
+        dst.write(z, 1)
+        dst.set_band_unit(1, units)
+        dst.set_band_description(1, description)
+        dst.update_tags(**{str(k): str(v) for k, v in tags.items()})
+        dst.update_tags(1, units=units)
+    return Path(path)
