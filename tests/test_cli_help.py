@@ -35,6 +35,8 @@ NAMED_UNITS = {
     "center_lat": "[deg]",
     "center_lon": "[deg]",
     "roughness": "[m]",
+    "export profile": "[kg m-3]",
+    "export variable": "[K]",
 }
 
 
