@@ -78,7 +78,9 @@ def _arrays(path):
 
 def _night_median(values, night):
     """Per-facet median over that facet's night samples, NaN without any (written out, not analysis's)."""
-    return np.array([np.median(values[night[:, j], j]) if night[:, j].any() else np.nan for j in range(values.shape[1])])
+    return np.array(
+        [np.median(values[night[:, j], j]) if night[:, j].any() else np.nan for j in range(values.shape[1])]
+    )
 
 
 def _inradius_min(xy, faces):
