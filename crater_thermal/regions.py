@@ -347,7 +347,9 @@ def dark_night_mask(
     min_dark_hours : float [h]
         Darkness required (counted as in :func:`facet_night_mask`).
     threshold_W_m2 : float [W m-2]
-        Dark means ``solar_incident <= threshold_W_m2`` (:data:`DARK_THRESHOLD_W_M2`).
+        Dark means ``solar_incident <= threshold_W_m2`` (:data:`DARK_THRESHOLD_W_M2`) and no direct
+        sunlight at all (``solar_direct == 0``: a sliver of the disk counts as lit, as in
+        :func:`facet_night_mask`), so the dark night is part of the "facet" night.
     fallback_fraction : float [-]
         A facet whose dark night has fewer than ``ceil(fallback_fraction * nt)`` samples uses instead the
         ``fallback_fraction`` of the record with the least ``solar_incident`` among its samples without
@@ -364,10 +366,11 @@ def dark_night_mask(
     if not (np.isfinite(threshold_W_m2) and threshold_W_m2 >= 0):
         raise ConfigError(f"dark threshold_W_m2={threshold_W_m2} out of range [0, inf)")
     e = np.asarray(solar_incident, float)
-    night = _dark_for(e > float(threshold_W_m2), time, min_dark_hours, "solar_incident")
-    candidates = facet_night_mask(solar_direct, time, min_dark_hours)
-    if candidates.shape != night.shape:
-        raise FluxFileError(f"solar_direct {candidates.shape} and solar_incident {night.shape} differ in shape")
+    direct = lit_mask(solar_direct)
+    if direct.shape != e.shape:
+        raise FluxFileError(f"solar_direct {direct.shape} and solar_incident {e.shape} differ in shape")
+    night = _dark_for((e > float(threshold_W_m2)) | direct, time, min_dark_hours, "solar_incident")
+    candidates = _dark_for(direct, time, min_dark_hours, "solar_direct")  # facet_night_mask
     least = least_lit_mask(e, candidates, fallback_fraction)  # also checks fallback_fraction
     fallback = night.sum(axis=0) < int(np.ceil(fallback_fraction * e.shape[0] - 1e-9))
     night[:, fallback] = least[:, fallback]

@@ -81,9 +81,17 @@ SUMMARY_KEYS = {
     "n_times": "int: number of time samples.",
     "n_facets": "int: number of mesh facets.",
     "night_fraction": "float [-]: fraction of samples with the Sun's centre below the horizon at the crater centre.",
-    "night_definition": "str: 'facet' (night = no direct sunlight on the facet for night_min_dark_hours; day = "
-    "directly lit) or 'centre' (the thesis: Sun's centre below the crater centre's horizon).",
-    "night_min_dark_hours": "float [h]: darkness a facet needs before its samples count as night ('facet').",
+    "night_definition": "str: 'dark' (night = no sunlight, direct or scattered, on the facet for "
+    "night_min_dark_hours; day = the facet receives sunlight), 'facet' (no direct sunlight; day = directly lit), "
+    "'centre' (the thesis: Sun's centre below the crater centre's horizon) or 'facet_and_centre'.",
+    "night_min_dark_hours": "float [h]: darkness a facet needs before its samples count as night (per facet).",
+    "night_threshold_W_m2": "float|null [W m-2]: flux at or below which a facet counts as unlit (solar_incident "
+    "for 'dark', solar_direct for 'facet'; null for 'centre').",
+    "night_fallback_fraction": "float|null [-]: 'dark' only: a facet with fewer dark night samples than this "
+    "fraction of the record uses this fraction of its least-lit samples without direct sunlight instead.",
+    "night_fallback_facets": "int: facets whose night is that least-lit fallback (0 unless 'dark' and a facet is "
+    "never dark long enough, e.g. a floor near the pole).",
+    "night_fallback_facets_by_region": "{region: int}: the same, per region.",
     "night_fraction_samples": "float [-]: fraction of (time, facet) samples that are night.",
     "regions": "list[str]: region names (regions.region_masks): floor, {lower_wall, upper_wall, top_wall_ring, rim}_"
     "{pole,equator,east,west}_facing (by the facet normal's azimuth, +-45 deg; at |lat| >= 89.5 deg "
@@ -196,7 +204,7 @@ class _Analysis:
         replay,
         threshold_K: float,
         advance: Callable[[], None] = lambda: None,
-        night_definition: str = "facet",
+        night_definition: str = regions.DEFAULT_NIGHT,
         min_dark_hours: float = regions.MIN_DARK_HOURS,
     ):
         ctio.check_pair(run, replay)
@@ -206,7 +214,8 @@ class _Analysis:
         self.night = regions.night_mask(run)  # the crater centre's night: shading of the time series
         self.night_definition, self.min_dark_hours = night_definition, float(min_dark_hours)
         # per (time, facet) night and day used by every statistic (regions.night_day_masks)
-        self.night_f, self.day_f = regions.night_day_masks(run, night_definition, min_dark_hours)
+        self.night_sel = regions.night_selection(run, night_definition, min_dark_hours)
+        self.night_f, self.day_f = self.night_sel.night, self.night_sel.day
         self.regions = regions.region_masks(run)  # name -> (nf,) bool
         self.nf = int(run["surface_temperature"].shape[1])
         self.local_time = an.local_solar_time_h(run, ctio.latitude_deg(run))
@@ -355,6 +364,10 @@ def _summary(
         night_fraction=float(A.night.mean()),
         night_definition=A.night_definition,
         night_min_dark_hours=A.min_dark_hours,
+        night_threshold_W_m2=A.night_sel.threshold_W_m2,
+        night_fallback_fraction=A.night_sel.fallback_fraction,
+        night_fallback_facets=int(A.night_sel.fallback.sum()),
+        night_fallback_facets_by_region={r: int((m & A.night_sel.fallback).sum()) for r, m in A.regions.items()},
         night_fraction_samples=float(A.night_f.mean()),
         regions=list(A.regions),
         region_facet_count={r: int(m.sum()) for r, m in A.regions.items()},
@@ -622,11 +635,10 @@ def _fig_regions(all_A, path):
     )
     a.set_ylabel("night-time median loose - nominal [K]")
     a.legend(fontsize=8)
-    night = (
-        "per facet: no direct sunlight for %g h" % all_A[0].min_dark_hours
-        if all_A[0].night_definition == "facet"
-        else "Sun below the crater centre's horizon"
-    )
+    night = {
+        "dark": "per facet: no sunlight, direct or scattered, for %g h" % all_A[0].min_dark_hours,
+        "facet": "per facet: no direct sunlight for %g h" % all_A[0].min_dark_hours,
+    }.get(all_A[0].night_definition, "Sun below the crater centre's horizon")
     a.set_title(
         f"By region (error bars: quartiles). Sectors: the azimuth the slope faces, +-45 deg; night {night}", fontsize=9
     )
@@ -1128,6 +1140,18 @@ def _html_detection(summary: dict) -> str:
 
 def _night_words(summary: dict) -> str:
     """What "night" means in this report, from summary.json."""
+    if summary["night_definition"] == "dark":
+        n_fb = summary.get("night_fallback_facets") or 0
+        fb = (
+            f"; {n_fb} facets never dark that long use their "
+            f"{100 * summary['night_fallback_fraction']:g}% least-lit samples without direct sunlight instead"
+            if n_fb
+            else ""
+        )
+        return (
+            f"night = no sunlight, direct or scattered (at most {summary['night_threshold_W_m2']:g} W m-2), on the "
+            f"facet for at least {summary['night_min_dark_hours']:g} h{fb}; day = the facet receives sunlight"
+        )
     if summary["night_definition"] == "facet":
         return (
             f"night = no direct sunlight on the facet for at least {summary['night_min_dark_hours']:g} h, day = "
@@ -1294,7 +1318,7 @@ def make_report(
     observation: ins.Observation = ins.Observation(),
     threshold_K: float = an.NATURAL_SCATTER_K,
     snapshots: bool = True,
-    night_definition: str = "facet",
+    night_definition: str = regions.DEFAULT_NIGHT,
     min_dark_hours: float = regions.MIN_DARK_HOURS,
 ) -> Path:
     """Write figures, report.html and summary.json for a run and its replay.
@@ -1319,8 +1343,9 @@ def make_report(
     snapshots : bool
         Also render 3-D views with pyvista (a note replaces them if rendering fails).
     night_definition : str
-        "facet" (default: no direct sunlight on the facet for ``min_dark_hours``), "centre" (the thesis:
-        Sun below the crater centre's horizon) or "facet_and_centre" (regions.night_day_masks).
+        "dark" (default: no sunlight, direct or scattered, on the facet for ``min_dark_hours``, with the
+        least-lit fallback), "facet" (no direct sunlight), "centre" (the thesis: Sun below the crater
+        centre's horizon) or "facet_and_centre" (regions.night_selection).
     min_dark_hours : float [h]
         Darkness a facet needs before its samples count as night (24 h).
 
@@ -1394,7 +1419,7 @@ def summarize(
     instruments: Optional[Sequence[ins.Instrument]] = None,
     observation: ins.Observation = ins.Observation(),
     threshold_K: float = an.NATURAL_SCATTER_K,
-    night_definition: str = "facet",
+    night_definition: str = regions.DEFAULT_NIGHT,
     min_dark_hours: float = regions.MIN_DARK_HOURS,
 ) -> dict:
     """The numbers of a report (``summary.json``) for one run and its replay, without figures or files.
@@ -1434,7 +1459,7 @@ def _make_report(
     threshold_K,
     observation,
     snapshots,
-    night_definition="facet",
+    night_definition=regions.DEFAULT_NIGHT,
     min_dark_hours=regions.MIN_DARK_HOURS,
 ) -> Path:
     for run, rep in zip(runs, reps):

@@ -99,16 +99,31 @@ def test_summary_values_match_an_independent_computation(report_dir, files):
     c = run["centroid"].values
     floor = np.hypot(c[:, 0], c[:, 1]) <= meta["floor_radius_m"]
     night = run["sun_direction"].values[:, 2] < 0
-    # per-facet night (the report's default): the synthetic floor is never lit, so every sample from 24 h
-    # after the record's start (the history before it counts as lit) is night for it
+    # the "dark" night (the report's default since issue 25; before it the direct-only "facet" night, which
+    # made every floor sample from 24 h on night): the synthetic floor is never directly lit but receives
+    # scattered light whenever any facet is lit, so a floor sample is night when no sample in the 24 h + one
+    # step before it (fluxes are linear between samples) had more than the dark threshold, and it is at least
+    # 24 h after the record's start (the history before it counts as lit)
     assert not (run["solar_direct"].values[:, floor] > 0).any()
     hours = (run["time"].values - run["time"].values[0]) / np.timedelta64(1, "h")
-    floor_night = hours >= 24.0
+    step_h = hours[1] - hours[0]
+    lit = run["solar_incident"].values[:, floor] > s["night_threshold_W_m2"]
+    floor_night = np.array(
+        [
+            [
+                h >= 24.0 and not lit[(hours > h - 24.0 - step_h - 1e-6) & (hours <= h), j].any()
+                for j in range(lit.shape[1])
+            ]
+            for h in hours
+        ]
+    )
+    assert floor_night.any() and s["night_fallback_facets"] == 0  # the -86 deg floor is dark for days
     T = rep["surface_temperature"]
     d = (T.sel(profile="800/1100") - T.sel(profile="1300/1800")).values
-    expect = np.median(d[floor_night][:, floor])
+    expect = np.median(d[:, floor][floor_night])
     # same numbers through a different path: agreement to float rounding (1e-9 K)
-    assert s["night_definition"] == "facet" and s["night_min_dark_hours"] == 24.0
+    assert s["night_definition"] == "dark" and s["night_min_dark_hours"] == 24.0
+    assert s["night_threshold_W_m2"] == 1e-3 and s["night_fallback_fraction"] == 0.1
     assert s["night_median_dT_K"]["800/1100"]["floor"] == pytest.approx(expect, abs=1e-9)
     assert s["night_fraction"] == pytest.approx(night.mean())
     assert s["region_facet_count"]["floor"] == int(floor.sum())
