@@ -311,14 +311,15 @@ def analyse(
     *,
     instruments: Optional[Sequence[str]] = None,
     natural_scatter_K: Optional[float] = None,
-    night: str = "facet",
+    night: str = "dark",
     min_dark_hours: Optional[float] = None,
 ) -> Results:
     """The report's numbers for a run and its replay, without writing anything.
 
     ``instruments``: preset channel names (default: all presets); ``natural_scatter_K``: footprint-to-
     footprint scatter of true temperatures [K] (default the report's); ``night``: the night definition
-    (``facet``, ``centre``, ``facet_and_centre``); ``min_dark_hours`` [h].
+    (``dark``, the default, ``facet``, ``centre``, ``facet_and_centre``: :func:`crater_thermal.regions.night_selection`);
+    ``min_dark_hours`` [h].
     """
     from crater_thermal import instrument as ins
     from crater_thermal import regions

@@ -469,11 +469,12 @@ def report(
     false_alarm: float = typer.Option(0.01, "--false-alarm", help="False-alarm rate of the one-sided test (0-1)."),
     no_snapshots: bool = typer.Option(False, "--no-snapshots", help="Skip the 3-D pyvista views."),
     night: str = typer.Option(
-        "facet",
+        "dark",
         "--night",
-        help="Night: facet (no direct sunlight on the facet for "
-        "--min-dark-hours), centre (thesis: Sun below the crater centre's horizon), "
-        "facet_and_centre.",
+        help="Night: dark (default: no sunlight, direct or scattered above 1e-3 W m-2, on the facet for "
+        "--min-dark-hours; a facet never dark that long uses its 10% least-lit samples without direct "
+        "sunlight), facet (no direct sunlight for --min-dark-hours), centre (thesis: Sun below the crater "
+        "centre's horizon), facet_and_centre.",
     ),
     min_dark_hours: float = typer.Option(24.0, "--min-dark-hours", help="Darkness before a facet's night [h]."),
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
