@@ -348,7 +348,7 @@ def latitude_statistics(
     pairs: Sequence[Tuple[object, object]],
     threshold_K: float = NATURAL_SCATTER_K,
     region_names: Optional[Sequence[str]] = None,
-    night_definition: str = "facet",
+    night_definition: str = regions.DEFAULT_NIGHT,
     min_dark_hours: float = regions.MIN_DARK_HOURS,
 ) -> Dict[float, dict]:
     """Loose - nominal statistics per latitude and region over several runs (Figs. 7.7b, 7.9).
@@ -357,13 +357,13 @@ def latitude_statistics(
     ----------
     pairs : sequence of (run, replay) datasets, one per latitude.
     region_names : names from :func:`region_masks` to keep (default all of them).
-    night_definition : "facet" (default) or "centre" (:func:`night_day_masks`).
+    night_definition : "dark" (default), "facet", "centre" or "facet_and_centre" (:func:`regions.night_selection`).
     min_dark_hours : float [h], for the per-facet night.
 
     Returns
     -------
     dict lat_deg -> {"profile": label, "night_definition": str, "night": {region: stats},
-    "day": {region: stats}}
+    "day": {region: stats}, "night_fallback_facets": {region: int} (facets on the least-lit fallback)}
     """
     out = {}
     for run, replay in pairs:
@@ -372,15 +372,16 @@ def latitude_statistics(
         if lab is None:
             raise FluxFileError("replay has no regolith profile other than the nominal one")
         dT = profile_temperature(replay, lab) - nominal_temperature(run, replay)
-        night, day = regions.night_day_masks(run, night_definition, min_dark_hours)
+        sel = regions.night_selection(run, night_definition, min_dark_hours)
         masks = regions.region_masks(run)
         if region_names is not None:
             masks = {k: masks[k] for k in region_names if k in masks}
         out[io.latitude_deg(run)] = dict(
             profile=lab,
             night_definition=night_definition,
-            night=masked_statistics(dT, night, masks, threshold_K),
-            day=masked_statistics(dT, day, masks, threshold_K),
+            night=masked_statistics(dT, sel.night, masks, threshold_K),
+            day=masked_statistics(dT, sel.day, masks, threshold_K),
+            night_fallback_facets={k: int((np.asarray(m, bool) & sel.fallback).sum()) for k, m in masks.items()},
         )
     return out
 

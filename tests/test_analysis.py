@@ -175,7 +175,7 @@ def test_latitude_statistics(pair):
     assert set(out) == {-86.0, -80.0}
     assert out[-80.0]["profile"] == "800/1100"
     assert set(out[-86.0]["night"]) == set(regions.region_names(-86.0))
-    assert out[-86.0]["night_definition"] == "facet"
+    assert out[-86.0]["night_definition"] == "dark"  # the default since issue 25 (was "facet")
     centre = an.latitude_statistics([(run, rep)], night_definition="centre", region_names=["floor"])
     assert list(centre[-86.0]["night"]) == ["floor"]
 
