@@ -318,8 +318,8 @@ def analyse(
 
     ``instruments``: preset channel names (default: all presets); ``natural_scatter_K``: footprint-to-
     footprint scatter of true temperatures [K] (default the report's); ``night``: the night definition
-    (``dark``, the default, ``facet``, ``centre``, ``facet_and_centre``: :func:`crater_thermal.regions.night_selection`);
-    ``min_dark_hours`` [h].
+    (``dark``, the default, ``facet``, ``centre``, ``facet_and_centre``:
+    :func:`crater_thermal.regions.night_selection`); ``min_dark_hours`` [h].
     """
     from crater_thermal import instrument as ins
     from crater_thermal import regions
