@@ -423,6 +423,7 @@ def run_sweep(
 
     return sw.sweep(cases, out_dir, scheduler=scheduler, workers=workers, progress=progress)
 
+
 def export_map(
     source: PathLike,
     output: PathLike,
