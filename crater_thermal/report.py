@@ -796,7 +796,12 @@ def _fig_detectability_scatter(summary: dict, path) -> None:
             label=f"{name} ({'passes' if unit == 'passes' else 'stare'})",
         )
     a.axvline(obs["natural_scatter_K"], color="k", ls="--", lw=0.8)
-    a.set_yscale("log")
+    seen = [v for secs in sweep["dwell_s"].values() for v in secs if v is not None]
+    if seen:
+        a.set_yscale("log")
+    else:  # nothing is detectable at any scatter of the range: say so instead of an empty log axis
+        a.set_ylim(0, 1)
+        a.text(0.5, 0.5, "not detectable at any scatter in this range", ha="center", va="center", transform=a.transAxes)
     a.set_xlabel("natural scatter between footprints [K]")
     a.set_ylabel(f"time on each footprint for P_D >= {obs['target_pd']:g} [s]")
     a.set_title(
