@@ -68,6 +68,11 @@ def region_words(name: str) -> str:
         if name.endswith("_" + side):
             part = name[: -len(side) - 1]
             return f"{_PARTS.get(part, part.replace('_', ' '))}, {words}"
+    if name in _SIDES:  # a DEM site's facing classes
+        words = _SIDES[name].split(" (")[0]
+        return words[: -len(" side")] + " slopes" if words.endswith(" side") else "slopes on the " + words
+    if name == "level":
+        return "level ground (slopes below 5 deg)"
     if name.startswith("slope_") and name.endswith("_deg"):
         lo, _, hi = name[len("slope_") : -len("_deg")].partition("_")
         return f"slopes {lo}-{hi} deg" if hi else f"slopes above {lo} deg"
@@ -83,7 +88,8 @@ def _fmt_K(v: float) -> str:
 def _exposure(row: dict) -> str:
     """``"52 passes (6.7 s on each footprint)"`` or ``"6.7 s"`` from a detection row."""
     if row.get("exposure_unit") == "passes" and row.get("passes"):
-        return f"{int(row['passes'])} passes ({row['dwell_s']:.2g} s on each footprint)"
+        n = int(row["passes"])
+        return f"{n} pass{'es' if n != 1 else ''} ({row['dwell_s']:.2g} s on each footprint)"
     return f"a {row['dwell_s']:.2g} s stare"
 
 
@@ -92,7 +98,8 @@ def _scatter_exposure(seconds: Optional[float], row: dict) -> str:
         return "not at all"
     per_pass = row.get("pass_integration_s")
     if row.get("exposure_unit") == "passes" and per_pass:
-        return f"after {max(1, math.ceil(seconds / per_pass - 1e-9))} passes"
+        n = max(1, math.ceil(seconds / per_pass - 1e-9))
+        return f"after {n} pass{'es' if n != 1 else ''}"
     return f"after a {seconds:.2g} s stare"
 
 

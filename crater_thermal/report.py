@@ -119,9 +119,10 @@ SUMMARY_KEYS = {
     "night_median_T_nominal_K": "{region: float|null} [K]: night-time median nominal surface temperature.",
     "max_abs_night_median_dT_K": "{profile: float} [K]: largest per-facet |night-time median difference|.",
     "density_grid_floor_night_median_dT_K": (
-        "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: floor night "
-        "medians (Fig. 7.7a)."
+        "{rho_top_kg_m3: [..], rho_bottom_kg_m3: [..], dT_K: [[..]] (null where not replayed)}: night medians "
+        "over the density grid on density_grid_region (Fig. 7.7a; the crater floor, on a DEM site a class)."
     ),
+    "density_grid_region": "str|null: the region the density grid is summarized on (report.GRID_REGIONS).",
     "latitude_night_median_dT_K": (
         "{lat_deg (str): {region: float|null}} [K]: loose minus nominal night median per run latitude."
     ),
@@ -195,6 +196,20 @@ def _clean(x):
     return x
 
 
+#: Where a density grid is summarized when there is no crater floor (a DEM site), in order of preference:
+#: the facets never in direct sunlight (a PSR: the rover's question), else level ground.
+GRID_REGIONS = ("floor", "never_lit", "level", "slope_0_5_deg")
+
+
+def grid_region(regions: Dict[str, np.ndarray]) -> Optional[str]:
+    """The region whose night medians the density grid shows: the first non-empty of :data:`GRID_REGIONS`,
+    else the largest region (None without regions)."""
+    for name in GRID_REGIONS:
+        if name in regions and np.any(regions[name]):
+            return name
+    return max(regions, key=lambda r: int(np.sum(regions[r])), default=None)
+
+
 class _Analysis:
     """Everything the figures and the summary need, computed once."""
 
@@ -228,6 +243,7 @@ class _Analysis:
         self.T_nom = an.nominal_temperature(run, replay)
         self.threshold = threshold_K
         self.facets = an.representative_facets(run, self.regions)
+        self.grid_region = grid_region(self.regions)  # where the density grid is summarized (Fig. 7.7a)
         # one profile at a time: keep small results, and the full difference only for the loose profile
         self.night_stats, self.day_stats, self.night_map, self.floor_night_median = {}, {}, {}, {}
         self.loose_dT = None
@@ -235,7 +251,7 @@ class _Analysis:
             self.night_stats[p] = an.masked_statistics(d, self.night_f, self.regions, threshold_K)
             self.day_stats[p] = an.masked_statistics(d, self.day_f, self.regions, threshold_K)
             self.night_map[p] = an.facet_median_map(d, self.night_f)
-            self.floor_night_median[p] = self.night_stats[p].get("floor", {}).get("median_K")
+            self.floor_night_median[p] = self.night_stats[p].get(self.grid_region, {}).get("median_K")
             if p == self.loose:
                 self.loose_dT = d
             advance()
@@ -388,6 +404,7 @@ def _summary(
             p: float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else None for p, m in A.night_map.items()
         },
         density_grid_floor_night_median_dT_K=dict(rho_top_kg_m3=tops, rho_bottom_kg_m3=bottoms, dT_K=grid),
+        density_grid_region=A.grid_region,
         latitude_night_median_dT_K=lat_night,
         latitude_day_median_dT_K=lat_day,
         latitude_detection_dwell_s=lat_dwell,
@@ -468,9 +485,14 @@ def _shade_night(ax, days, night):
         ax.axvspan(days[a], days[min(b, len(days)) - 1], color="0.85", lw=0, zorder=0)
 
 
+#: The time-series facets of a DEM site, in words (no floor or wall there).
+_SITE_FACETS = {"floor": "facet nearest the centre", "upper_wall": "most sunlit facet"}
+
+
 def _facet_title(A, key):
     i = A.facets[key]
-    return f"{key.replace('_', ' ')} (facet {i}, {A.region_label(i).replace('_', ' ')})"
+    name = _SITE_FACETS.get(key, key) if is_site(A) else key.replace("_", " ")
+    return f"{name} (facet {i}, {answer.region_words(A.region_label(i))})"
 
 
 def _fig_fluxes(A, path):
@@ -548,14 +570,15 @@ def _fig_density_grid(A, path):
     a.set_facecolor("0.9")
     if grid.size <= 200:
         for (r, c), v in np.ndenumerate(grid):
-            if np.isfinite(v):
-                a.text(c, r, f"{v:.2f}", ha="center", va="center", fontsize=7)
+            if np.isfinite(v):  # white on the dark ends of the colour map, black on the light middle
+                a.text(c, r, f"{v:.2f}", ha="center", va="center", fontsize=7, color="w" if abs(v) > 0.6 * m else "k")
     nom = profiles.parse_two_layer(A.nominal)
     if nom and nom[0] in tops and nom[1] in bottoms:
         r, c = list(tops).index(nom[0]), list(bottoms).index(nom[1])
         a.add_patch(Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, ec="k", lw=2.5))
     fig.colorbar(im, ax=a, label="night-time median, profile - nominal [K]")
-    a.set_title(f"Crater floor, lat {A.lat:g} deg (nominal outlined)", fontsize=10)
+    where = answer.region_words(A.grid_region) if A.grid_region else "all facets"
+    a.set_title(f"{where[:1].upper() + where[1:]}, lat {A.lat:g} deg (nominal outlined)", fontsize=10)
     fig.savefig(path)
 
 
@@ -722,6 +745,14 @@ def _fig_quartiles(all_A, path):
     fig.savefig(path)
 
 
+def _region_style(region: str, regions) -> dict:
+    """A distinct colour (20-colour cycle) and, past 20 regions, a line style for one of many regions."""
+    from matplotlib import colormaps
+
+    k = list(regions).index(region)
+    return {"color": colormaps["tab20"](k % 20), "ls": ("-", "--", ":")[(k // 20) % 3]}
+
+
 def _fig_detectability(summary: dict, path):
     det, grids, obs = summary["detection"], summary["detection_dwell_grid_s"], summary["observation"]
     names = list(det)
@@ -737,7 +768,7 @@ def _fig_detectability(summary: dict, path):
         for r, row in det[name].items():
             if row.get("pd_vs_dwell") is None:
                 continue
-            a.plot(x, row["pd_vs_dwell"], lw=1.2, label=r.replace("_", " "))
+            a.plot(x, row["pd_vs_dwell"], lw=1.2, label=answer.region_words(r), **_region_style(r, det[name]))
         a.axhline(obs["target_pd"], color="k", ls="--", lw=0.8)
         a.axhline(obs["false_alarm"], color="0.5", ls=":", lw=0.8)
         a.set_xscale("log")
@@ -752,7 +783,7 @@ def _fig_detectability(summary: dict, path):
         a.set_ylabel("P_D")
     for k in range(len(names), nrow * ncol):
         ax[k // ncol, k % ncol].set_visible(False)
-    ax[0, 0].legend(fontsize=6, loc="upper left")
+    ax[0, ax.shape[1] - 1].legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside the data
     fig.suptitle(
         f"Lat {summary['lat_deg']:g} deg, loose vs nominal, night medians: one-sided test at "
         f"{100 * obs['false_alarm']:g}% false alarms "
@@ -825,7 +856,14 @@ def _fig_local_time(summary: dict, path):
             snr = row.get("snr_by_local_time")
             if snr is None:
                 continue
-            a.plot(centres, [np.nan if v is None else v for v in snr], marker=".", lw=1, label=r.replace("_", " "))
+            a.plot(
+                centres,
+                [np.nan if v is None else v for v in snr],
+                marker=".",
+                lw=1,
+                label=answer.region_words(r),
+                **_region_style(r, summary["detection"][name]),
+            )
         a.axhline(
             float(ins.ndtri(1 - obs["false_alarm"]) + ins.ndtri(obs["target_pd"])),
             color="k",
@@ -840,7 +878,7 @@ def _fig_local_time(summary: dict, path):
             f"{name}: |observed dT| / sigma at {at}, by local solar time (lat {summary['lat_deg']:g} deg)",
             fontsize=9,
         )
-        a.legend(fontsize=6, ncol=2)
+        a.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside the data
     a.set_xlim(0, 24)
     a.set_xticks(range(0, 25, 3))
     a.set_xlabel("local solar time [lunar hours; 12 = noon]")
