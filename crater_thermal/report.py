@@ -507,11 +507,12 @@ def _fig_fluxes(A, path):
             color="tab:orange",
             label="solar incident (direct + scattered)",
         )
-        a.plot(A.days, A.run["ir_incident"].values[:, i], color="tab:red", label="IR emitted by the crater, incident")
+        a.plot(A.days, A.run["ir_incident"].values[:, i], color="tab:red", label="IR emitted by the terrain, incident")
         a.set_ylabel("flux [W m-2]")
         a.set_title(_facet_title(A, key), fontsize=10)
         a.legend(fontsize=8, loc="upper right")
-    ax[1, 0].set_xlabel("days since start (grey: night at the crater centre; statistics use per-facet night)")
+    centre = "the site centre" if is_site(A) else "the crater centre"
+    ax[1, 0].set_xlabel(f"days since start (grey: night at {centre}; statistics use per-facet night)")
     fig.suptitle(f"Incident fluxes, lat {A.lat:g} deg")
     fig.savefig(path)
 
