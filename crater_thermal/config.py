@@ -790,18 +790,9 @@ def _section(name: str):
 # Fields come from SCHEMA (same names, defaults, in schema order); the docstrings say what they hold.
 @_section("crater")
 class Crater:
-    """Terrain of the case.
-
-    kind : "crater" | "flat" | "mesh" | "dem"
-    diameter_km : float or None [km]  rim diameter (kind "crater")
-    facets : int or None  number of triangles (kind "crater")
-    surround_km : float [km]  flat plain around the rim (kind "crater")
-    mesh : Path or None  absolute path of the mesh file (kind "mesh"); flip : bool  reverse its winding
-    dem : Path or None  absolute path of the DEM (kind "dem"); center_lat_deg, center_lon_deg [deg] (None:
-        the location), radius_km [km], resolution_m [m], outer_radius_km [km], outer_resolution_m [m],
-        height_kind, max_facets: the site mesh (terrain.site_mesh); crs (str or None), xy_units, z_units
-        ("m" | "km" or None): overrides of the DEM file's metadata (terrain.open_dem)
-    """
+    """Terrain of the case: an idealized crater (``kind = "crater"``), flat ground, a mesh file or a site of
+    a DEM (meshed by ``terrain.site_mesh``; ``crs``, ``xy_units`` and ``z_units`` override the DEM file's
+    metadata). Paths are absolute. The fields, their units and ranges follow."""
 
 
 @_section("location")
@@ -811,16 +802,9 @@ class Location:
 
 @_section("period")
 class Period:
-    """Recorded period and spin-up.
-
-    start, end : numpy.datetime64[ns] (UTC)  first and last recorded instant
-    spinup : "periodic" | "fixed"
-    spinup_years : float [yr of 365.25 d]  spin-up window before ``start`` (also when the file
-        gives ``spinup_days``)
-    initial_temperature_K : float or None [K]
-    periodic_tol_K : float [K]
-    spinup_ir : "auto" | "coupled" | "lagged"  IR exchange in the periodic spin-up windows
-    """
+    """Recorded period and spin-up: ``start`` and ``end`` are numpy.datetime64 (UTC, ns); ``spinup_years``
+    [yr of 365.25 d] is set also when the file gives ``spinup_days``. The fields, their units and ranges
+    follow."""
 
     @property
     def spinup_s(self) -> float:

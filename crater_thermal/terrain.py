@@ -272,20 +272,33 @@ def polar_crs(lat_deg: float):
 class DEMInfo:
     """What a DEM file says about itself, with the caller's overrides applied (nothing is read from the pixels).
 
+    Attributes
+    ----------
     path : Path
-    crs_wkt : str  the CRS used (WKT): the file's, or the ``crs`` override
-    transform : tuple of 6 float  affine pixel -> map (a, b, c, d, e, f) [CRS units per pixel], after
-        ``xy_units``
-    width, height : int [pixels]
-    nodata : float or None  raw nodata value
-    scale, offset : float  value = raw * scale + offset (before the unit factor)
-    unit_factor : float  1 for metres, 1000 for km (the band's unit tag, or ``z_units``)
-    reference_radius_m : float [m]  semi-major axis of the CRS's body
-    pixel_m : float [m]  nominal pixel size (map units times the CRS's linear unit)
+        The DEM file.
+    crs_wkt : str
+        The CRS used (WKT): the file's, or the ``crs`` override.
+    transform : tuple of 6 float
+        Affine pixel -> map (a, b, c, d, e, f) [CRS units per pixel], after ``xy_units``.
+    width, height : int
+        Raster size [pixels].
+    nodata : float or None
+        Raw nodata value.
+    scale, offset : float
+        value = raw * scale + offset (before the unit factor).
+    unit_factor : float
+        1 for metres, 1000 for km (the band's unit tag, or ``z_units``).
+    reference_radius_m : float
+        Semi-major axis of the CRS's body [m].
+    pixel_m : float
+        Nominal pixel size [m] (map units times the CRS's linear unit).
     driver : str
-    origin_lat_deg, origin_lon_deg : float [deg]  the projection's origin (where map x, y = false
-        easting, northing; the pole of a polar stereographic CRS): the tangent point of "tangent" heights
-    overrides : dict  the overrides given (``crs``, ``xy_units``, ``z_units``), for the mesh metadata
+        The GDAL driver that read the file.
+    origin_lat_deg, origin_lon_deg : float
+        The projection's origin [deg] (where map x, y = false easting, northing; the pole of a polar
+        stereographic CRS): the tangent point of "tangent" heights.
+    overrides : dict
+        The overrides given (``crs``, ``xy_units``, ``z_units``), for the mesh metadata.
     """
 
     path: Path

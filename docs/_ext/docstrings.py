@@ -8,12 +8,10 @@ rewriting the code's text:
 * ``|x|`` is an absolute value, never an RST substitution (the package defines none): the bars are
   escaped outside inline literals and roles.
 * A section underline or a simple-table border shorter than its text is lengthened to fit it.
-* Docstrings listed in :data:`PREFORMATTED` (attribute lists written as ``name : type  meaning`` lines with
-  hanging continuations, which RST cannot parse as a paragraph) show that text preformatted.
 * A section heading numpydoc does not know (which it would drop, content and all) is renamed to the
   standard section of :data:`SECTION_ALIASES`.
 
-The first and last rules act on the raw docstring, before numpydoc; the others on numpydoc's output.
+The last rule acts on the raw docstring, before numpydoc; the others on numpydoc's output.
 
 References (``missing-reference``): a short name such as ``ConfigError`` or ``materials.PropertySet`` is
 linked to the one documented crater_thermal object whose full name ends with it. A reference to an
@@ -32,13 +30,6 @@ SECTION_ALIASES = {
     "Fields (from :data:`SCHEMA`)": "Attributes",  # the case sections' fields, appended by config._section
 }
 
-#: Objects whose docstrings are shown preformatted (see the module docstring); remove an entry when its
-#: docstring is rewritten as a numpydoc ``Attributes`` section.
-PREFORMATTED = {
-    "crater_thermal.config.Crater",
-    "crater_thermal.config.Period",
-    "crater_thermal.terrain.DEMInfo",
-}
 
 _INLINE = re.compile(r"``.*?``|:[a-z:]+:`[^`]*`|`[^`]*`_?")
 _ABS = re.compile(r"(?<![\\|])\|(?=\S)([^|\n]*?\S)\|(?!\|)")
@@ -99,28 +90,13 @@ def _fix_simple_tables(lines: list[str]) -> None:
 
 
 def _before_numpydoc(app, what, name, obj, options, lines) -> None:
-    """On the raw docstring: section aliases, and the preformatted attribute lists."""
+    """On the raw docstring: section aliases."""
     for i in range(len(lines) - 1):
         title = lines[i].strip()
         if title in SECTION_ALIASES and _UNDERLINE.match(lines[i + 1]):
             indent = lines[i][: len(lines[i]) - len(lines[i].lstrip())]
             lines[i] = indent + SECTION_ALIASES[title]
             lines[i + 1] = indent + "-" * len(SECTION_ALIASES[title])
-    if name not in PREFORMATTED:
-        return
-    # the text between the summary paragraph and the first section (or the end)
-    try:
-        start = lines.index("") + 1
-    except ValueError:
-        return
-    end = next(
-        (i for i in range(start, len(lines) - 1) if lines[i].strip() and _UNDERLINE.match(lines[i + 1])), len(lines)
-    )
-    block = lines[start:end]
-    while block and not block[-1].strip():
-        block.pop()
-    if block:
-        lines[start:end] = ["::", ""] + ["    " + line for line in block] + [""]
 
 
 def _after_numpydoc(app, what, name, obj, options, lines) -> None:
