@@ -28,13 +28,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from crater_thermal import (  # noqa: E402
-    config,
-    io,
-    runner,  # noqa: E402
-    simulate,
-    thermal,
-)
+from crater_thermal import config, io, runner, simulate, thermal  # noqa: E402
 
 
 def main() -> None:

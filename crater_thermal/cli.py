@@ -528,7 +528,6 @@ def report(
 def _summary_text(summary_json: Path) -> str:
     """The headline of a report's summary.json, wrapped for a terminal."""
     import json
-    import textwrap
 
     from crater_thermal.errors import FluxFileError
 
@@ -538,7 +537,14 @@ def _summary_text(summary_json: Path) -> str:
         raise FluxFileError(
             f"{summary_json} is not a crater_thermal summary with a headline (write one with crater-thermal report)"
         ) from None
-    return textwrap.fill(headline, width=100)
+    return _wrap(headline)
+
+
+def _wrap(text: str) -> str:
+    """A paragraph wrapped for a terminal (100 columns)."""
+    import textwrap
+
+    return textwrap.fill(text, width=100)
 
 
 @app.command()
@@ -549,7 +555,7 @@ def summary(
     replay: Optional[Path] = typer.Argument(None, help="Replay dataset made from the run (when SOURCE is a run)."),
 ) -> None:
     """Print the answer: how much colder loose regolith is at night, where, when, and which instrument sees it."""
-    from crater_thermal import answer, api
+    from crater_thermal import api
     from crater_thermal.errors import ConfigError
 
     if source.is_dir():
@@ -561,9 +567,7 @@ def summary(
         raise ConfigError(
             f"{source} is a run: give its replay too (crater-thermal summary RUN.nc REPLAY.nc), or a report folder"
         )
-    import textwrap
-
-    typer.echo(textwrap.fill(answer.headline(api.analyse(source, replay).summary), width=100))
+    typer.echo(_wrap(api.analyse(source, replay).headline))
 
 
 @app.command()

@@ -158,7 +158,8 @@ def _alive(pid: int, start: str) -> bool:
         pass
     except OSError:
         return False
-    return not start or not _process_start(pid) or _process_start(pid) == start
+    now = _process_start(pid)
+    return not start or not now or now == start
 
 
 @contextlib.contextmanager

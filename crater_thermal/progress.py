@@ -82,8 +82,6 @@ class LineProgress:
         self.stream = stream
         self.t0 = self.last = clock()
         self.printed = 0
-        self.done = 0
-        self.total = 0
         self._lock = threading.Lock()
 
     def _print(self, text: str) -> None:
@@ -92,7 +90,6 @@ class LineProgress:
 
     def __call__(self, done: int, total: int) -> None:
         with self._lock:
-            self.done, self.total = int(done), int(total)
             now = self.clock()
             if now - self.last < self.interval_s:
                 return

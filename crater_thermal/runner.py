@@ -23,6 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from crater_thermal import io, profiles, radiosity, simulate, thermal
+from crater_thermal.constants import AU
 from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 
 
@@ -63,71 +64,41 @@ def replay_file(
     plus the solver's columns, whatever the run's length and size).
     ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
     """
-
     io.check_output(output, overwrite, inputs=[flux_path])  # fail before any work
     with io.output_lock(output):
-        return _replay_file(
-            flux_path,
-            labels,
-            density_grid=density_grid,
-            initial_temperature=initial_temperature,
-            fixed_spinup=fixed_spinup,
-            property_set=property_set,
-            allow_inverted=allow_inverted,
-            output=output,
-            overwrite=overwrite,
-            progress=progress,
-            chunk_mb=chunk_mb,
-        )
-
-
-def _replay_file(
-    flux_path,
-    labels,
-    *,
-    density_grid,
-    initial_temperature,
-    fixed_spinup,
-    property_set,
-    allow_inverted,
-    output,
-    overwrite,
-    progress,
-    chunk_mb,
-):
-
-    io.check_output(output, overwrite, inputs=[flux_path])  # again, under the lock
-    if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
-        raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
-    profiles = resolve_profiles(labels, density_grid, allow_inverted)
-    ds = io.read_flux_dataset(flux_path, load=False)
-    tops, bottoms = zip(*(simulate.profile_densities(p) for p in profiles))
-    skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
-    shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
-    variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
-    with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK) as stream:
-        with simulate.stage(progress, f"replay ({len(profiles)} profiles x {shape[2]} facets)") as report:
-            _, info = simulate.replay_fluxes(
-                ds,
-                profiles,
-                property_set=property_set,
-                initial_temperature=initial_temperature,
-                fixed_spinup=fixed_spinup,
-                progress=report,
-                chunk_mb=chunk_mb,
-                write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T),
+        if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
+            raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
+        profiles = resolve_profiles(labels, density_grid, allow_inverted)
+        ds = io.read_flux_dataset(flux_path, load=False)
+        tops, bottoms = zip(*(simulate.profile_densities(p) for p in profiles))
+        skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
+        shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
+        variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
+        with io.stream_dataset(
+            skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK
+        ) as stream:
+            with simulate.stage(progress, f"replay ({len(profiles)} profiles x {shape[2]} facets)") as report:
+                _, info = simulate.replay_fluxes(
+                    ds,
+                    profiles,
+                    property_set=property_set,
+                    initial_temperature=initial_temperature,
+                    fixed_spinup=fixed_spinup,
+                    progress=report,
+                    chunk_mb=chunk_mb,
+                    write=lambda ps, ts, fs, T: stream("surface_temperature", (ps, ts, fs), T),
+                )
+            stream.set_attrs(
+                {
+                    "replay_start": info["start"],
+                    "periodic_iterations": info["periodic_iterations"] or None,
+                    "periodic_residual_K": info["periodic_residual_K"] or None,
+                    "initial_temperature_K": initial_temperature,
+                    "ir_assumption": "saved nominal IR (thesis 7.2)",
+                }
             )
-        stream.set_attrs(
-            {
-                "replay_start": info["start"],
-                "periodic_iterations": info["periodic_iterations"] or None,
-                "periodic_residual_K": info["periodic_residual_K"] or None,
-                "initial_temperature_K": initial_temperature,
-                "ir_assumption": "saved nominal IR (thesis 7.2)",
-            }
-        )
-    ds.close()
-    return Path(output)
+        ds.close()
+        return Path(output)
 
 
 def _case_fingerprint(case) -> str:
@@ -154,8 +125,6 @@ def run_case(
     ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view factors,
     horizon map, sunlight, spin-up windows, recorded period, writing); None (or False) for none.
     """
-    from pathlib import Path
-
     out_path = Path(out_path)
     io.refuse_input_as_output(out_path, case_inputs(case))
     with io.output_lock(out_path):
@@ -385,8 +354,6 @@ def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, t
 
 def _write_run(case, fc, store, block, out_path, nominal, spin_info, incidence, overwrite, timer, progress) -> None:
     """``run.nc`` from the store, block by block (series as ``io.RUN_SERIES_DTYPE``)."""
-    from crater_thermal.constants import AU
-
     nt, ns, off, nf = len(fc.times), fc.n_spin, fc.record_offset, fc.mesh.n_facets
     save_spin = case.output.save_spinup_fluxes and ns > 0
     with timer("io"):

@@ -125,20 +125,8 @@ class Sunlight:
         return direct, solar, absorbed
 
 
-@contextlib.contextmanager
-def _no_timer_cm():
-    yield
-
-
 def _no_timer(name: str):
-    return _no_timer_cm()
-
-
-def direct_sunlight(sun, mesh, tracer, sun_dirs, sun_dist, progress=None, timer: Optional[Callable] = None):
-    """Direct irradiance (nt, nf) [W m-2] with ``[sun]`` settings ``sun`` (a ``config.Sun``), all samples at
-    once (a run computes it block by block through :class:`Sunlight`)."""
-    with _stage(progress, "direct sunlight") as report:
-        return Sunlight(sun, None, None, mesh, tracer, None, timer, progress)(sun_dirs, sun_dist, timer, report)[0]
+    return contextlib.nullcontext()
 
 
 def absorbed_sunlight(surface, mesh, sun_dirs, direct, scat, F):
