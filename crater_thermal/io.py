@@ -45,8 +45,13 @@ if TYPE_CHECKING:
 FLUX_UNITS = ("W m-2", "W m**-2", "W m^-2", "W/m2", "W/m^2", "W m-2 ")
 #: Accepted spellings of the temperature unit.
 TEMPERATURE_UNITS = ("K", "kelvin")
-#: Compression for large float variables (lossless).
-_ENCODING = {"zlib": True, "complevel": 1}
+#: Compression for large float variables (lossless): zlib level 1 after the byte shuffle. Measured on
+#: a run's four (time, facet) float32 series, 20,000 facets x 361 samples, every setting in one process
+#: (``bench/runnc_compression.py``, bench/results/runnc_compression.json): against level 1 without the
+#: shuffle (the writer before issue 24) the write takes 2.1 s instead of 4.0 s, the file 49 MB instead of
+#: 68 MB, and one facet's series reads in 0.07 s instead of 0.10 s; level 4 saves 2 % more of the size for
+#: 80 % more write time. Writing is then 0.3 us per sample and facet, ~1 % of the run's own 22 us.
+_ENCODING = {"zlib": True, "complevel": 1, "shuffle": True}
 
 
 # ----------------------------------------------------------------------------- writing
@@ -389,12 +394,14 @@ def save_npz_atomic(path: str | os.PathLike, **arrays: Any) -> Path:
 # ----------------------------------------------------------------------------- streaming (bounded memory)
 
 
-def chunk_shape(shape: tuple, time_axis: int, time_rows: int, target_bytes: int = 1 << 20) -> tuple:
-    """HDF5 chunk shape for a large variable: ``time_rows`` along time, about ``target_bytes`` of float64
-    per chunk along the last (facet) axis, 1 along any leading axis (e.g. ``profile``)."""
+def chunk_shape(shape: tuple, time_axis: int, time_rows: int, target_bytes: int = 1 << 20, itemsize: int = 8) -> tuple:
+    """HDF5 chunk shape for a large variable: ``time_rows`` along time, about ``target_bytes`` of values
+    of ``itemsize`` bytes per chunk along the last (facet) axis, 1 along any leading axis (e.g.
+    ``profile``). A facet's whole series is then read from ``n_time / time_rows`` chunks and one time
+    sample of every facet from ``n_facet / chunk`` chunks (run.nc: 24 rows, 1 MB)."""
     out = [1] * len(shape)
     out[time_axis] = max(1, min(int(time_rows), int(shape[time_axis])))
-    out[-1] = max(1, min(int(shape[-1]), target_bytes // (8 * out[time_axis])))
+    out[-1] = max(1, min(int(shape[-1]), target_bytes // (int(itemsize) * out[time_axis])))
     return tuple(out)
 
 
@@ -459,7 +466,7 @@ def stream_dataset(
                     dtype,
                     dims,
                     fill_value=dtype.type(np.nan),
-                    chunksizes=chunk_shape(tuple(shape), t_axis, time_rows),
+                    chunksizes=chunk_shape(tuple(shape), t_axis, time_rows, itemsize=dtype.itemsize),
                     **_ENCODING,
                 )
                 var.setncatts(dict(attrs))
