@@ -28,7 +28,19 @@ measured: a streamed run holds blocks of the chunk budget and the per-mesh opera
 length, so a longer run does not raise it.
 
 Growth exponents between the two largest sizes: ``log(y2 / y1) / log(N2 / N1)`` for the (year) time and
-the peak memory. The machine is shared: ``loadavg`` holds ``os.getloadavg()`` at the start and end of
+the peak memory; ``consecutive_exponents`` gives them between every pair of consecutive sizes (e.g.
+``--sizes 100000 1000000``: the one pair the issue's target is about).
+
+The fallback where a size cannot fit: before each size after the first, its peak memory is estimated
+from the largest size measured so far with the memory exponent of the last two (or
+``--memory-exponent``, default 1.75, the operator's measured growth, with one size measured). If the
+estimate exceeds ``--max-memory-gb`` (default: the machine's physical memory), that size runs in the
+quick mode with a lunar day recorded (``--fallback-days``, 29.53): the operator, the horizon map and
+a lunar day are built and measured, the year extrapolated from them (``mode``, ``fallback_reason``,
+``estimated_peak_mb`` in the JSON). A child that fails (killed for memory, an exception) is recorded
+with its exit status and the tail of its stderr (``failed``) and the sizes after it still run.
+
+The machine is shared: ``loadavg`` holds ``os.getloadavg()`` at the start and end of
 each size. The last stdout line is one JSON object, also written to ``bench/results/scale.json``.
 """
 
@@ -219,9 +231,9 @@ def run_one(args) -> dict:
     return res
 
 
-def extrapolate_year(res: dict, args) -> dict:
+def extrapolate_year(res: dict, args, quick: bool | None = None) -> dict:
     """The year's stage times from a quick run (see the module docstring); a full run as measured."""
-    if not args.quick:
+    if not (args.quick if quick is None else quick):
         return {"extrapolated": False, "year_s": res["total_s"], "year_stages_s": dict(res["stages_s"])}
     n_run = res["samples"] + max(res["spinup_samples"] - 1, 0)  # flux samples computed in the quick run
     n_year = 2 * YEAR_STEPS + 1  # spin-up year + recorded year, the join sample once
@@ -251,8 +263,52 @@ def exponent(x, y) -> float:
     return math.log(y2 / y1) / math.log(x2 / x1)
 
 
-def summarize(results: list, args) -> dict:
-    """The JSON summary of the sizes finished so far."""
+def consecutive_exponents(facets, total, peak) -> list:
+    """Growth exponents of the year's time and the peak memory between each pair of consecutive sizes."""
+    order = sorted(range(len(facets)), key=lambda i: facets[i])
+    out = []
+    for i, j in zip(order, order[1:]):
+        if facets[j] == facets[i]:
+            continue
+        d = math.log(facets[j] / facets[i])
+        out.append(
+            {
+                "facets": [facets[i], facets[j]],
+                "time_exponent": math.log(total[j] / total[i]) / d,
+                "memory_exponent": math.log(peak[j] / peak[i]) / d,
+            }
+        )
+    return out
+
+
+def machine_memory_mb() -> float:
+    """Physical memory of this machine [MB] (``/proc/meminfo`` MemTotal; nan where unknown)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemTotal:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return math.nan
+
+
+def estimated_peak_mb(results: list, n: int, default_exponent: float) -> float | None:
+    """Peak memory [MB] of ``n`` facets extrapolated from the sizes measured (None before the first)."""
+    done = sorted((r["facets"], r["peak_memory_mb"]) for r in results)
+    if not done:
+        return None
+    if len(done) >= 2 and done[-1][0] != done[-2][0]:
+        (x1, y1), (x2, y2) = done[-2:]
+        expo = max(math.log(y2 / y1) / math.log(x2 / x1), 1.0)
+    else:
+        expo = default_exponent
+    x, y = done[-1]
+    return y * (n / x) ** expo
+
+
+def summarize(results: list, args, failed: list | None = None) -> dict:
+    """The JSON summary of the sizes finished so far (``failed``: the sizes whose run did not finish)."""
     facets = [r["facets"] for r in results]
     total = [r["year_s"] for r in results]
     peak = [r["peak_memory_mb"] for r in results]
@@ -263,6 +319,11 @@ def summarize(results: list, args) -> dict:
         "peak_memory_mb": peak,
         "time_exponent": exponent(facets, total) if len(results) >= 2 else None,
         "memory_exponent": exponent(facets, peak) if len(results) >= 2 else None,
+        "consecutive_exponents": consecutive_exponents(facets, total, peak),
+        "mode": [r["mode"] for r in results],
+        "fallback_reason": [r.get("fallback_reason") for r in results],
+        "estimated_peak_mb": [r.get("estimated_peak_mb") for r in results],
+        "failed": failed or [],
         "stages_s": [r["year_stages_s"] for r in results],
         "extrapolated": [r["extrapolated"] for r in results],
         "measured_total_s": [r["total_s"] for r in results],
@@ -289,7 +350,11 @@ def summarize(results: list, args) -> dict:
             "chunk_mb": args.chunk_mb,
         },
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
-        "targets": {"100k_total_s": 1800, "100k_peak_mb": 8192, "exponent_30k_100k": 1.2},
+        "targets": {
+            "issue_24": {"100k_total_s": 600, "100k_peak_mb": 4096, "1M_total_s": 7200, "1M_peak_mb": 16384},
+            "exponent_100k_1M": 1.15,
+        },
+        "max_memory_mb": args.max_memory_gb * 1024.0,
     }
     return summary
 
@@ -308,6 +373,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--quick", action="store_true", help="short run, the year extrapolated (module docstring)")
     ap.add_argument("--record-days", type=float, default=5.0, help="--quick: recorded days")
     ap.add_argument("--windows", type=int, default=5, help="--quick: periodic windows assumed for the start")
+    ap.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=machine_memory_mb() / 1024.0,
+        help="a size whose estimated peak exceeds this runs the fallback (module docstring)",
+    )
+    ap.add_argument("--memory-exponent", type=float, default=1.75, help="memory growth assumed with one size done")
+    ap.add_argument("--fallback-days", type=float, default=29.53, help="recorded days of the fallback run")
     ap.add_argument("--workdir", default=None, help="folder for the runs' files (default: the system temp)")
     ap.add_argument("--progress", action="store_true", help="progress bars of the runs (on stderr)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "scale.json"))
@@ -318,8 +391,12 @@ def main(argv=None) -> dict:
         print(json.dumps(run_one(args)))
         return {}
 
-    results = []
+    results, failed = [], []
     for n in args.sizes:
+        estimate = estimated_peak_mb(results, n, args.memory_exponent)
+        fallback = estimate is not None and not args.quick and estimate > args.max_memory_gb * 1024.0
+        quick = args.quick or fallback
+        record_days = args.fallback_days if fallback else args.record_days
         cmd = [
             sys.executable,
             __file__,
@@ -334,7 +411,7 @@ def main(argv=None) -> dict:
             "--chunk-mb",
             str(args.chunk_mb),
             "--record-days",
-            str(args.record_days),
+            str(record_days),
             "--windows",
             str(args.windows),
         ]
@@ -345,23 +422,46 @@ def main(argv=None) -> dict:
         ):
             if value:
                 cmd += [flag, value]
-        cmd += ["--quick"] if args.quick else []
+        cmd += ["--quick"] if quick else []
         cmd += ["--progress"] if args.progress else []
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=dict(os.environ))
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
         wall = time.perf_counter() - t0
+        sys.stderr.write(proc.stderr if args.progress else "")
         if proc.returncode != 0:
-            raise SystemExit(f"size {n}: the run failed (exit {proc.returncode})")
+            failed.append(
+                {
+                    "requested_facets": n,
+                    "exit_status": proc.returncode,
+                    "wall_s": wall,
+                    "estimated_peak_mb": estimate,
+                    "mode": "fallback" if fallback else ("quick" if quick else "full year"),
+                    "stderr_tail": proc.stderr[-2000:],
+                }
+            )
+            print(f"# size {n}: the run failed (exit {proc.returncode})", file=sys.stderr, flush=True)
+            if args.out:
+                Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+                Path(args.out).write_text(json.dumps(summarize(results, args, failed), indent=1) + "\n")
+            continue
         res = json.loads(proc.stdout.strip().splitlines()[-1])
         res["requested_facets"] = n
         res["process_wall_s"] = wall
-        res.update(extrapolate_year(res, args))
+        res["estimated_peak_mb"] = estimate
+        if fallback:
+            res["mode"] = f"fallback: operator, horizon map and {record_days:g} recorded days, year extrapolated"
+            res["fallback_reason"] = (
+                f"estimated peak {estimate:.0f} MB > --max-memory-gb {args.max_memory_gb:g} GB for a full year"
+            )
+        else:
+            res["mode"] = "quick (year extrapolated)" if quick else "full year"
+        res.update(extrapolate_year(res, args, quick))
         # the largest peak RSS of any child so far [MB] (a cross-check of VmHWM)
         res["ru_maxrss_children_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
         results.append(res)
         if args.out:  # after every size: a run stopped before the largest one keeps the others
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.out).write_text(json.dumps(summarize(results, args), indent=1) + "\n")
+            Path(args.out).write_text(json.dumps(summarize(results, args, failed), indent=1) + "\n")
         stages = json.dumps({k: round(v, 1) for k, v in res["stages_s"].items()})
         print(
             f"# {res['facets']} facets: measured {res['total_s']:.1f} s, year {res['year_s']:.0f} s, "
@@ -370,7 +470,7 @@ def main(argv=None) -> dict:
             flush=True,
         )
 
-    summary = summarize(results, args)
+    summary = summarize(results, args, failed)
     print(json.dumps(summary))
     return summary
 
