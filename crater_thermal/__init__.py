@@ -28,6 +28,7 @@ __all__ = [
     "make_report",
     "run_sweep",
     "export_map",
+    "invert",
     "progress_callback",
     "Results",
 ]

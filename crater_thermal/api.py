@@ -460,3 +460,93 @@ def export_map(
         night=night,
         overwrite=overwrite,
     )
+
+
+def invert(
+    run: PathLike,
+    grid_replay: PathLike,
+    observations: PathLike,
+    *,
+    instrument: Optional[str] = None,
+    loose_bottom_kg_m3: float = 1500.0,
+    output: Optional[PathLike] = None,
+    overwrite: bool = False,
+    max_offset_m: Optional[float] = None,
+):
+    """Posterior over (top, bottom) density per footprint from measured brightness temperatures.
+
+    Parameters
+    ----------
+    run, grid_replay : path-like
+        The run and a density-grid replay made from it (>= 2 distinct top and bottom densities).
+    observations : path-like
+        Observation table, CSV or netCDF (:func:`crater_thermal.io.read_observations`).
+    instrument : str, optional
+        Instrument preset (e.g. ``"diviner_ch7"``); default: the table's, else ``"diviner_ch7"``.
+    loose_bottom_kg_m3 : float [kg m-3]
+        Threshold of ``p_loose``: bottom density below it.
+    output : path-like, optional
+        Write the posterior there (netCDF, atomically); then the written dataset is returned.
+    overwrite : bool
+        Replace an existing ``output``.
+    max_offset_m : float [m], optional
+        Farthest an ``x_m``/``y_m`` position may lie from its nearest facet centroid
+        (default: twice the square root of the largest facet area).
+
+    Returns
+    -------
+    crater_thermal.inversion.Posterior, or xarray.Dataset when ``output`` is given.
+    """
+    import numpy as np
+
+    from crater_thermal import inversion
+
+    if output is not None:
+        io.check_output(output, overwrite, inputs=(run, grid_replay, observations))
+    run_ds = io.open_run(run, load=False)
+    rep = io.open_replay(grid_replay)
+    io.check_pair(run_ds, rep)
+    tops = np.asarray(rep["rho_top"].values, float)
+    bots = np.asarray(rep["rho_bottom"].values, float)
+    if np.unique(tops[np.isfinite(tops)]).size < 2 or np.unique(bots[np.isfinite(bots)]).size < 2:
+        raise ConfigError(f"{grid_replay} is not a density grid; replay with --density-grid START:STOP:STEP")
+    keep = np.isfinite(tops) & np.isfinite(bots)
+    T = np.asarray(rep["surface_temperature"].values[keep], float)
+    fm = inversion.ForwardModel(T, tops[keep], bots[keep], rep["time"].values)
+    cols = io.read_observations(observations)
+    facet = cols["facet"]
+    if facet is None:
+        c = np.asarray(run_ds["centroid"].values, float)[:, :2]
+        xy = np.column_stack([cols["x_m"], cols["y_m"]])
+        d2 = ((xy[:, None, :] - c[None, :, :]) ** 2).sum(axis=2)
+        facet = d2.argmin(axis=1)
+        dist = np.sqrt(d2[np.arange(xy.shape[0]), facet])
+        limit = max_offset_m if max_offset_m is not None else 2.0 * float(np.sqrt(np.max(run_ds["area"].values)))
+        if np.any(~np.isfinite(dist)) or np.any(dist > limit):
+            i = int(np.flatnonzero(~(dist <= limit))[0])
+            raise ConfigError(
+                f"observations: sample {i} at x={xy[i, 0]:g} m, y={xy[i, 1]:g} m is {dist[i]:.0f} m from the mesh "
+                f"(limit {limit:.0f} m); give positions in the mesh frame (the run's centroid x, y)"
+            )
+    footprint = cols["footprint"] if cols["footprint"] is not None else facet
+    obs = inversion.ObservationTable(
+        time=cols["time"],
+        facet=facet,
+        footprint=footprint,
+        T_b_K=cols["T_b_K"],
+        sigma_K=cols["sigma_K"],
+        dwell_s=cols["dwell_s"],
+        instrument=instrument or cols["instrument"] or "diviner_ch7",
+    )
+    post = inversion.invert(fm, obs, obs.instrument, loose_bottom_kg_m3=loose_bottom_kg_m3)
+    if output is None:
+        return post
+    attrs = {
+        "prior": "uniform in (top, bottom) density on the refined grid nodes with top <= bottom",
+        "instrument": obs.instrument,
+        "run": str(run),
+        "grid_replay": str(grid_replay),
+        "observations": str(observations),
+    }
+    io.write_posterior(post, output, overwrite=overwrite, attrs=attrs)
+    return io.open_written(output)

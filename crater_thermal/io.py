@@ -973,3 +973,203 @@ def latitude_deg(ds) -> float:
     if not -90.0 <= lat <= 90.0:
         raise FluxFileError(f"dataset attribute lat_deg = {lat} is outside [-90, 90] deg")
     return lat
+
+
+# ----------------------------------------------------------------------------- observations and posteriors
+
+#: Columns of an observation table (:func:`read_observations`); the required ones first.
+OBSERVATION_COLUMNS = (
+    "time",
+    "facet",
+    "x_m",
+    "y_m",
+    "brightness_temperature_K",
+    "sigma_K",
+    "dwell_s",
+    "band",
+    "instrument",
+    "footprint",
+)
+_OTHER_TEMPERATURE_UNITS = ("_c", "_degc", "_celsius", "_f", "_mk", "_degf")
+
+
+def _observation_columns(path: Path) -> dict:
+    """Raw columns of a CSV or netCDF observation table: name (lower case) -> 1-d array."""
+    if path.suffix.lower() in (".nc", ".nc4", ".netcdf"):
+        ds = _open(path, "observations")
+        cols = {}
+        for name in list(ds.data_vars) + list(ds.coords):
+            v = ds[name]
+            if v.ndim != 1:
+                continue
+            values = v.values
+            if name.lower() == "brightness_temperature" and str(v.attrs.get("units", "K")) not in TEMPERATURE_UNITS:
+                raise ConfigError(
+                    f"observations {path}: brightness_temperature has units {v.attrs.get('units')!r}; K is needed"
+                )
+            key = "brightness_temperature_K" if name.lower() == "brightness_temperature" else name
+            cols[key.lower() if key != "brightness_temperature_K" else key] = values
+        return cols
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(path, skipinitialspace=True, comment="#")
+    except FileNotFoundError:
+        raise ConfigError(f"observations file {path} does not exist") from None
+    except Exception as exc:  # pandas raises several parser errors
+        raise ConfigError(f"cannot read observations {path}: {type(exc).__name__}: {exc}") from None
+    return {str(c).strip(): df[c].to_numpy() for c in df.columns}
+
+
+def read_observations(path: str | os.PathLike) -> dict:
+    """Read an observation table (CSV with a header row, or netCDF with 1-d variables on one dimension).
+
+    Columns (names as written; units in the names):
+
+    ``time``                       UTC time of the sample, ISO 8601 (``2024-01-05T03:00:00``; a ``Z`` or
+                                   ``+00:00`` suffix is allowed, other offsets are converted to UTC).
+    ``facet`` or ``x_m``, ``y_m``  the facet seen, or the position [m] in the mesh frame (the run's
+                                   ``centroid`` x, y), mapped to the nearest facet by the caller.
+    ``brightness_temperature_K``   measured band brightness temperature [K].
+    ``sigma_K`` (optional)         stated 1-sigma white uncertainty [K]; empty: the instrument's noise model.
+    ``dwell_s`` (optional)         time integrated for the sample [s].
+    ``band`` / ``instrument`` (optional)  instrument preset name (one per table).
+    ``footprint`` (optional)       footprint id (default: one footprint per facet).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.csv`` (or any text) or ``.nc``.
+
+    Returns
+    -------
+    dict
+        ``time`` (n,) datetime64[ns] UTC, ``T_b_K`` (n,) [K], ``facet`` (n,) int or None, ``x_m``/``y_m``
+        (n,) [m] or None, ``sigma_K``, ``dwell_s`` (n,) or None, ``footprint`` (n,) int or None,
+        ``instrument`` str or None.
+
+    Raises
+    ------
+    ConfigError
+        One line: the file is missing or unreadable, a column is missing, named in other units
+        (e.g. ``brightness_temperature_C``), or holds unparsable times or numbers.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"observations file {path} does not exist")
+    cols = _observation_columns(path)
+    for name in cols:
+        low = name.lower()
+        if low.startswith("brightness_temperature") and low != "brightness_temperature_k":
+            raise ConfigError(
+                f"observations {path}: column {name!r} is in other units; give brightness_temperature_K in K"
+            )
+    if "brightness_temperature_K" not in cols:
+        raise ConfigError(
+            f"observations {path}: missing column 'brightness_temperature_K' [K]; columns: {', '.join(cols)}"
+        )
+    if "time" not in cols:
+        raise ConfigError(f"observations {path}: missing column 'time' (ISO 8601 UTC); columns: {', '.join(cols)}")
+    has_facet = "facet" in cols
+    has_xy = "x_m" in cols and "y_m" in cols
+    if not has_facet and not has_xy:
+        raise ConfigError(f"observations {path}: give a 'facet' column or 'x_m' and 'y_m' [m] (mesh frame)")
+    import pandas as pd
+
+    raw_t = cols["time"]
+    if np.issubdtype(np.asarray(raw_t).dtype, np.datetime64):
+        time = np.asarray(raw_t, "datetime64[ns]")
+    else:
+        try:
+            time = pd.to_datetime(pd.Series(raw_t).astype(str).str.strip(), utc=True, format="ISO8601")
+        except (ValueError, TypeError) as exc:
+            raise ConfigError(f"observations {path}: unparsable time ({exc}); give ISO 8601 UTC times") from None
+        time = time.dt.tz_localize(None).to_numpy("datetime64[ns]")
+
+    def number(name, integer=False):
+        if name not in cols:
+            return None
+        try:
+            a = np.asarray(pd.to_numeric(pd.Series(cols[name]), errors="raise"), float)
+        except (ValueError, TypeError):
+            raise ConfigError(f"observations {path}: column {name!r} holds something that is not a number") from None
+        if integer:
+            if np.any(~np.isfinite(a)) or np.any(a != np.round(a)):
+                raise ConfigError(f"observations {path}: column {name!r} must hold whole numbers")
+            return a.astype(np.int64)
+        return a
+
+    inst = None
+    for key in ("instrument", "band"):
+        if key in cols:
+            names = sorted({str(v).strip() for v in cols[key] if str(v).strip() not in ("", "nan")})
+            if len(names) > 1:
+                raise ConfigError(f"observations {path}: one instrument per table, found {', '.join(names)}")
+            inst = names[0] if names else inst
+    return {
+        "time": time,
+        "T_b_K": number("brightness_temperature_K"),
+        "facet": number("facet", integer=True) if has_facet else None,
+        "x_m": number("x_m") if has_xy else None,
+        "y_m": number("y_m") if has_xy else None,
+        "sigma_K": number("sigma_K"),
+        "dwell_s": number("dwell_s"),
+        "footprint": number("footprint", integer=True),
+        "instrument": inst,
+    }
+
+
+def write_posterior(post, path: str | os.PathLike, overwrite: bool = False, attrs: Mapping[str, Any] | None = None):
+    """Write an inversion's posterior (:class:`crater_thermal.inversion.Posterior`) to netCDF atomically.
+
+    Dimensions ``footprint``, ``top``, ``bottom`` (densities [kg m-3] as coordinates ``top_kg_m3``,
+    ``bottom_kg_m3``). Variables: ``probability(footprint, top, bottom)`` (posterior mass per node),
+    ``prior(top, bottom)``, ``marginal_top``, ``marginal_bottom``, ``p_loose`` (P(bottom < threshold)),
+    ``map_top_kg_m3``/``map_bottom_kg_m3``, ``mean_*``, ``sd_*``, ``correlation``, ``credible_90``
+    (bool mask of the 90 % highest-posterior region), ``log_evidence``, ``n_samples``, ``degeneracy``
+    (one sentence per footprint). ``attrs`` (prior, instrument, inputs) go into the file's attributes.
+
+    Returns
+    -------
+    xarray.Dataset
+        The dataset written (in memory).
+    """
+    import xarray as xr
+
+    fp = ("footprint",)
+    mp, mean, sd = post.map_kg_m3, post.mean_kg_m3, post.sd_kg_m3
+    kg = {"units": "kg m-3"}
+    data = {
+        "probability": (
+            ("footprint", "top", "bottom"),
+            post.probability,
+            {"units": "1", "long_name": "posterior mass"},
+        ),
+        "prior": (("top", "bottom"), post.prior, {"units": "1", "long_name": "prior mass"}),
+        "marginal_top": (("footprint", "top"), post.marginal_top, {"units": "1"}),
+        "marginal_bottom": (("footprint", "bottom"), post.marginal_bottom, {"units": "1"}),
+        "p_loose": (fp, post.p_loose, {"units": "1", "threshold_bottom_kg_m3": float(post.loose_bottom_kg_m3)}),
+        "map_top_kg_m3": (fp, mp[:, 0], kg),
+        "map_bottom_kg_m3": (fp, mp[:, 1], kg),
+        "mean_top_kg_m3": (fp, mean[:, 0], kg),
+        "mean_bottom_kg_m3": (fp, mean[:, 1], kg),
+        "sd_top_kg_m3": (fp, sd[:, 0], kg),
+        "sd_bottom_kg_m3": (fp, sd[:, 1], kg),
+        "correlation": (fp, post.correlation, {"units": "1"}),
+        "credible_90": (("footprint", "top", "bottom"), post.credible_region(0.9).astype(np.int8), {"units": "1"}),
+        "log_evidence": (fp, post.log_evidence, {"units": "1"}),
+        "n_samples": (fp, np.asarray(post.n_samples, np.int64), {"units": "1"}),
+        "degeneracy": (fp, np.asarray(post.degeneracy(), dtype=str)),
+    }
+    coords = {
+        "footprint": np.asarray(post.footprint, np.int64),
+        "top_kg_m3": (("top",), post.top_kg_m3, kg),
+        "bottom_kg_m3": (("bottom",), post.bottom_kg_m3, kg),
+    }
+    out_attrs = {"loose_bottom_kg_m3": float(post.loose_bottom_kg_m3), "credible_mass": 0.9}
+    for k, v in (attrs or {}).items():
+        out_attrs[k] = json.dumps(v) if isinstance(v, (dict, list, tuple)) else v
+    out_attrs["software_version"] = __version__
+    ds = xr.Dataset(data, coords=coords, attrs=out_attrs)
+    write_dataset_atomic(ds, path, overwrite=overwrite)
+    return ds
