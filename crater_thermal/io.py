@@ -1026,15 +1026,15 @@ def read_observations(path: str | os.PathLike) -> dict:
 
     Columns (names as written; units in the names):
 
-    ``time``                       UTC time of the sample, ISO 8601 (``2024-01-05T03:00:00``; a ``Z`` or
-                                   ``+00:00`` suffix is allowed, other offsets are converted to UTC).
-    ``facet`` or ``x_m``, ``y_m``  the facet seen, or the position [m] in the mesh frame (the run's
-                                   ``centroid`` x, y), mapped to the nearest facet by the caller.
-    ``brightness_temperature_K``   measured band brightness temperature [K].
-    ``sigma_K`` (optional)         stated 1-sigma white uncertainty [K]; empty: the instrument's noise model.
-    ``dwell_s`` (optional)         time integrated for the sample [s].
-    ``band`` / ``instrument`` (optional)  instrument preset name (one per table).
-    ``footprint`` (optional)       footprint id (default: one footprint per facet).
+    - ``time``: UTC time of the sample, ISO 8601 (``2024-01-05T03:00:00``; a ``Z`` or ``+00:00`` suffix is
+      allowed, other offsets are converted to UTC).
+    - ``facet``, or ``x_m`` and ``y_m``: the facet seen, or the position [m] in the mesh frame (the run's
+      ``centroid`` x, y), mapped to the nearest facet by the caller.
+    - ``brightness_temperature_K``: measured band brightness temperature [K].
+    - ``sigma_K`` (optional): stated 1-sigma white uncertainty [K]; empty: the instrument's noise model.
+    - ``dwell_s`` (optional): time integrated for the sample [s].
+    - ``band`` or ``instrument`` (optional): instrument preset name (one per table).
+    - ``footprint`` (optional): footprint id (default: one footprint per facet).
 
     Parameters
     ----------
