@@ -23,7 +23,7 @@ from typing import List, Optional
 
 import typer
 
-from crater_thermal.errors import CraterThermalError, InternalError, Interrupted
+from crater_thermal.errors import CraterThermalError, InternalError, Interrupted, note_interrupt
 
 app = typer.Typer(
     add_completion=False,
@@ -711,6 +711,7 @@ def _install_signal_handlers() -> None:
             print(f"error: interrupted again ({signal.Signals(signum).name}); exiting at once", file=sys.stderr)
             os._exit(128 + signum)
         handler.fired = True
+        note_interrupt(signum)  # kept, in case C code swallows the raise below (errors.raise_if_interrupted)
         raise Interrupted(signum)
 
     for sig in (signal.SIGINT, signal.SIGTERM):

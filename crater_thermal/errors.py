@@ -104,3 +104,24 @@ class Interrupted(BaseException):
             return signal.Signals(self.signum).name
         except ValueError:
             return f"signal {self.signum}"
+
+
+#: Signal numbers received by the command line's handlers, oldest first (see :func:`raise_if_interrupted`).
+_RECEIVED_SIGNALS: list = []
+
+
+def note_interrupt(signum: int) -> None:
+    """Record that signal ``signum`` asked the process to stop (called by the command line's handler)."""
+    _RECEIVED_SIGNALS.append(int(signum))
+
+
+def raise_if_interrupted() -> None:
+    """Raise :class:`Interrupted` if a stop signal was received, even where its first raise was lost.
+
+    A signal handler's exception surfaces wherever Python happens to be; C code that calls back into Python
+    and clears every error (some attribute probes do) can swallow it, and the command would then run to
+    the end and write its output as if never interrupted. Writers call this just before an output's
+    final rename (the commit point), so a received signal always prevents the commit.
+    """
+    if _RECEIVED_SIGNALS:
+        raise Interrupted(_RECEIVED_SIGNALS[0])

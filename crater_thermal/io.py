@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping
 import numpy as np
 
 from crater_thermal._version import __version__
-from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError, OutputLockedError
+from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError, OutputLockedError, raise_if_interrupted
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -338,6 +338,7 @@ def atomic_output(
     tmp = _temporary_sibling(path, folder)
     try:
         yield tmp
+        raise_if_interrupted()  # a stop signal whose exception was swallowed still prevents the commit
         check_output(path, overwrite, folder)
         if folder and path.is_dir():
             old = _temporary_sibling(path, folder=True)
