@@ -469,6 +469,10 @@ def invert(
     *,
     instrument: Optional[str] = None,
     loose_bottom_kg_m3: float = 1500.0,
+    prior: Any = "uniform",
+    refine: int = 4,
+    natural_scatter_K: Optional[float] = None,
+    offset_K: float = 0.0,
     output: Optional[PathLike] = None,
     overwrite: bool = False,
     max_offset_m: Optional[float] = None,
@@ -485,6 +489,16 @@ def invert(
         Instrument preset (e.g. ``"diviner_ch7"``); default: the table's, else ``"diviner_ch7"``.
     loose_bottom_kg_m3 : float [kg m-3]
         Threshold of ``p_loose``: bottom density below it.
+    prior : ``"uniform"`` or (n_top, n_bottom) array
+        Prior over the refined (top, bottom) nodes: uniform in density with top <= bottom inside the
+        grid, or non-negative weights (:func:`crater_thermal.inversion.invert`).
+    refine : int
+        Posterior nodes per grid step (4: a 100 kg m-3 grid gives 25 kg m-3 nodes).
+    natural_scatter_K : float [K], optional
+        Natural scatter of a footprint, shared by its samples (default: the instrument model's 0.94 K).
+    offset_K : float [K]
+        1-sigma calibration offset (at the instrument's reference temperature), shared by a footprint's
+        samples and marginalized; 0: none.
     output : path-like, optional
         Write the posterior there (netCDF, atomically); then the written dataset is returned.
     overwrite : bool
@@ -538,12 +552,31 @@ def invert(
         dwell_s=cols["dwell_s"],
         instrument=instrument or cols["instrument"] or "diviner_ch7",
     )
-    post = inversion.invert(fm, obs, obs.instrument, loose_bottom_kg_m3=loose_bottom_kg_m3)
+    from crater_thermal import instrument as ins
+
+    scatter = ins.NATURAL_SCATTER_K if natural_scatter_K is None else float(natural_scatter_K)
+    post = inversion.invert(
+        fm,
+        obs,
+        obs.instrument,
+        prior=prior,
+        loose_bottom_kg_m3=loose_bottom_kg_m3,
+        refine=refine,
+        natural_scatter_K=scatter,
+        offset_K=offset_K,
+    )
     if output is None:
         return post
     attrs = {
-        "prior": "uniform in (top, bottom) density on the refined grid nodes with top <= bottom",
+        "prior": "uniform in (top, bottom) density on the refined grid nodes with top <= bottom"
+        if isinstance(prior, str)
+        else "user weights on the refined (top, bottom) nodes (the file's prior variable)",
         "instrument": obs.instrument,
+        "refine": int(refine),
+        "natural_scatter_K": scatter,
+        "offset_K": float(offset_K),
+        "noise_model": "white NETD(T)^2 (1/n + t_int/knee) per sample (or sigma_K); natural scatter, calibration "
+        "offset and gain shared by a footprint's samples, marginalized (crater_thermal.inversion)",
         "run": str(run),
         "grid_replay": str(grid_replay),
         "observations": str(observations),

@@ -656,6 +656,71 @@ def export(
     typer.echo(f"wrote {output}")
 
 
+# ---------------------------------------------------------------- invert
+
+
+@app.command()
+def invert(
+    run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output)."),
+    grid_replay: Path = typer.Argument(
+        ..., help="Density-grid replay of RUN (crater-thermal replay RUN --density-grid START:STOP:STEP)."
+    ),
+    observations: Path = typer.Argument(
+        ...,
+        help="Observation table, CSV or netCDF: time (ISO UTC), facet or x_m/y_m [m, mesh frame], "
+        "brightness_temperature_K [K], optional sigma_K [K], dwell_s [s], footprint, instrument.",
+    ),
+    output: Path = typer.Option(..., "-o", "--output", help="Posterior to write (netCDF)."),
+    instrument: Optional[str] = typer.Option(
+        None,
+        "--instrument",
+        help="Preset channel: diviner_ch7, diviner_ch8, diviner_ch9, microbolometer. Default: the table's "
+        "instrument column, else diviner_ch7.",
+    ),
+    loose_below: float = typer.Option(
+        1500.0, "--loose-below", help="P(loose) threshold: bottom-layer density below it [kg m-3]."
+    ),
+    refine: int = typer.Option(4, "--refine", help="Posterior nodes per grid step (4: 100 -> 25 kg m-3)."),
+    natural_scatter: Optional[float] = typer.Option(
+        None, "--natural-scatter-k", help="Natural scatter of a footprint [K] (default 0.94, the instrument model's)."
+    ),
+    offset_k: float = typer.Option(
+        0.0,
+        "--offset-k",
+        help="1-sigma calibration offset [K] at the instrument's reference temperature, marginalized (default 0).",
+    ),
+    max_offset_m: Optional[float] = typer.Option(
+        None, "--max-offset-m", help="Farthest an x_m/y_m position may lie from its facet [m] (default: 2 facet sizes)."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
+) -> None:
+    """Posterior over (top, bottom) density per footprint from measured brightness temperatures.
+
+    The prior is uniform in (top, bottom) density over the grid's refined nodes with top <= bottom. The
+    posterior file holds, per footprint, the posterior mass on the nodes, its marginals, P(loose), MAP,
+    mean, sd, the 90 % credible region and a sentence on the degeneracies.
+    """
+    from crater_thermal import api
+
+    ds = api.invert(
+        run,
+        grid_replay,
+        observations,
+        instrument=instrument,
+        loose_bottom_kg_m3=loose_below,
+        refine=refine,
+        natural_scatter_K=natural_scatter,
+        offset_K=offset_k,
+        output=output,
+        overwrite=overwrite,
+        max_offset_m=max_offset_m,
+    )
+    n = ds.sizes["footprint"]
+    loose = int((ds["p_loose"].values > 0.5).sum())
+    ds.close()
+    typer.echo(f"wrote {output} ({n} footprints, {loose} with P(bottom < {loose_below:g} kg m-3) > 0.5)")
+
+
 # ---------------------------------------------------------------- cache
 
 cache_app = typer.Typer(

@@ -557,6 +557,10 @@ class Posterior:
         np.put_along_axis(keep, order, keep_sorted, axis=1)
         return keep.reshape(self.probability.shape)
 
+    @staticmethod
+    def _step(ax) -> float:
+        return float(np.min(np.diff(ax))) if ax.size > 1 else 1.0
+
     def degeneracy(self) -> list[str]:
         """One sentence per footprint on what the data cannot tell apart (correlation and width ratios)."""
         out = []
@@ -568,7 +572,9 @@ class Posterior:
                 words.append("the top density is barely constrained (marginal near the prior's width)")
             elif wb > 0.7:
                 words.append("the bottom density is barely constrained (marginal near the prior's width)")
-            if np.isfinite(r) and abs(r) >= 0.5:
+            # a correlation means something only where both marginals span more than one node
+            spread = min(st / self._step(self.top_kg_m3), sb / self._step(self.bottom_kg_m3)) > 0.5
+            if spread and np.isfinite(r) and abs(r) >= 0.5:
                 kind = "a denser top with a looser bottom" if r < 0 else "both denser or both looser"
                 words.append(f"top and bottom trade off (correlation {r:+.2f}: {kind} fit alike)")
             lead = f"sd top {st:.0f}, bottom {sb:.0f} kg m-3 ({wt:.2f}, {wb:.2f} of the prior's)"
