@@ -446,7 +446,8 @@ def export_map(
     ``run``), ``mean``, ``min``, ``max`` or ``at`` with ``time`` (ISO UTC, nearest sample). The map is in
     the DEM's CRS for a DEM site (its analysed facets only), else in a crater-centred lunar azimuthal
     equidistant CRS [m]; ``pixel_m`` [m] defaults to the mean facet edge; NaN outside the mesh. See
-    :mod:`crater_thermal.gis`. Returns the GeoTIFF's path.
+    :mod:`crater_thermal.gis`. A posterior of :func:`invert` (with its ``run``) maps ``p_loose`` (a site's
+    P(loose) map) or the MAP/mean/sd densities per footprint. Returns the GeoTIFF's path.
     """
     return gis.export_map(
         source,
@@ -460,6 +461,120 @@ def export_map(
         night=night,
         overwrite=overwrite,
     )
+
+
+def _forward_model(run, grid_replay):
+    """(run dataset, inversion.ForwardModel) of a run and its density-grid replay (paths or Datasets)."""
+    import numpy as np
+
+    from crater_thermal import inversion
+
+    run_ds = io.open_run(run, load=False) if isinstance(run, (str, os.PathLike)) else run
+    rep = io.open_replay(grid_replay) if isinstance(grid_replay, (str, os.PathLike)) else grid_replay
+    io.check_pair(run_ds, rep)
+    tops = np.asarray(rep["rho_top"].values, float)
+    bots = np.asarray(rep["rho_bottom"].values, float)
+    if np.unique(tops[np.isfinite(tops)]).size < 2 or np.unique(bots[np.isfinite(bots)]).size < 2:
+        name = grid_replay if isinstance(grid_replay, (str, os.PathLike)) else "the replay"
+        raise ConfigError(f"{name} is not a density grid; replay with --density-grid START:STOP:STEP")
+    keep = np.isfinite(tops) & np.isfinite(bots)
+    T = np.asarray(rep["surface_temperature"].values[keep], np.float32)
+    return run_ds, inversion.ForwardModel(T, tops[keep], bots[keep], rep["time"].values)
+
+
+def observation_design(
+    run: Union[Dataset, PathLike],
+    grid_replay: Union[Dataset, PathLike],
+    facet: int,
+    *,
+    instrument: str = "diviner_ch7",
+    dwell_s: Sequence[float] = (1.0, 10.0, 100.0),
+    local_times: Optional[int] = None,
+    truth_kg_m3: tuple = (800.0, 1100.0),
+    loose_bottom_kg_m3: float = 1500.0,
+    refine: int = 4,
+    natural_scatter_K: Optional[float] = None,
+    offset_K: float = 0.0,
+) -> dict:
+    """Expected posterior width of an observation design on one facet (observation design, issue 23).
+
+    The expectation is the posterior of the noiseless data of ``truth_kg_m3``
+    (:func:`crater_thermal.inversion.expected_width`): which local times and dwells make the inversion
+    informative, before observing.
+
+    Parameters
+    ----------
+    run, grid_replay : Dataset or path-like
+        A run and its density-grid replay.
+    facet : int
+        The facet observed.
+    instrument : str
+        Preset channel (``diviner_ch7``, ``diviner_ch8``, ``diviner_ch9``, ``microbolometer``).
+    dwell_s : sequence of float [s]
+        Dwell of each sample (the white noise averages over it down to the 1/f floor).
+    local_times : int, optional
+        None: one design per night sample of the facet (a single sample at that time of night: width versus
+        time of night). An integer k: one design of k samples spread evenly over the facet's night samples.
+    truth_kg_m3 : (top, bottom) [kg m-3]
+        The profile assumed under the footprint (default: the thesis's loose 800/1100).
+    loose_bottom_kg_m3 : float [kg m-3]
+        Threshold of the expected P(loose).
+    refine, natural_scatter_K, offset_K :
+        As :func:`invert`.
+
+    Returns
+    -------
+    dict
+        ``time`` (n_design,) datetime64 (the single sample's time, or the first of k), ``hours_after_sunset``
+        (n_design,) [h], ``dwell_s`` (n_dwell,) [s] and, each (n_design, n_dwell), ``sd_top_kg_m3``,
+        ``sd_bottom_kg_m3`` [kg m-3], ``correlation``, ``p_loose`` [-]; ``prior_sd_kg_m3`` (2,),
+        ``prior_p_loose``, ``truth_kg_m3``, ``instrument``, ``facet``.
+    """
+    import numpy as np
+
+    from crater_thermal import instrument as ins
+    from crater_thermal import inversion
+
+    run_ds, fm = _forward_model(run, grid_replay)
+    nf = fm.n_facets
+    if isinstance(facet, bool) or int(facet) != facet or not 0 <= int(facet) < nf:
+        raise ConfigError(f"facet={facet} is not a facet of the run (0..{nf - 1})")
+    facet = int(facet)
+    sun = np.asarray(run_ds["solar_incident"].values[:, facet], float)
+    night = np.flatnonzero(sun <= 0.0)
+    if night.size == 0:
+        raise ConfigError(f"facet {facet} has no night sample in the run (solar_incident > 0 at every time)")
+    # hours since the last lit sample (the run's start for a night that began before it)
+    lit = np.flatnonzero(sun > 0.0)
+    t_s = (fm.times - fm.times[0]).astype(np.int64) / 1e9
+    before = np.searchsorted(lit, night) - 1
+    since = np.where(before >= 0, t_s[night] - t_s[lit[np.maximum(before, 0)]], t_s[night] - t_s[0])
+    if local_times is None:
+        designs = [fm.times[[k]] for k in night]
+        first = night
+    else:
+        if int(local_times) < 1:
+            raise ConfigError(f"local_times={local_times} must be >= 1")
+        pick = night[np.linspace(0, night.size - 1, int(local_times)).round().astype(int)]
+        designs, first = [fm.times[pick]], pick[:1]
+    scatter = ins.NATURAL_SCATTER_K if natural_scatter_K is None else float(natural_scatter_K)
+    out = inversion.expected_width(
+        fm,
+        facet,
+        designs,
+        dwell_s,
+        instrument,
+        truth_kg_m3=tuple(truth_kg_m3),
+        refine=refine,
+        natural_scatter_K=scatter,
+        offset_K=offset_K,
+        loose_bottom_kg_m3=loose_bottom_kg_m3,
+    )
+    out["time"] = fm.times[first]
+    out["hours_after_sunset"] = since[np.searchsorted(night, first)] / 3600.0
+    out["instrument"] = instrument
+    out["facet"] = facet
+    return out
 
 
 def invert(
@@ -517,16 +632,7 @@ def invert(
 
     if output is not None:
         io.check_output(output, overwrite, inputs=(run, grid_replay, observations))
-    run_ds = io.open_run(run, load=False)
-    rep = io.open_replay(grid_replay)
-    io.check_pair(run_ds, rep)
-    tops = np.asarray(rep["rho_top"].values, float)
-    bots = np.asarray(rep["rho_bottom"].values, float)
-    if np.unique(tops[np.isfinite(tops)]).size < 2 or np.unique(bots[np.isfinite(bots)]).size < 2:
-        raise ConfigError(f"{grid_replay} is not a density grid; replay with --density-grid START:STOP:STEP")
-    keep = np.isfinite(tops) & np.isfinite(bots)
-    T = np.asarray(rep["surface_temperature"].values[keep], float)
-    fm = inversion.ForwardModel(T, tops[keep], bots[keep], rep["time"].values)
+    run_ds, fm = _forward_model(run, grid_replay)
     cols = io.read_observations(observations)
     facet = cols["facet"]
     if facet is None:
@@ -581,5 +687,15 @@ def invert(
         "grid_replay": str(grid_replay),
         "observations": str(observations),
     }
-    io.write_posterior(post, output, overwrite=overwrite, attrs=attrs)
+    mh = run_ds.attrs.get("mesh_hash")
+    if mh is not None:
+        attrs["mesh_hash"] = str(mh)
+    fac = np.asarray(obs.facet)[:, 0]
+    one = np.all(obs.facet == obs.facet[:, :1], axis=1)  # mixing rows see several facets
+    fp_facet = np.full(len(post.footprint), -1, np.int64)
+    for i, f in enumerate(post.footprint):
+        rows = obs.footprint == f
+        if np.all(one[rows]) and np.unique(fac[rows]).size == 1:
+            fp_facet[i] = fac[rows][0]
+    io.write_posterior(post, output, overwrite=overwrite, attrs=attrs, footprint_facet=fp_facet)
     return io.open_written(output)

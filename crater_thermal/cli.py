@@ -609,13 +609,14 @@ def show(
 
 @app.command()
 def export(
-    source: Path = typer.Argument(..., help="Run or replay dataset (netCDF)."),
+    source: Path = typer.Argument(..., help="Run, replay or posterior (crater-thermal invert) dataset (netCDF)."),
     output: Path = typer.Option(..., "-o", "--output", help="GeoTIFF to write (.tif)."),
     variable: str = typer.Option(
         "surface_temperature",
         "--variable",
         help="Run: surface_temperature [K] | solar_incident | solar_direct | ir_incident | solar_absorbed "
-        "[W m-2]. Replay: surface_temperature [K] | profile_minus_nominal [K].",
+        "[W m-2]. Replay: surface_temperature [K] | profile_minus_nominal [K]. Posterior (with --run): p_loose "
+        "[-] | map_/mean_/sd_ top|bottom _kg_m3 [kg m-3], per footprint.",
     ),
     statistic: str = typer.Option(
         "night_median",
@@ -630,7 +631,10 @@ def export(
         "profile_minus_nominal, in [K]).",
     ),
     run: Optional[Path] = typer.Option(
-        None, "--run", help="The run a replay was made from (needed for night_median of a replay)."
+        None,
+        "--run",
+        help="The run a replay or posterior was made from (needed for night_median of a replay and "
+        "for a posterior's mesh).",
     ),
     pixel_m: Optional[float] = typer.Option(None, "--pixel-m", help="Pixel size [m]; default: the mean facet edge."),
     night: Optional[str] = typer.Option(

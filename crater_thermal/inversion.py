@@ -25,7 +25,13 @@ covariance ::
 
     C = diag(d_i) + s^2 1 1^T + sigma_o^2 u u^T + gain_error^2 h h^T
 
-evaluated at the model's brightness temperatures ``m_i(rho)`` of each grid node:
+evaluated at the measured brightness temperatures ``y_i`` (the same for every grid node). The noise
+is a radiance noise (NEdL does not depend on the scene); its size in kelvin, ``NETD(T) = NEdL / L'(T)``,
+is the linearization at the scene's temperature. Evaluated at each node's model temperature instead, the
+steep ``L'(T)`` of a far-IR band at 50 K would make ``log det C`` itself favour warmer nodes (smaller
+NETD) when the noise swamps the signal: information that the radiance noise does not carry. At the
+measurements, ``C`` is one matrix per footprint and only the residuals tell nodes apart (``y`` and ``m``
+differ by the noise, so the two linearizations agree where the noise is small against ``L / L'``):
 
 * ``d_i`` white: ``NETD(m_i)^2 (1 / n_i + t_int / knee_s)``, ``n_i = floor(dwell_i / t_int)``: the sample
   is the mean of one dwell's integrations plus the averaging floor of that reading (as in a stare of
@@ -616,8 +622,8 @@ def log_likelihood(y, m, white_var, levers, *, independent: bool = False) -> np.
     ----------
     y : (n,) float [K]            measured brightness temperatures.
     m : (n, P) float [K]          model brightness temperatures at P points.
-    white_var : (n, P) float [K^2]  diagonal (white) variances.
-    levers : (n, P, q) float [K]  columns of V (``C = diag(white_var) + V V^T``), per point.
+    white_var : (n, P) or (n, 1) float [K^2]  diagonal (white) variances ((n, 1): the same at every point).
+    levers : (n, P, q) or (n, 1, q) float [K]  columns of V (``C = diag(white_var) + V V^T``), per point.
     independent : put ``V V^T``'s diagonal on the diagonal and drop the correlations (comparison only).
 
     Returns
@@ -629,7 +635,17 @@ def log_likelihood(y, m, white_var, levers, *, independent: bool = False) -> np.
     if independent:
         d = white_var + np.sum(levers**2, axis=2)
         return -0.5 * (np.sum(r * r / d, axis=0) + np.sum(np.log(d), axis=0) + n * math.log(2 * math.pi))
-    d = white_var
+    if white_var.shape[1] == 1 and levers.shape[1] == 1:  # one covariance for all points: factor it once
+        d, V = white_var[:, 0], levers[:, 0, :]
+        Vd = V / d[:, None]
+        A = np.eye(V.shape[1]) + V.T @ Vd
+        Lc = np.linalg.cholesky(A)
+        z = np.linalg.solve(Lc, Vd.T @ r)  # (q, P)
+        quad = np.sum(r * r / d[:, None], axis=0) - np.sum(z * z, axis=0)
+        logdet = np.sum(np.log(d)) + 2 * np.sum(np.log(np.diag(Lc)))
+        return -0.5 * (quad + logdet + n * math.log(2 * math.pi))
+    d = np.broadcast_to(white_var, r.shape)
+    levers = np.broadcast_to(levers, r.shape + levers.shape[2:])
     Vd = levers / d[:, :, None]  # D^-1 V, (n, P, q)
     A = np.einsum("npi,npj->pij", levers, Vd)
     q = levers.shape[2]
@@ -647,7 +663,8 @@ def noise_model(m, obs_rows: ObservationTable, idx, instrument: ins.Instrument, 
 
     Parameters
     ----------
-    m : (n, P) float [K]     model brightness temperatures of the footprint's n samples at P points.
+    m : (n, P) float [K]     brightness temperatures at which the noise is evaluated: the footprint's n
+                             samples at P points (``invert`` gives the measurements, P = 1).
     obs_rows, idx : the observation table and the footprint's row indices (n,).
 
     Returns
@@ -725,7 +742,8 @@ def invert(
     for f in range(fps.size):
         idx = order[bounds[f] : bounds[f + 1]]
         m = _mix(forward, obs.time[idx], obs.facet[idx], obs.facet_weight[idx], Wd, inst.band)
-        white, levers = noise_model(m, obs, idx, inst, natural_scatter_K=natural_scatter_K, offset_K=offset_K)
+        y_ref = obs.T_b_K[idx][:, None]  # the covariance at the measurements (module docstring)
+        white, levers = noise_model(y_ref, obs, idx, inst, natural_scatter_K=natural_scatter_K, offset_K=offset_K)
         ll = log_likelihood(obs.T_b_K[idx], m, white, levers, independent=independent) + log_prior
         top = ll.max()
         p = np.exp(ll - top)
@@ -759,6 +777,7 @@ def expected_width(
     natural_scatter_K: float = ins.NATURAL_SCATTER_K,
     offset_K: float = 0.0,
     prior="uniform",
+    loose_bottom_kg_m3: float = LOOSE_BOTTOM_KG_M3,
 ) -> dict:
     """Expected posterior widths of a design: sample times x dwell, on one facet.
 
@@ -774,11 +793,13 @@ def expected_width(
     dwell_s : (n_dwell,) float [s] dwell of each sample.
     instrument : Instrument or preset name.
     truth_kg_m3 : (top, bottom) [kg m-3]   the profile assumed under the footprint.
+    loose_bottom_kg_m3 : float [kg m-3]    threshold of the expected ``p_loose``.
 
     Returns
     -------
     dict with ``sd_top_kg_m3``, ``sd_bottom_kg_m3``, ``correlation``, ``p_loose`` each (n_design, n_dwell),
-    ``dwell_s`` (n_dwell,), ``n_samples`` (n_design,), ``prior_sd_kg_m3`` (2,), ``truth_kg_m3``.
+    ``dwell_s`` (n_dwell,), ``n_samples`` (n_design,), ``prior_sd_kg_m3`` (2,), ``prior_p_loose`` (the
+    prior's P(loose)), ``truth_kg_m3``.
     """
     inst = ins.get_instrument(instrument) if isinstance(instrument, str) else instrument
     designs = [np.atleast_1d(np.asarray(t, "datetime64[ns]")) for t in times]
@@ -803,7 +824,14 @@ def expected_width(
         instrument=inst.name,
     )
     post = invert(
-        forward, obs, inst, prior=prior, refine=refine, natural_scatter_K=natural_scatter_K, offset_K=offset_K
+        forward,
+        obs,
+        inst,
+        prior=prior,
+        refine=refine,
+        natural_scatter_K=natural_scatter_K,
+        offset_K=offset_K,
+        loose_bottom_kg_m3=loose_bottom_kg_m3,
     )
     shape = (len(designs), dwells.size)
     sd = post.sd_kg_m3
@@ -815,5 +843,6 @@ def expected_width(
         "dwell_s": dwells,
         "n_samples": np.array([d.size for d in designs]),
         "prior_sd_kg_m3": post.prior_sd_kg_m3,
+        "prior_p_loose": float(post.prior[:, post.bottom_kg_m3 < post.loose_bottom_kg_m3].sum()),
         "truth_kg_m3": tuple(float(v) for v in truth_kg_m3),
     }

@@ -1119,7 +1119,13 @@ def read_observations(path: str | os.PathLike) -> dict:
     }
 
 
-def write_posterior(post, path: str | os.PathLike, overwrite: bool = False, attrs: Mapping[str, Any] | None = None):
+def write_posterior(
+    post,
+    path: str | os.PathLike,
+    overwrite: bool = False,
+    attrs: Mapping[str, Any] | None = None,
+    footprint_facet=None,
+):
     """Write an inversion's posterior (:class:`crater_thermal.inversion.Posterior`) to netCDF atomically.
 
     Dimensions ``footprint``, ``top``, ``bottom`` (densities [kg m-3] as coordinates ``top_kg_m3``,
@@ -1127,7 +1133,10 @@ def write_posterior(post, path: str | os.PathLike, overwrite: bool = False, attr
     ``prior(top, bottom)``, ``marginal_top``, ``marginal_bottom``, ``p_loose`` (P(bottom < threshold)),
     ``map_top_kg_m3``/``map_bottom_kg_m3``, ``mean_*``, ``sd_*``, ``correlation``, ``credible_90``
     (bool mask of the 90 % highest-posterior region), ``log_evidence``, ``n_samples``, ``degeneracy``
-    (one sentence per footprint). ``attrs`` (prior, instrument, inputs) go into the file's attributes.
+    (one sentence per footprint), and ``facet`` (footprint): the facet all of a footprint's samples see, -1
+    where they see several (``footprint_facet``; all -1 when not given), which maps the footprints
+    (``crater-thermal export posterior.nc --run run.nc --variable p_loose``). ``attrs`` (prior,
+    instrument, inputs, the run's ``mesh_hash``) go into the file's attributes.
 
     Returns
     -------
@@ -1160,6 +1169,13 @@ def write_posterior(post, path: str | os.PathLike, overwrite: bool = False, attr
         "log_evidence": (fp, post.log_evidence, {"units": "1"}),
         "n_samples": (fp, np.asarray(post.n_samples, np.int64), {"units": "1"}),
         "degeneracy": (fp, np.asarray(post.degeneracy(), dtype=str)),
+        "facet": (
+            fp,
+            np.full(len(post.footprint), -1, np.int64)
+            if footprint_facet is None
+            else np.asarray(footprint_facet, np.int64).reshape(-1),
+            {"long_name": "facet seen by all the footprint's samples (-1: several)"},
+        ),
     }
     coords = {
         "footprint": np.asarray(post.footprint, np.int64),

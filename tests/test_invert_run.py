@@ -258,6 +258,25 @@ def test_cli_invert_writes_posterior(site):
         assert ds["p_loose"].attrs["threshold_bottom_kg_m3"] == 1500.0
         # the truth (1300/1300) is loose: the data must lean that way on the observed facet
         assert ds["p_loose"].values[0] > 0.5
+    # the P(loose) map: each observed facet's pixel holds its footprint's p_loose, unobserved facets NaN
+    import rasterio
+
+    tif = d / "p_loose.tif"
+    # 10 m pixels on ~300 m facets: the pixel at a facet's centroid lies inside that facet
+    r = cli("export", out, "--run", d / "run.nc", "--variable", "p_loose", "--pixel-m", "10", "-o", tif)
+    assert r.returncode == 0, r.stderr
+    with xr.open_dataset(out) as ds, xr.open_dataset(d / "run.nc") as run, rasterio.open(tif) as src:
+        band = src.read(1)
+        xy = run["centroid"].values[:, :2]
+        assert list(ds["facet"].values) == [site["facet"], site["facet"] - 1, site["facet"] + 1]
+        expect = np.full(xy.shape[0], np.nan)
+        expect[ds["facet"].values] = ds["p_loose"].values
+        got = np.array([band[src.index(x, y)] for x, y in xy])
+        np.testing.assert_allclose(got, expect, rtol=1e-6)  # float32 raster; NaN where unobserved
+        assert np.isfinite(band).sum() > 0 and np.isnan(band).sum() > 0
+        assert src.tags()["variable"] == "p_loose" and src.tags()["source_kind"] == "posterior"
+    r = cli("export", out, "--variable", "p_loose", "-o", d / "x.tif")
+    assert r.returncode == 2 and "--run" in r.stderr
     # the API gives the same posterior
     post = ct.invert(d / "run.nc", d / "grid.nc", obs, offset_K=0.5)
     with xr.open_dataset(out) as ds:
@@ -301,3 +320,33 @@ def test_cli_wrong_unit_column_and_existing_output(site, tmp_path):
     assert r.returncode == 2 and "--overwrite" in r.stderr
     r = cli("invert", d / "run.nc", d / "run.nc", good, "-o", tmp_path / "p.nc")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_report_observation_design(site):
+    """A report on a run and its density-grid replay states the inversion's design (summary.json key
+    inversion_design and its figure). This crater's floor is in permanent shadow at 86 S: its grid
+    temperatures barely depend on density (< 0.05 K), so the expected posterior must stay the prior (sd and
+    P(loose) of the prior: an analytic consequence, no information in the data)."""
+    import json
+
+    d = site["dir"]
+    out = d / "report"
+    ct.make_report(d / "run.nc", d / "grid.nc", out, snapshots=False)
+    s = json.loads((out / "summary.json").read_text())
+    design = s["inversion_design"]
+    assert design is not None and "inversion_design.png" in s["figures"]
+    assert (out / "figures" / "inversion_design.png").stat().st_size > 10_000
+    assert set(design["by_instrument"]) == set(s["instruments"])
+    with xr.open_dataset(d / "grid.nc") as g, xr.open_dataset(d / "run.nc") as run:
+        dark = np.flatnonzero(run["solar_incident"].values[:, design["facet"]] == 0)
+        runs = np.split(dark, np.flatnonzero(np.diff(dark) > 1) + 1)
+        longest = max(runs, key=len)  # the design's night: the longest run of dark samples
+        T = g["surface_temperature"].isel(facet=design["facet"]).values[:, longest]
+    if np.ptp(T, axis=0).max() < 0.05:
+        for v in design["by_instrument"].values():
+            np.testing.assert_allclose(v["sd_bottom_kg_m3"], design["prior_sd_kg_m3"][1], rtol=0.05)
+            np.testing.assert_allclose(v["p_loose"], design["prior_p_loose"], atol=0.05)
+            assert v["dwell_for_95pct_s"] is None
+    else:  # a facet that sees the density: some instrument narrows the prior
+        best = min(min(v["sd_bottom_kg_m3"]) for v in design["by_instrument"].values())
+        assert best < design["prior_sd_kg_m3"][1]
