@@ -604,9 +604,10 @@ def invert(
         Instrument preset (e.g. ``"diviner_ch7"``); default: the table's, else ``"diviner_ch7"``.
     loose_bottom_kg_m3 : float [kg m-3]
         Threshold of ``p_loose``: bottom density below it.
-    prior : ``"uniform"`` or (n_top, n_bottom) array
+    prior : ``"uniform"``, (n_top, n_bottom) array, or path-like
         Prior over the refined (top, bottom) nodes: uniform in density with top <= bottom inside the
-        grid, or non-negative weights (:func:`crater_thermal.inversion.invert`).
+        grid, non-negative weights (:func:`crater_thermal.inversion.invert`), or a netCDF file with
+        ``prior(top, bottom)`` on those nodes (:func:`crater_thermal.io.read_prior`).
     refine : int
         Posterior nodes per grid step (4: a 100 kg m-3 grid gives 25 kg m-3 nodes).
     natural_scatter_K : float [K], optional
@@ -661,6 +662,23 @@ def invert(
     from crater_thermal import instrument as ins
 
     scatter = ins.NATURAL_SCATTER_K if natural_scatter_K is None else float(natural_scatter_K)
+    prior_note = "uniform in (top, bottom) density on the refined grid nodes with top <= bottom"
+    if isinstance(prior, (str, os.PathLike)) and str(prior) != "uniform":
+        weights, p_top, p_bottom = io.read_prior(prior)
+        ta, ba = fm.density_axes(refine)
+        if (
+            p_top.shape != ta.shape
+            or p_bottom.shape != ba.shape
+            or not (np.allclose(p_top, ta) and np.allclose(p_bottom, ba))
+        ):
+            raise ConfigError(
+                f"prior {prior}: its nodes ({p_top.size} top x {p_bottom.size} bottom) are not this grid's refined "
+                f"nodes ({ta.size} x {ba.size}, refine={refine}); write it on those"
+            )
+        prior_note = f"from {prior} (weights on the refined nodes, zero outside the grid's triangle)"
+        prior = weights
+    elif not isinstance(prior, str):
+        prior_note = "user weights on the refined (top, bottom) nodes (the file's prior variable)"
     post = inversion.invert(
         fm,
         obs,
@@ -674,9 +692,7 @@ def invert(
     if output is None:
         return post
     attrs = {
-        "prior": "uniform in (top, bottom) density on the refined grid nodes with top <= bottom"
-        if isinstance(prior, str)
-        else "user weights on the refined (top, bottom) nodes (the file's prior variable)",
+        "prior": prior_note,
         "instrument": obs.instrument,
         "refine": int(refine),
         "natural_scatter_K": scatter,

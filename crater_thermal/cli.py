@@ -685,6 +685,12 @@ def invert(
         1500.0, "--loose-below", help="P(loose) threshold: bottom-layer density below it [kg m-3]."
     ),
     refine: int = typer.Option(4, "--refine", help="Posterior nodes per grid step (4: 100 -> 25 kg m-3)."),
+    prior: str = typer.Option(
+        "uniform",
+        "--prior",
+        help="uniform (in top and bottom density [kg m-3], top <= bottom), or a netCDF file with prior(top, "
+        "bottom) weights on the refined nodes (coordinates top_kg_m3, bottom_kg_m3; e.g. an edited posterior.nc).",
+    ),
     natural_scatter: Optional[float] = typer.Option(
         None, "--natural-scatter-k", help="Natural scatter of a footprint [K] (default 0.94, the instrument model's)."
     ),
@@ -700,7 +706,8 @@ def invert(
 ) -> None:
     """Posterior over (top, bottom) density per footprint from measured brightness temperatures.
 
-    The prior is uniform in (top, bottom) density over the grid's refined nodes with top <= bottom. The
+    The prior is uniform in (top, bottom) density over the grid's refined nodes with top <= bottom (or
+    --prior FILE). The
     posterior file holds, per footprint, the posterior mass on the nodes, its marginals, P(loose), MAP,
     mean, sd, the 90 % credible region and a sentence on the degeneracies.
     """
@@ -713,6 +720,7 @@ def invert(
         instrument=instrument,
         loose_bottom_kg_m3=loose_below,
         refine=refine,
+        prior=prior,
         natural_scatter_K=natural_scatter,
         offset_K=offset_k,
         output=output,

@@ -1119,6 +1119,44 @@ def read_observations(path: str | os.PathLike) -> dict:
     }
 
 
+def read_prior(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a prior over (top, bottom) density for the inversion from netCDF.
+
+    The file holds ``prior(top, bottom)`` (non-negative weights) with coordinates ``top_kg_m3(top)`` and
+    ``bottom_kg_m3(bottom)`` [kg m-3], e.g. a ``posterior.nc`` of ``crater-thermal invert`` (its ``prior``)
+    edited, or one written with xarray.
+
+    Returns
+    -------
+    (weights (n_top, n_bottom), top_kg_m3 (n_top,), bottom_kg_m3 (n_bottom,))
+
+    Raises
+    ------
+    ConfigError
+        One line: missing file or variable, wrong dimensions.
+    """
+    import xarray as xr
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"prior file {path} does not exist")
+    try:
+        ds = xr.open_dataset(path)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"prior file {path} is not readable netCDF ({' '.join(str(exc).split())})") from None
+    with ds:
+        if "prior" not in ds or ds["prior"].dims != ("top", "bottom"):
+            raise ConfigError(f"prior file {path}: needs a variable prior(top, bottom) (e.g. a posterior.nc's)")
+        for name in ("top_kg_m3", "bottom_kg_m3"):
+            if name not in ds.variables:
+                raise ConfigError(f"prior file {path}: missing coordinate {name} [kg m-3]")
+        return (
+            np.asarray(ds["prior"].values, float),
+            np.asarray(ds["top_kg_m3"].values, float),
+            np.asarray(ds["bottom_kg_m3"].values, float),
+        )
+
+
 def write_posterior(
     post,
     path: str | os.PathLike,

@@ -350,3 +350,38 @@ def test_report_observation_design(site):
     else:  # a facet that sees the density: some instrument narrows the prior
         best = min(min(v["sd_bottom_kg_m3"]) for v in design["by_instrument"].values())
         assert best < design["prior_sd_kg_m3"][1]
+
+
+def test_positions_and_prior_file(site, tmp_path):
+    """x_m/y_m positions at the facets' centroids give the facet table's posterior; a prior file that gives
+    no weight to bottom < 1500 kg m-3 makes P(loose) exactly 0 (and the posterior zero there); a prior on
+    other nodes is refused with one line."""
+    d = site["dir"]
+    rows = _rows(site)
+    facet_csv = tmp_path / "facets.csv"
+    _csv(facet_csv, rows)
+    with xr.open_dataset(d / "run.nc") as run:
+        c = run["centroid"].values
+    xy_csv = tmp_path / "xy.csv"
+    lines = ["time,x_m,y_m,brightness_temperature_K,dwell_s,footprint"]
+    lines += [f"{t},{c[f, 0] + 5.0},{c[f, 1] - 5.0},{T},{dw},{fp}" for t, f, T, dw, fp in rows]
+    xy_csv.write_text("\n".join(lines) + "\n")
+    a = ct.invert(d / "run.nc", d / "grid.nc", facet_csv)
+    b = ct.invert(d / "run.nc", d / "grid.nc", xy_csv)
+    np.testing.assert_array_equal(a.probability, b.probability)
+
+    out = tmp_path / "post.nc"
+    assert cli("invert", d / "run.nc", d / "grid.nc", facet_csv, "-o", out).returncode == 0
+    with xr.open_dataset(out) as ds:
+        prior = ds[["prior"]].load()
+    prior["prior"] = prior["prior"].where(prior["bottom_kg_m3"] >= 1500.0, 0.0)
+    prior.to_netcdf(tmp_path / "prior.nc")
+    out2 = tmp_path / "post2.nc"
+    r = cli("invert", d / "run.nc", d / "grid.nc", facet_csv, "-o", out2, "--prior", tmp_path / "prior.nc")
+    assert r.returncode == 0, r.stderr
+    with xr.open_dataset(out2) as ds:
+        assert np.all(ds["p_loose"].values == 0.0)
+        assert "prior.nc" in ds.attrs["prior"]
+    r = cli("invert", d / "run.nc", d / "grid.nc", facet_csv, "-o", out2, "--overwrite", "--prior",
+            tmp_path / "prior.nc", "--refine", "3")  # fmt: skip
+    assert r.returncode == 2 and "refined nodes" in r.stderr and len(r.stderr.strip().splitlines()) == 1
