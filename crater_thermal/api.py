@@ -515,6 +515,8 @@ def observation_design(
     local_times : int, optional
         None: one design per night sample of the facet (a single sample at that time of night: width versus
         time of night). An integer k: one design of k samples spread evenly over the facet's night samples.
+        Night samples before the facet's first lit sample (a night that began before the run: no known
+        sunset) are left out, unless the facet is never lit in the run.
     truth_kg_m3 : (top, bottom) [kg m-3]
         The profile assumed under the footprint (default: the thesis's loose 800/1100).
     loose_bottom_kg_m3 : float [kg m-3]
@@ -544,9 +546,14 @@ def observation_design(
     night = np.flatnonzero(sun <= 0.0)
     if night.size == 0:
         raise ConfigError(f"facet {facet} has no night sample in the run (solar_incident > 0 at every time)")
-    # hours since the last lit sample (the run's start for a night that began before it)
+    # hours since the last lit sample; a night that began before the run has no known sunset: left out
+    # unless the facet is never lit in the run (then hours since the run's start)
     lit = np.flatnonzero(sun > 0.0)
     t_s = (fm.times - fm.times[0]).astype(np.int64) / 1e9
+    if lit.size:
+        night = night[night > lit[0]]
+        if night.size == 0:
+            raise ConfigError(f"facet {facet} has no night sample after a sunset in the run")
     before = np.searchsorted(lit, night) - 1
     since = np.where(before >= 0, t_s[night] - t_s[lit[np.maximum(before, 0)]], t_s[night] - t_s[0])
     if local_times is None:

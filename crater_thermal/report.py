@@ -174,7 +174,8 @@ SUMMARY_KEYS = {
     "detectable at that scatter).",
     "inversion_design": "{facet (of region: the one whose night median differs most over the replayed "
     "profiles), region, truth_kg_m3 [top, bottom], loose_bottom_kg_m3, prior_sd_kg_m3 [top, "
-    "bottom], prior_p_loose, natural_scatter_K, single_sample_dwell_s, hours_into_night [h], local_times_h [h], "
+    "bottom], prior_p_loose, natural_scatter_K, single_sample_dwell_s, hours_into_night [h] (since that night's "
+    "first sample in the record), local_times_h [h], "
     "dwell_s [s], by_instrument {instrument: {sd_top_kg_m3, sd_bottom_kg_m3 (one sample at each of "
     "hours_into_night), best_hours_into_night, p_loose, sd_bottom_three_local_times_kg_m3 (three samples at "
     "local_times_h, each dwell of dwell_s), dwell_for_95pct_s (shortest dwell reaching 95 % of the longest's "

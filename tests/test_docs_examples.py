@@ -100,9 +100,10 @@ def test_inversion(tmp_path):
     # certain (the shared 0.94 K natural scatter is a third of the ~2.6 K signal); the prior says 0.32.
     assert n["mean P(loose) in the patch"] > n["prior P(loose)"] + 0.15
     assert n["mean P(loose) outside the patch"] < n["prior P(loose)"] - 0.05
-    # One sample narrows the bottom density only a little from the prior's sd (one number, two densities)
-    assert 0.6 * n["prior sd of the bottom density"] < n["best single-sample sd of the bottom density"]
-    assert n["best single-sample sd of the bottom density"] < n["prior sd of the bottom density"]
+    # One sample leaves the bottom density about as uncertain as the prior (one number, two densities; the
+    # posterior sd may exceed the prior's where the data favour the triangle's extremes)
+    assert 0.8 * n["prior sd of the bottom density"] < n["best single-sample sd of the bottom density"]
+    assert n["best single-sample sd of the bottom density"] < 1.2 * n["prior sd of the bottom density"]
     # Diviner ch7 (NETD 2.75 K at 50 K) needs a finite dwell; the 7.5-14 um microbolometer sees nothing at 50 K
     assert 0.128 <= n["dwell needed, diviner_ch7"] <= 1000.0
     assert n["expected P(loose) with 1000 s stares, diviner_ch7"] > 0.6

@@ -108,8 +108,9 @@ fig.colorbar(pc, ax=ax[0], label="P(bottom < 1500 kg m-3)")
 ax[0].set(xlabel="x [km]", ylabel="y [km]", aspect="equal", title="posterior P(loose) along the traverse")
 ax[0].legend(loc="lower left", fontsize=8)
 h = by_time["hours_after_sunset"]
-ax[1].plot(h, by_time["sd_bottom_kg_m3"][:, 0], ".-", label="bottom layer")
-ax[1].plot(h, by_time["sd_top_kg_m3"][:, 0], ".-", label="top 2 cm")
+order = np.argsort(h)
+ax[1].plot(h[order], by_time["sd_bottom_kg_m3"][order, 0], ".-", label="bottom layer")
+ax[1].plot(h[order], by_time["sd_top_kg_m3"][order, 0], ".-", label="top 2 cm")
 ax[1].axhline(by_time["prior_sd_kg_m3"][1], color="k", ls=":", label="prior sd (bottom)")
 ax[1].set(xlabel="hours after sunset (sample time) [h]", ylabel="expected posterior sd [kg m-3]",
           title=f"one {dwell:g} s Diviner ch7 sample, facet {f0}")  # fmt: skip
