@@ -642,21 +642,45 @@ def invert(
         io.check_output(output, overwrite, inputs=(run, grid_replay, observations))
     run_ds, fm = _forward_model(run, grid_replay)
     cols = io.read_observations(observations)
-    facet = cols["facet"]
+    facet, weight = cols["facet"], None
     if facet is None:
+        from scipy.spatial import cKDTree
+
         c = np.asarray(run_ds["centroid"].values, float)[:, :2]
+        area = np.asarray(run_ds["area"].values, float)
+        tree = cKDTree(c)
         xy = np.column_stack([cols["x_m"], cols["y_m"]])
-        d2 = ((xy[:, None, :] - c[None, :, :]) ** 2).sum(axis=2)
-        facet = d2.argmin(axis=1)
-        dist = np.sqrt(d2[np.arange(xy.shape[0]), facet])
-        limit = max_offset_m if max_offset_m is not None else 2.0 * float(np.sqrt(np.max(run_ds["area"].values)))
-        if np.any(~np.isfinite(dist)) or np.any(dist > limit):
-            i = int(np.flatnonzero(~(dist <= limit))[0])
+        if np.any(~np.isfinite(xy)):
+            i = int(np.flatnonzero(~np.isfinite(xy).all(axis=1))[0])
+            raise ConfigError(f"observations: sample {i} has no finite x_m, y_m position [m]")
+        dist, facet = tree.query(xy)
+        limit = max_offset_m if max_offset_m is not None else 2.0 * float(np.sqrt(np.max(area)))
+        if np.any(dist > limit):
+            i = int(np.flatnonzero(dist > limit)[0])
             raise ConfigError(
                 f"observations: sample {i} at x={xy[i, 0]:g} m, y={xy[i, 1]:g} m is {dist[i]:.0f} m from the mesh "
                 f"(limit {limit:.0f} m); give positions in the mesh frame (the run's centroid x, y)"
             )
-    footprint = cols["footprint"] if cols["footprint"] is not None else facet
+        radius = cols.get("radius_m")
+        if radius is not None:
+            if np.any(~(np.isfinite(radius) & (radius >= 0))):
+                i = int(np.flatnonzero(~(np.isfinite(radius) & (radius >= 0)))[0])
+                raise ConfigError(f"observations: radius_m={radius[i]} of sample {i} must be >= 0 m")
+            # footprint mixing: the facets whose centroids lie within the radius, weighted by area, the
+            # nearest (centre) facet first and always included
+            groups = [
+                [int(facet[i])] + [g for g in members if g != facet[i]]
+                for i, members in enumerate(tree.query_ball_point(xy, radius))
+            ]
+            k = max(len(g) for g in groups)
+            F = np.repeat(np.asarray(facet, np.int64)[:, None], k, axis=1)
+            weight = np.zeros((len(groups), k))
+            for i, g in enumerate(groups):
+                F[i, : len(g)] = g
+                weight[i, : len(g)] = area[g] / area[g].sum()
+            facet = F
+    centre = facet if np.ndim(facet) == 1 else facet[:, 0]
+    footprint = cols["footprint"] if cols["footprint"] is not None else centre
     obs = inversion.ObservationTable(
         time=cols["time"],
         facet=facet,
@@ -665,6 +689,7 @@ def invert(
         sigma_K=cols["sigma_K"],
         dwell_s=cols["dwell_s"],
         instrument=instrument or cols["instrument"] or "diviner_ch7",
+        facet_weight=weight,
     )
     from crater_thermal import instrument as ins
 
@@ -713,12 +738,11 @@ def invert(
     mh = run_ds.attrs.get("mesh_hash")
     if mh is not None:
         attrs["mesh_hash"] = str(mh)
-    fac = np.asarray(obs.facet)[:, 0]
-    one = np.all(obs.facet == obs.facet[:, :1], axis=1)  # mixing rows see several facets
+    fac = np.asarray(obs.facet)[:, 0]  # each sample's centre facet (mixing: the nearest to its position)
     fp_facet = np.full(len(post.footprint), -1, np.int64)
     for i, f in enumerate(post.footprint):
         rows = obs.footprint == f
-        if np.all(one[rows]) and np.unique(fac[rows]).size == 1:
+        if np.unique(fac[rows]).size == 1:
             fp_facet[i] = fac[rows][0]
     io.write_posterior(post, output, overwrite=overwrite, attrs=attrs, footprint_facet=fp_facet)
     return io.open_written(output)

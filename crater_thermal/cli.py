@@ -672,7 +672,8 @@ def invert(
     observations: Path = typer.Argument(
         ...,
         help="Observation table, CSV or netCDF: time (ISO UTC), facet or x_m/y_m [m, mesh frame], "
-        "brightness_temperature_K [K], optional sigma_K [K], dwell_s [s], footprint, instrument.",
+        "brightness_temperature_K [K], optional sigma_K [K], dwell_s [s], footprint, instrument, radius_m [m] "
+        "(with x_m/y_m: footprint mixing).",
     ),
     output: Path = typer.Option(..., "-o", "--output", help="Posterior to write (netCDF)."),
     instrument: Optional[str] = typer.Option(

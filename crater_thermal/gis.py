@@ -8,7 +8,8 @@
 * **Posterior** of an inversion (``crater-thermal invert``, needs its ``run`` for the mesh): one of
   :data:`POSTERIOR_VARIABLES` per footprint (``p_loose`` [-]: the P(loose) map of a site; MAP, mean, sd
   of the densities [kg m-3]) on the facet its samples see (the mean where several footprints share a
-  facet; NaN on unobserved facets; footprints that mix facets are left out). No statistic over time.
+  facet; NaN on unobserved facets; a footprint whose samples are centred on different facets is left
+  out). No statistic over time.
 * **Statistic over time** (:data:`STATISTICS`): ``night_median`` (per facet, over the samples that are
   night for that facet by :func:`crater_thermal.regions.night_day_masks`, default definition; NaN where a
   facet has no night), ``mean``, ``min``, ``max``, ``at`` (the sample nearest an ISO UTC time).
@@ -234,7 +235,7 @@ def _posterior_per_facet(post, variable: str, run) -> tuple[np.ndarray, str, dic
     if np.any(facet >= nf):
         raise ConfigError(f"the posterior's facets exceed the run's {nf}; give its run with --run")
     if np.all(facet < 0):
-        raise ConfigError("no footprint of the posterior lies on one facet (all mix facets): nothing to map")
+        raise ConfigError("no footprint of the posterior is centred on one facet: nothing to map")
     values = np.asarray(post[variable].values, float)
     per_facet = np.full(nf, np.nan)
     seen = facet >= 0
@@ -244,7 +245,7 @@ def _posterior_per_facet(post, variable: str, run) -> tuple[np.ndarray, str, dic
     per_facet[count > 0] = total[count > 0] / count[count > 0]
     units = str(post[variable].attrs.get("units", ""))
     tags = {"threshold_bottom_kg_m3": post.attrs.get("loose_bottom_kg_m3", "")} if variable == "p_loose" else {}
-    tags["footprints_mapped"] = f"{int(seen.sum())} of {facet.size} (mixed footprints left out)"
+    tags["footprints_mapped"] = f"{int(seen.sum())} of {facet.size} (footprints centred on several facets left out)"
     return per_facet, units, tags
 
 

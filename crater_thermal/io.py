@@ -1035,6 +1035,8 @@ def read_observations(path: str | os.PathLike) -> dict:
     - ``dwell_s`` (optional): time integrated for the sample [s].
     - ``band`` or ``instrument`` (optional): instrument preset name (one per table).
     - ``footprint`` (optional): footprint id (default: one footprint per facet).
+    - ``radius_m`` (optional, with ``x_m``/``y_m``): footprint radius [m]: the sample mixes, in band
+      radiance, the facets whose centroids lie within it, weighted by facet area (the nearest facet always).
 
     Parameters
     ----------
@@ -1046,7 +1048,7 @@ def read_observations(path: str | os.PathLike) -> dict:
     dict
         ``time`` (n,) datetime64[ns] UTC, ``T_b_K`` (n,) [K], ``facet`` (n,) int or None, ``x_m``/``y_m``
         (n,) [m] or None, ``sigma_K``, ``dwell_s`` (n,) or None, ``footprint`` (n,) int or None,
-        ``instrument`` str or None.
+        ``radius_m`` (n,) [m] or None, ``instrument`` str or None.
 
     Raises
     ------
@@ -1115,6 +1117,7 @@ def read_observations(path: str | os.PathLike) -> dict:
         "sigma_K": number("sigma_K"),
         "dwell_s": number("dwell_s"),
         "footprint": number("footprint", integer=True),
+        "radius_m": number("radius_m") if has_xy else None,
         "instrument": inst,
     }
 
@@ -1171,8 +1174,8 @@ def write_posterior(
     ``prior(top, bottom)``, ``marginal_top``, ``marginal_bottom``, ``p_loose`` (P(bottom < threshold)),
     ``map_top_kg_m3``/``map_bottom_kg_m3``, ``mean_*``, ``sd_*``, ``correlation``, ``credible_90``
     (bool mask of the 90 % highest-posterior region), ``log_evidence``, ``n_samples``, ``degeneracy``
-    (one sentence per footprint), and ``facet`` (footprint): the facet all of a footprint's samples see, -1
-    where they see several (``footprint_facet``; all -1 when not given), which maps the footprints
+    (one sentence per footprint), and ``facet`` (footprint): the facet at the centre of all of a footprint's
+    samples, -1 where their centres differ (``footprint_facet``; all -1 when not given), which maps the footprints
     (``crater-thermal export posterior.nc --run run.nc --variable p_loose``). ``attrs`` (prior,
     instrument, inputs, the run's ``mesh_hash``) go into the file's attributes.
 
@@ -1212,7 +1215,7 @@ def write_posterior(
             np.full(len(post.footprint), -1, np.int64)
             if footprint_facet is None
             else np.asarray(footprint_facet, np.int64).reshape(-1),
-            {"long_name": "facet seen by all the footprint's samples (-1: several)"},
+            {"long_name": "facet at the centre of all the footprint's samples (-1: several)"},
         ),
     }
     coords = {
