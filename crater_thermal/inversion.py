@@ -33,14 +33,14 @@ NETD) when the noise swamps the signal: information that the radiance noise does
 measurements, ``C`` is one matrix per footprint and only the residuals tell nodes apart (``y`` and ``m``
 differ by the noise, so the two linearizations agree where the noise is small against ``L / L'``):
 
-* ``d_i`` white: ``NETD(m_i)^2 (1 / n_i + t_int / knee_s)``, ``n_i = floor(dwell_i / t_int)``: the sample
+* ``d_i`` white: ``NETD(y_i)^2 (1 / n_i + t_int / knee_s)``, ``n_i = floor(dwell_i / t_int)``: the sample
   is the mean of one dwell's integrations plus the averaging floor of that reading (as in a stare of
   instrument.py, one floor offset per reading; readings hours apart are calibrated anew, as its passes).
   A stated per-sample uncertainty ``sigma_K`` replaces ``d_i`` by ``sigma_K^2``.
 * ``s`` natural scatter (instrument.py's 0.94 K by default): the footprint's true temperature is off by
   ``s z``, one ``z`` per footprint, shared by all its samples at all times.
 * calibration offset: a radiance offset ``o`` moves a brightness temperature by ``o / L'(T)``. It is given as
-  ``offset_K``, its 1-sigma size in K at the instrument's ``t_ref_K``: ``u_i = NETD(m_i) / NETD_ref``.
+  ``offset_K``, its 1-sigma size in K at the instrument's ``t_ref_K``: ``u_i = NETD(y_i) / NETD_ref``.
   instrument.py states no offset (it cancels in its differences); the default here is 0, give one
   (e.g. an absolute accuracy) to marginalize it. One offset per footprint.
 * calibration gain: a relative gain error ``g ~ N(0, gain_error)`` moves ``T`` by ``g h(T)``,
@@ -55,8 +55,10 @@ matrix-determinant lemma with the rank-3 part ``V = [s 1, sigma_o u, gain_error 
     r^T C^-1 r = r^T D^-1 r - b^T A^-1 b,   log det C = sum log d_i + log det A,
     A = I_3 + V^T D^-1 V,  b = V^T D^-1 r,
 
-so each grid node costs O(n), never an n x n matrix. Treating every sample as independent (the shared
-terms on the diagonal, ``independent=True``, for comparison only) is overconfident.
+so each grid node costs O(n), never an n x n matrix (``A`` is factored once per footprint). Treating
+every sample as independent (the shared terms on the diagonal, ``independent=True``, for comparison
+only) is overconfident: ``tests/test_invert_run.py`` measures its 90 % regions holding the truth in about
+half of 200 trials, against 90 % with the shared terms.
 
 The prior
 ---------

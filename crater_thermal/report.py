@@ -456,7 +456,18 @@ def _grid_forward(A, facet: int) -> Optional[inv.ForwardModel]:
     (>= 3 densities per layer, every top <= bottom node)."""
     tops = np.asarray(A.replay["rho_top"].values, float)
     bots = np.asarray(A.replay["rho_bottom"].values, float)
-    keep = np.flatnonzero(np.isfinite(tops) & np.isfinite(bots) & (tops < 3000) & (bots < 3000))
+    two = np.isfinite(tops) & np.isfinite(bots) & (tops < 3000) & (bots < 3000)
+    # the grid's profiles: densities used by >= 2 profiles (drops a lone nominal or loose profile replayed
+    # beside a grid off its nodes), each (top, bottom) pair once
+    vals, counts = np.unique(np.r_[tops[two], bots[two]], return_counts=True)
+    common = set(vals[counts >= 2].tolist())
+    keep, seen = [], set()
+    for i in np.flatnonzero(two):
+        pair = (float(tops[i]), float(bots[i]))
+        if pair[0] in common and pair[1] in common and pair not in seen:
+            keep.append(i)
+            seen.add(pair)
+    keep = np.asarray(keep, np.int64)
     if keep.size < 6:
         return None
     T = np.asarray(A.replay["surface_temperature"].isel(facet=facet).values, np.float32)[keep][:, :, None]
@@ -478,12 +489,12 @@ def _design_facet(A) -> int:
     maps = [np.abs(np.asarray(m, float)) for p, m in A.night_map.items() if not profiles.is_rock(p)]
     if region is None or not np.any(region) or not maps:
         return int(A.facets.get("floor", 0))
-    spread = np.nanmax(np.stack(maps), axis=0) if np.isfinite(np.stack(maps)).any() else None
-    if spread is None:
-        return int(A.facets.get("floor", 0))
+    stack = np.stack(maps)
+    spread = np.where(np.isfinite(stack), stack, -1.0).max(axis=0)  # -1: no night value on that facet
     idx = np.flatnonzero(region)
-    vals = np.where(np.isfinite(spread[idx]), spread[idx], -1.0)
-    return int(idx[int(np.argmax(vals))])
+    if spread[idx].max() < 0:
+        return int(A.facets.get("floor", 0))
+    return int(idx[int(np.argmax(spread[idx]))])
 
 
 def inversion_design(A, instruments: Sequence[ins.Instrument], obs: ins.Observation) -> Optional[dict]:
