@@ -29,6 +29,7 @@ __all__ = [
     "run_sweep",
     "export_map",
     "invert",
+    "observation_design",
     "progress_callback",
     "Results",
 ]

@@ -446,7 +446,8 @@ def export_map(
     ``run``), ``mean``, ``min``, ``max`` or ``at`` with ``time`` (ISO UTC, nearest sample). The map is in
     the DEM's CRS for a DEM site (its analysed facets only), else in a crater-centred lunar azimuthal
     equidistant CRS [m]; ``pixel_m`` [m] defaults to the mean facet edge; NaN outside the mesh. See
-    :mod:`crater_thermal.gis`. Returns the GeoTIFF's path.
+    :mod:`crater_thermal.gis`. A posterior of :func:`invert` (with its ``run``) maps ``p_loose`` (a site's
+    P(loose) map) or the MAP/mean/sd densities per footprint. Returns the GeoTIFF's path.
     """
     return gis.export_map(
         source,
@@ -462,6 +463,127 @@ def export_map(
     )
 
 
+def _forward_model(run, grid_replay):
+    """(run dataset, inversion.ForwardModel) of a run and its density-grid replay (paths or Datasets)."""
+    import numpy as np
+
+    from crater_thermal import inversion
+
+    run_ds = io.open_run(run, load=False) if isinstance(run, (str, os.PathLike)) else run
+    rep = io.open_replay(grid_replay) if isinstance(grid_replay, (str, os.PathLike)) else grid_replay
+    io.check_pair(run_ds, rep)
+    tops = np.asarray(rep["rho_top"].values, float)
+    bots = np.asarray(rep["rho_bottom"].values, float)
+    if np.unique(tops[np.isfinite(tops)]).size < 2 or np.unique(bots[np.isfinite(bots)]).size < 2:
+        name = grid_replay if isinstance(grid_replay, (str, os.PathLike)) else "the replay"
+        raise ConfigError(f"{name} is not a density grid; replay with --density-grid START:STOP:STEP")
+    keep = np.isfinite(tops) & np.isfinite(bots)
+    T = np.asarray(rep["surface_temperature"].values[keep], np.float32)
+    return run_ds, inversion.ForwardModel(T, tops[keep], bots[keep], rep["time"].values)
+
+
+def observation_design(
+    run: Union[Dataset, PathLike],
+    grid_replay: Union[Dataset, PathLike],
+    facet: int,
+    *,
+    instrument: str = "diviner_ch7",
+    dwell_s: Sequence[float] = (1.0, 10.0, 100.0),
+    local_times: Optional[int] = None,
+    truth_kg_m3: tuple = (800.0, 1100.0),
+    loose_bottom_kg_m3: float = 1500.0,
+    refine: int = 4,
+    natural_scatter_K: Optional[float] = None,
+    offset_K: float = 0.0,
+) -> dict:
+    """Expected posterior width of an observation design on one facet (observation design, issue 23).
+
+    The expectation is the posterior of the noiseless data of ``truth_kg_m3``
+    (:func:`crater_thermal.inversion.expected_width`): which local times and dwells make the inversion
+    informative, before observing.
+
+    Parameters
+    ----------
+    run, grid_replay : Dataset or path-like
+        A run and its density-grid replay.
+    facet : int
+        The facet observed.
+    instrument : str
+        Preset channel (``diviner_ch7``, ``diviner_ch8``, ``diviner_ch9``, ``microbolometer``).
+    dwell_s : sequence of float [s]
+        Dwell of each sample (the white noise averages over it down to the 1/f floor).
+    local_times : int, optional
+        None: one design per night sample of the facet (a single sample at that time of night: width versus
+        time of night). An integer k: one design of k samples spread evenly over the facet's night samples.
+        Night samples before the facet's first lit sample (a night that began before the run: no known
+        sunset) are left out, unless the facet is never lit in the run.
+    truth_kg_m3 : (top, bottom) [kg m-3]
+        The profile assumed under the footprint (default: the thesis's loose 800/1100).
+    loose_bottom_kg_m3 : float [kg m-3]
+        Threshold of the expected P(loose).
+    refine, natural_scatter_K, offset_K :
+        As :func:`invert`.
+
+    Returns
+    -------
+    dict
+        ``time`` (n_design,) datetime64 (the single sample's time, or the first of k), ``hours_after_sunset``
+        (n_design,) [h], ``dwell_s`` (n_dwell,) [s] and, each (n_design, n_dwell), ``sd_top_kg_m3``,
+        ``sd_bottom_kg_m3`` [kg m-3], ``correlation``, ``p_loose`` [-]; ``prior_sd_kg_m3`` (2,),
+        ``prior_p_loose``, ``truth_kg_m3``, ``instrument``, ``facet``.
+    """
+    import numpy as np
+
+    from crater_thermal import instrument as ins
+    from crater_thermal import inversion
+
+    run_ds, fm = _forward_model(run, grid_replay)
+    nf = fm.n_facets
+    if isinstance(facet, bool) or int(facet) != facet or not 0 <= int(facet) < nf:
+        raise ConfigError(f"facet={facet} is not a facet of the run (0..{nf - 1})")
+    facet = int(facet)
+    sun = np.asarray(run_ds["solar_incident"].values[:, facet], float)
+    night = np.flatnonzero(sun <= 0.0)
+    if night.size == 0:
+        raise ConfigError(f"facet {facet} has no night sample in the run (solar_incident > 0 at every time)")
+    # hours since the last lit sample; a night that began before the run has no known sunset: left out
+    # unless the facet is never lit in the run (then hours since the run's start)
+    lit = np.flatnonzero(sun > 0.0)
+    t_s = (fm.times - fm.times[0]).astype(np.int64) / 1e9
+    if lit.size:
+        night = night[night > lit[0]]
+        if night.size == 0:
+            raise ConfigError(f"facet {facet} has no night sample after a sunset in the run")
+    before = np.searchsorted(lit, night) - 1
+    since = np.where(before >= 0, t_s[night] - t_s[lit[np.maximum(before, 0)]], t_s[night] - t_s[0])
+    if local_times is None:
+        designs = [fm.times[[k]] for k in night]
+        first = night
+    else:
+        if int(local_times) < 1:
+            raise ConfigError(f"local_times={local_times} must be >= 1")
+        pick = night[np.linspace(0, night.size - 1, int(local_times)).round().astype(int)]
+        designs, first = [fm.times[pick]], pick[:1]
+    scatter = ins.NATURAL_SCATTER_K if natural_scatter_K is None else float(natural_scatter_K)
+    out = inversion.expected_width(
+        fm,
+        facet,
+        designs,
+        dwell_s,
+        instrument,
+        truth_kg_m3=tuple(truth_kg_m3),
+        refine=refine,
+        natural_scatter_K=scatter,
+        offset_K=offset_K,
+        loose_bottom_kg_m3=loose_bottom_kg_m3,
+    )
+    out["time"] = fm.times[first]
+    out["hours_after_sunset"] = since[np.searchsorted(night, first)] / 3600.0
+    out["instrument"] = instrument
+    out["facet"] = facet
+    return out
+
+
 def invert(
     run: PathLike,
     grid_replay: PathLike,
@@ -469,6 +591,10 @@ def invert(
     *,
     instrument: Optional[str] = None,
     loose_bottom_kg_m3: float = 1500.0,
+    prior: Any = "uniform",
+    refine: int = 4,
+    natural_scatter_K: Optional[float] = None,
+    offset_K: float = 0.0,
     output: Optional[PathLike] = None,
     overwrite: bool = False,
     max_offset_m: Optional[float] = None,
@@ -485,6 +611,17 @@ def invert(
         Instrument preset (e.g. ``"diviner_ch7"``); default: the table's, else ``"diviner_ch7"``.
     loose_bottom_kg_m3 : float [kg m-3]
         Threshold of ``p_loose``: bottom density below it.
+    prior : ``"uniform"``, (n_top, n_bottom) array, or path-like
+        Prior over the refined (top, bottom) nodes: uniform in density with top <= bottom inside the
+        grid, non-negative weights (:func:`crater_thermal.inversion.invert`), or a netCDF file with
+        ``prior(top, bottom)`` on those nodes (:func:`crater_thermal.io.read_prior`).
+    refine : int
+        Posterior nodes per grid step (4: a 100 kg m-3 grid gives 25 kg m-3 nodes).
+    natural_scatter_K : float [K], optional
+        Natural scatter of a footprint, shared by its samples (default: the instrument model's 0.94 K).
+    offset_K : float [K]
+        1-sigma calibration offset (at the instrument's reference temperature), shared by a footprint's
+        samples and marginalized; 0: none.
     output : path-like, optional
         Write the posterior there (netCDF, atomically); then the written dataset is returned.
     overwrite : bool
@@ -503,32 +640,47 @@ def invert(
 
     if output is not None:
         io.check_output(output, overwrite, inputs=(run, grid_replay, observations))
-    run_ds = io.open_run(run, load=False)
-    rep = io.open_replay(grid_replay)
-    io.check_pair(run_ds, rep)
-    tops = np.asarray(rep["rho_top"].values, float)
-    bots = np.asarray(rep["rho_bottom"].values, float)
-    if np.unique(tops[np.isfinite(tops)]).size < 2 or np.unique(bots[np.isfinite(bots)]).size < 2:
-        raise ConfigError(f"{grid_replay} is not a density grid; replay with --density-grid START:STOP:STEP")
-    keep = np.isfinite(tops) & np.isfinite(bots)
-    T = np.asarray(rep["surface_temperature"].values[keep], float)
-    fm = inversion.ForwardModel(T, tops[keep], bots[keep], rep["time"].values)
+    run_ds, fm = _forward_model(run, grid_replay)
     cols = io.read_observations(observations)
-    facet = cols["facet"]
+    facet, weight = cols["facet"], None
     if facet is None:
+        from scipy.spatial import cKDTree
+
         c = np.asarray(run_ds["centroid"].values, float)[:, :2]
+        area = np.asarray(run_ds["area"].values, float)
+        tree = cKDTree(c)
         xy = np.column_stack([cols["x_m"], cols["y_m"]])
-        d2 = ((xy[:, None, :] - c[None, :, :]) ** 2).sum(axis=2)
-        facet = d2.argmin(axis=1)
-        dist = np.sqrt(d2[np.arange(xy.shape[0]), facet])
-        limit = max_offset_m if max_offset_m is not None else 2.0 * float(np.sqrt(np.max(run_ds["area"].values)))
-        if np.any(~np.isfinite(dist)) or np.any(dist > limit):
-            i = int(np.flatnonzero(~(dist <= limit))[0])
+        if np.any(~np.isfinite(xy)):
+            i = int(np.flatnonzero(~np.isfinite(xy).all(axis=1))[0])
+            raise ConfigError(f"observations: sample {i} has no finite x_m, y_m position [m]")
+        dist, facet = tree.query(xy)
+        limit = max_offset_m if max_offset_m is not None else 2.0 * float(np.sqrt(np.max(area)))
+        if np.any(dist > limit):
+            i = int(np.flatnonzero(dist > limit)[0])
             raise ConfigError(
                 f"observations: sample {i} at x={xy[i, 0]:g} m, y={xy[i, 1]:g} m is {dist[i]:.0f} m from the mesh "
                 f"(limit {limit:.0f} m); give positions in the mesh frame (the run's centroid x, y)"
             )
-    footprint = cols["footprint"] if cols["footprint"] is not None else facet
+        radius = cols.get("radius_m")
+        if radius is not None:
+            if np.any(~(np.isfinite(radius) & (radius >= 0))):
+                i = int(np.flatnonzero(~(np.isfinite(radius) & (radius >= 0)))[0])
+                raise ConfigError(f"observations: radius_m={radius[i]} of sample {i} must be >= 0 m")
+            # footprint mixing: the facets whose centroids lie within the radius, weighted by area, the
+            # nearest (centre) facet first and always included
+            groups = [
+                [int(facet[i])] + [g for g in members if g != facet[i]]
+                for i, members in enumerate(tree.query_ball_point(xy, radius))
+            ]
+            k = max(len(g) for g in groups)
+            F = np.repeat(np.asarray(facet, np.int64)[:, None], k, axis=1)
+            weight = np.zeros((len(groups), k))
+            for i, g in enumerate(groups):
+                F[i, : len(g)] = g
+                weight[i, : len(g)] = area[g] / area[g].sum()
+            facet = F
+    centre = facet if np.ndim(facet) == 1 else facet[:, 0]
+    footprint = cols["footprint"] if cols["footprint"] is not None else centre
     obs = inversion.ObservationTable(
         time=cols["time"],
         facet=facet,
@@ -537,16 +689,60 @@ def invert(
         sigma_K=cols["sigma_K"],
         dwell_s=cols["dwell_s"],
         instrument=instrument or cols["instrument"] or "diviner_ch7",
+        facet_weight=weight,
     )
-    post = inversion.invert(fm, obs, obs.instrument, loose_bottom_kg_m3=loose_bottom_kg_m3)
+    from crater_thermal import instrument as ins
+
+    scatter = ins.NATURAL_SCATTER_K if natural_scatter_K is None else float(natural_scatter_K)
+    prior_note = "uniform in (top, bottom) density on the refined grid nodes with top <= bottom"
+    if isinstance(prior, (str, os.PathLike)) and str(prior) != "uniform":
+        weights, p_top, p_bottom = io.read_prior(prior)
+        ta, ba = fm.density_axes(refine)
+        if (
+            p_top.shape != ta.shape
+            or p_bottom.shape != ba.shape
+            or not (np.allclose(p_top, ta) and np.allclose(p_bottom, ba))
+        ):
+            raise ConfigError(
+                f"prior {prior}: its nodes ({p_top.size} top x {p_bottom.size} bottom) are not this grid's refined "
+                f"nodes ({ta.size} x {ba.size}, refine={refine}); write it on those"
+            )
+        prior_note = f"from {prior} (weights on the refined nodes, zero outside the grid's triangle)"
+        prior = weights
+    elif not isinstance(prior, str):
+        prior_note = "user weights on the refined (top, bottom) nodes (the file's prior variable)"
+    post = inversion.invert(
+        fm,
+        obs,
+        obs.instrument,
+        prior=prior,
+        loose_bottom_kg_m3=loose_bottom_kg_m3,
+        refine=refine,
+        natural_scatter_K=scatter,
+        offset_K=offset_K,
+    )
     if output is None:
         return post
     attrs = {
-        "prior": "uniform in (top, bottom) density on the refined grid nodes with top <= bottom",
+        "prior": prior_note,
         "instrument": obs.instrument,
+        "refine": int(refine),
+        "natural_scatter_K": scatter,
+        "offset_K": float(offset_K),
+        "noise_model": "white NETD(T)^2 (1/n + t_int/knee) per sample (or sigma_K); natural scatter, calibration "
+        "offset and gain shared by a footprint's samples, marginalized (crater_thermal.inversion)",
         "run": str(run),
         "grid_replay": str(grid_replay),
         "observations": str(observations),
     }
-    io.write_posterior(post, output, overwrite=overwrite, attrs=attrs)
+    mh = run_ds.attrs.get("mesh_hash")
+    if mh is not None:
+        attrs["mesh_hash"] = str(mh)
+    fac = np.asarray(obs.facet)[:, 0]  # each sample's centre facet (mixing: the nearest to its position)
+    fp_facet = np.full(len(post.footprint), -1, np.int64)
+    for i, f in enumerate(post.footprint):
+        rows = obs.footprint == f
+        if np.unique(fac[rows]).size == 1:
+            fp_facet[i] = fac[rows][0]
+    io.write_posterior(post, output, overwrite=overwrite, attrs=attrs, footprint_facet=fp_facet)
     return io.open_written(output)

@@ -609,13 +609,14 @@ def show(
 
 @app.command()
 def export(
-    source: Path = typer.Argument(..., help="Run or replay dataset (netCDF)."),
+    source: Path = typer.Argument(..., help="Run, replay or posterior (crater-thermal invert) dataset (netCDF)."),
     output: Path = typer.Option(..., "-o", "--output", help="GeoTIFF to write (.tif)."),
     variable: str = typer.Option(
         "surface_temperature",
         "--variable",
         help="Run: surface_temperature [K] | solar_incident | solar_direct | ir_incident | solar_absorbed "
-        "[W m-2]. Replay: surface_temperature [K] | profile_minus_nominal [K].",
+        "[W m-2]. Replay: surface_temperature [K] | profile_minus_nominal [K]. Posterior (with --run): p_loose "
+        "[-] | map_/mean_/sd_ top|bottom _kg_m3 [kg m-3], per footprint.",
     ),
     statistic: str = typer.Option(
         "night_median",
@@ -630,7 +631,10 @@ def export(
         "profile_minus_nominal, in [K]).",
     ),
     run: Optional[Path] = typer.Option(
-        None, "--run", help="The run a replay was made from (needed for night_median of a replay)."
+        None,
+        "--run",
+        help="The run a replay or posterior was made from (needed for night_median of a replay and "
+        "for a posterior's mesh).",
     ),
     pixel_m: Optional[float] = typer.Option(None, "--pixel-m", help="Pixel size [m]; default: the mean facet edge."),
     night: Optional[str] = typer.Option(
@@ -654,6 +658,80 @@ def export(
         overwrite=overwrite,
     )
     typer.echo(f"wrote {output}")
+
+
+# ---------------------------------------------------------------- invert
+
+
+@app.command()
+def invert(
+    run: Path = typer.Argument(..., help="Run dataset (crater-thermal run output)."),
+    grid_replay: Path = typer.Argument(
+        ..., help="Density-grid replay of RUN (crater-thermal replay RUN --density-grid START:STOP:STEP)."
+    ),
+    observations: Path = typer.Argument(
+        ...,
+        help="Observation table, CSV or netCDF: time (ISO UTC), facet or x_m/y_m [m, mesh frame], "
+        "brightness_temperature_K [K], optional sigma_K [K], dwell_s [s], footprint, instrument, radius_m [m] "
+        "(with x_m/y_m: footprint mixing).",
+    ),
+    output: Path = typer.Option(..., "-o", "--output", help="Posterior to write (netCDF)."),
+    instrument: Optional[str] = typer.Option(
+        None,
+        "--instrument",
+        help="Preset channel: diviner_ch7, diviner_ch8, diviner_ch9, microbolometer. Default: the table's "
+        "instrument column, else diviner_ch7.",
+    ),
+    loose_below: float = typer.Option(
+        1500.0, "--loose-below", help="P(loose) threshold: bottom-layer density below it [kg m-3]."
+    ),
+    refine: int = typer.Option(4, "--refine", help="Posterior nodes per grid step (4: 100 -> 25 kg m-3)."),
+    prior: str = typer.Option(
+        "uniform",
+        "--prior",
+        help="uniform (in top and bottom density [kg m-3], top <= bottom), or a netCDF file with prior(top, "
+        "bottom) weights on the refined nodes (coordinates top_kg_m3, bottom_kg_m3; e.g. an edited posterior.nc).",
+    ),
+    natural_scatter: Optional[float] = typer.Option(
+        None, "--natural-scatter-k", help="Natural scatter of a footprint [K] (default 0.94, the instrument model's)."
+    ),
+    offset_k: float = typer.Option(
+        0.0,
+        "--offset-k",
+        help="1-sigma calibration offset [K] at the instrument's reference temperature, marginalized (default 0).",
+    ),
+    max_offset_m: Optional[float] = typer.Option(
+        None, "--max-offset-m", help="Farthest an x_m/y_m position may lie from its facet [m] (default: 2 facet sizes)."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
+) -> None:
+    """Posterior over (top, bottom) density per footprint from measured brightness temperatures.
+
+    The prior is uniform in (top, bottom) density over the grid's refined nodes with top <= bottom (or
+    --prior FILE). The
+    posterior file holds, per footprint, the posterior mass on the nodes, its marginals, P(loose), MAP,
+    mean, sd, the 90 % credible region and a sentence on the degeneracies.
+    """
+    from crater_thermal import api
+
+    ds = api.invert(
+        run,
+        grid_replay,
+        observations,
+        instrument=instrument,
+        loose_bottom_kg_m3=loose_below,
+        refine=refine,
+        prior=prior,
+        natural_scatter_K=natural_scatter,
+        offset_K=offset_k,
+        output=output,
+        overwrite=overwrite,
+        max_offset_m=max_offset_m,
+    )
+    n = ds.sizes["footprint"]
+    loose = int((ds["p_loose"].values > 0.5).sum())
+    ds.close()
+    typer.echo(f"wrote {output} ({n} footprints, {loose} with P(bottom < {loose_below:g} kg m-3) > 0.5)")
 
 
 # ---------------------------------------------------------------- cache

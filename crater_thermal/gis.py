@@ -5,6 +5,11 @@
 * **Quantity.** A run: one of its (time, facet) series (:data:`RUN_VARIABLES`: surface temperature [K],
   fluxes [W m-2]). A replay: ``surface_temperature`` of one profile [K] (default the nominal), or
   ``profile_minus_nominal``, that profile minus the nominal one [K] (default the loose profile, 800/1100).
+* **Posterior** of an inversion (``crater-thermal invert``, needs its ``run`` for the mesh): one of
+  :data:`POSTERIOR_VARIABLES` per footprint (``p_loose`` [-]: the P(loose) map of a site; MAP, mean, sd
+  of the densities [kg m-3]) on the facet its samples see (the mean where several footprints share a
+  facet; NaN on unobserved facets; a footprint whose samples are centred on different facets is left
+  out). No statistic over time.
 * **Statistic over time** (:data:`STATISTICS`): ``night_median`` (per facet, over the samples that are
   night for that facet by :func:`crater_thermal.regions.night_day_masks`, default definition; NaN where a
   facet has no night), ``mean``, ``min``, ``max``, ``at`` (the sample nearest an ISO UTC time).
@@ -36,6 +41,16 @@ RUN_VARIABLES = ("surface_temperature", "solar_incident", "solar_direct", "ir_in
 #: The quantities of a replay that can be exported.
 REPLAY_VARIABLES = ("surface_temperature", "profile_minus_nominal")
 #: Statistics over time.
+#: Variables of an inversion's posterior (``crater-thermal invert``), one value per footprint
+POSTERIOR_VARIABLES = (
+    "p_loose",
+    "map_top_kg_m3",
+    "map_bottom_kg_m3",
+    "mean_top_kg_m3",
+    "mean_bottom_kg_m3",
+    "sd_top_kg_m3",
+    "sd_bottom_kg_m3",
+)
 STATISTICS = ("night_median", "mean", "min", "max", "at")
 #: Largest raster written [pixels] (4 bytes each): a finer ``pixel_m`` is refused.
 MAX_PIXELS = 100_000_000
@@ -197,9 +212,41 @@ def rasterize_facets(xy, faces, values, transform: tuple, nx: int, ny: int, chun
 def _open(path: Path):
     """A run (loaded lazily) or a replay, told apart by its ``profile`` dimension; (dataset, kind)."""
     probe = io.open_written(path)
+    if "footprint" in probe.dims and "p_loose" in probe:
+        return probe, "posterior"
     is_replay = "profile" in probe.dims
     probe.close()
     return (io.open_replay(path), "replay") if is_replay else (io.open_run(path, load=False), "run")
+
+
+def _posterior_per_facet(post, variable: str, run) -> tuple[np.ndarray, str, dict]:
+    """(per-facet values, units, tags) of a posterior's per-footprint ``variable`` (NaN where unobserved)."""
+    if variable not in POSTERIOR_VARIABLES:
+        raise ConfigError(
+            f"variable = {variable!r} is not a posterior variable; allowed: {', '.join(POSTERIOR_VARIABLES)}"
+        )
+    h_post, h_run = post.attrs.get("mesh_hash"), run.attrs.get("mesh_hash")
+    if h_post is not None and h_run is not None and str(h_post) != str(h_run):
+        raise ConfigError("the posterior was not made from this run (mesh_hash differs); give its run with --run")
+    if "facet" not in post:
+        raise ConfigError("the posterior has no footprint facets (made by an older version); invert again")
+    facet = np.asarray(post["facet"].values, np.int64)
+    nf = int(run.sizes["facet"])
+    if np.any(facet >= nf):
+        raise ConfigError(f"the posterior's facets exceed the run's {nf}; give its run with --run")
+    if np.all(facet < 0):
+        raise ConfigError("no footprint of the posterior is centred on one facet: nothing to map")
+    values = np.asarray(post[variable].values, float)
+    per_facet = np.full(nf, np.nan)
+    seen = facet >= 0
+    # several footprints on one facet: their mean
+    total = np.bincount(facet[seen], weights=values[seen], minlength=nf)
+    count = np.bincount(facet[seen], minlength=nf)
+    per_facet[count > 0] = total[count > 0] / count[count > 0]
+    units = str(post[variable].attrs.get("units", ""))
+    tags = {"threshold_bottom_kg_m3": post.attrs.get("loose_bottom_kg_m3", "")} if variable == "p_loose" else {}
+    tags["footprints_mapped"] = f"{int(seen.sum())} of {facet.size} (footprints centred on several facets left out)"
+    return per_facet, units, tags
 
 
 def _profile_label(replay, profile: Optional[str], default: Optional[str]) -> str:
@@ -276,11 +323,12 @@ def export_map(
     Parameters
     ----------
     source : path-like
-        A run or a replay dataset (netCDF).
+        A run, a replay or an inversion's posterior (netCDF; a posterior needs ``run``).
     output : path-like
         The GeoTIFF to write (``.tif`` or ``.tiff``); never one of the inputs.
     variable : str
-        :data:`RUN_VARIABLES` for a run, :data:`REPLAY_VARIABLES` for a replay.
+        :data:`RUN_VARIABLES` for a run, :data:`REPLAY_VARIABLES` for a replay, :data:`POSTERIOR_VARIABLES`
+        for a posterior.
     statistic : str
         One of :data:`STATISTICS`; ``"at TIME"`` is the same as ``statistic="at", time=TIME``.
     time : str, optional
@@ -289,8 +337,9 @@ def export_map(
         A replay's profile: a label or TOP/BOTTOM [kg m-3] (default: the nominal for
         ``surface_temperature``, the loose 800/1100 for ``profile_minus_nominal``).
     run : path-like, optional
-        The run a replay was made from: needed for ``night_median`` of a replay (the per-facet night
-        uses the run's direct sunlight) and when the replay lacks the nominal profile.
+        The run a replay or posterior was made from: needed for ``night_median`` of a replay (the per-facet
+        night uses the run's direct sunlight), when the replay lacks the nominal profile, and for a
+        posterior (its mesh).
     pixel_m : float, optional
         Pixel size [m], > 0; default the mean projected edge of the exported facets.
     night : str, optional
@@ -332,15 +381,28 @@ def export_map(
     ds, kind = _open(source)
     run_ds = None
     try:
-        if run is not None:
+        if kind == "posterior":
+            if run is None:
+                ds.close()
+                raise ConfigError("a posterior map needs its run (--run RUN.nc): the mesh")
+            run_ds = io.open_run(run, load=False)
+            per_facet, units, tags = _posterior_per_facet(ds, variable, run_ds)
+            statistic = "per footprint"
+            ds.close()
+            ds = run_ds
+            run_ds = None
+        elif run is not None:
             if kind != "run":
                 run_ds = io.open_run(run, load=False)
                 io.check_pair(run_ds, ds)
             else:
                 raise ConfigError("--run applies to a replay; this is a run")
-        values, units, tags = _quantity(ds, kind, variable, profile, run_ds)
+        if kind != "posterior":
+            values, units, tags = _quantity(ds, kind, variable, profile, run_ds)
         night_mask = None
-        if statistic == "night_median":
+        if kind == "posterior":
+            pass
+        elif statistic == "night_median":
             defaults = _night_defaults()
             definition = night if night is not None else defaults.get("definition")
             night_src = ds if kind == "run" else run_ds
@@ -357,7 +419,8 @@ def export_map(
         if statistic == "at":
             index = nearest_sample(ds["time"].values, time)
             tags["time_utc"] = np.datetime_as_string(np.asarray(ds["time"].values)[index], unit="s") + "Z"
-        per_facet = facet_statistic(values, statistic, night_mask, index)
+        if kind != "posterior":
+            per_facet = facet_statistic(values, statistic, night_mask, index)
         inner = io.dataset_inner(ds)
         meta = io.mesh_meta(ds)
         lat, lon = io.latitude_deg(ds), float(ds.attrs.get("lon_deg", meta.get("center_lon_deg", 0.0)))

@@ -1036,6 +1036,8 @@ def read_observations(path: str | os.PathLike) -> dict:
     - ``dwell_s`` (optional): time integrated for the sample [s].
     - ``band`` or ``instrument`` (optional): instrument preset name (one per table).
     - ``footprint`` (optional): footprint id (default: one footprint per facet).
+    - ``radius_m`` (optional, with ``x_m``/``y_m``): footprint radius [m]: the sample mixes, in band
+      radiance, the facets whose centroids lie within it, weighted by facet area (the nearest facet always).
 
     Parameters
     ----------
@@ -1047,7 +1049,7 @@ def read_observations(path: str | os.PathLike) -> dict:
     dict
         ``time`` (n,) datetime64[ns] UTC, ``T_b_K`` (n,) [K], ``facet`` (n,) int or None, ``x_m``/``y_m``
         (n,) [m] or None, ``sigma_K``, ``dwell_s`` (n,) or None, ``footprint`` (n,) int or None,
-        ``instrument`` str or None.
+        ``radius_m`` (n,) [m] or None, ``instrument`` str or None.
 
     Raises
     ------
@@ -1116,11 +1118,56 @@ def read_observations(path: str | os.PathLike) -> dict:
         "sigma_K": number("sigma_K"),
         "dwell_s": number("dwell_s"),
         "footprint": number("footprint", integer=True),
+        "radius_m": number("radius_m") if has_xy else None,
         "instrument": inst,
     }
 
 
-def write_posterior(post, path: str | os.PathLike, overwrite: bool = False, attrs: Mapping[str, Any] | None = None):
+def read_prior(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a prior over (top, bottom) density for the inversion from netCDF.
+
+    The file holds ``prior(top, bottom)`` (non-negative weights) with coordinates ``top_kg_m3(top)`` and
+    ``bottom_kg_m3(bottom)`` [kg m-3], e.g. a ``posterior.nc`` of ``crater-thermal invert`` (its ``prior``)
+    edited, or one written with xarray.
+
+    Returns
+    -------
+    (weights (n_top, n_bottom), top_kg_m3 (n_top,), bottom_kg_m3 (n_bottom,))
+
+    Raises
+    ------
+    ConfigError
+        One line: missing file or variable, wrong dimensions.
+    """
+    import xarray as xr
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"prior file {path} does not exist")
+    try:
+        ds = xr.open_dataset(path)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"prior file {path} is not readable netCDF ({' '.join(str(exc).split())})") from None
+    with ds:
+        if "prior" not in ds or ds["prior"].dims != ("top", "bottom"):
+            raise ConfigError(f"prior file {path}: needs a variable prior(top, bottom) (e.g. a posterior.nc's)")
+        for name in ("top_kg_m3", "bottom_kg_m3"):
+            if name not in ds.variables:
+                raise ConfigError(f"prior file {path}: missing coordinate {name} [kg m-3]")
+        return (
+            np.asarray(ds["prior"].values, float),
+            np.asarray(ds["top_kg_m3"].values, float),
+            np.asarray(ds["bottom_kg_m3"].values, float),
+        )
+
+
+def write_posterior(
+    post,
+    path: str | os.PathLike,
+    overwrite: bool = False,
+    attrs: Mapping[str, Any] | None = None,
+    footprint_facet=None,
+):
     """Write an inversion's posterior (:class:`crater_thermal.inversion.Posterior`) to netCDF atomically.
 
     Dimensions ``footprint``, ``top``, ``bottom`` (densities [kg m-3] as coordinates ``top_kg_m3``,
@@ -1128,7 +1175,10 @@ def write_posterior(post, path: str | os.PathLike, overwrite: bool = False, attr
     ``prior(top, bottom)``, ``marginal_top``, ``marginal_bottom``, ``p_loose`` (P(bottom < threshold)),
     ``map_top_kg_m3``/``map_bottom_kg_m3``, ``mean_*``, ``sd_*``, ``correlation``, ``credible_90``
     (bool mask of the 90 % highest-posterior region), ``log_evidence``, ``n_samples``, ``degeneracy``
-    (one sentence per footprint). ``attrs`` (prior, instrument, inputs) go into the file's attributes.
+    (one sentence per footprint), and ``facet`` (footprint): the facet at the centre of all of a footprint's
+    samples, -1 where their centres differ (``footprint_facet``; all -1 when not given), which maps the footprints
+    (``crater-thermal export posterior.nc --run run.nc --variable p_loose``). ``attrs`` (prior,
+    instrument, inputs, the run's ``mesh_hash``) go into the file's attributes.
 
     Returns
     -------
@@ -1161,6 +1211,13 @@ def write_posterior(post, path: str | os.PathLike, overwrite: bool = False, attr
         "log_evidence": (fp, post.log_evidence, {"units": "1"}),
         "n_samples": (fp, np.asarray(post.n_samples, np.int64), {"units": "1"}),
         "degeneracy": (fp, np.asarray(post.degeneracy(), dtype=str)),
+        "facet": (
+            fp,
+            np.full(len(post.footprint), -1, np.int64)
+            if footprint_facet is None
+            else np.asarray(footprint_facet, np.int64).reshape(-1),
+            {"long_name": "facet at the centre of all the footprint's samples (-1: several)"},
+        ),
     }
     coords = {
         "footprint": np.asarray(post.footprint, np.int64),

@@ -31,6 +31,7 @@ import numpy as np
 from crater_thermal import analysis as an
 from crater_thermal import answer, profiles, regions
 from crater_thermal import instrument as ins
+from crater_thermal import inversion as inv
 from crater_thermal import io as ctio
 from crater_thermal.errors import ConfigError, CraterThermalError, MissingExtraError
 from crater_thermal.progress import bar
@@ -61,6 +62,13 @@ FIGURES = {
     "detectability_scatter.png": "Time on each footprint needed for P_D >= 0.9 against the natural scatter between "
     "footprints, per instrument, on the headline's region (a missing point: not detectable at that scatter); "
     "the dashed line is the scatter the report assumes.",
+}
+#: Figures drawn only when the replay is a density grid (captions, as FIGURES)
+INVERSION_FIGURES = {
+    "inversion_design.png": "Observation design for the inversion (crater-thermal invert), on the floor facet "
+    "most sensitive to density: expected posterior sd of the bottom density from one sample versus hours into "
+    "the night (60 s dwell), and expected P(loose) of a loose footprint seen at three local times versus the "
+    "dwell of each sample.",
 }
 SNAPSHOTS = {
     "map3d_temperature.png": (
@@ -164,6 +172,16 @@ SUMMARY_KEYS = {
     "[s|passes|null]}, exposure_unit {instrument: s|passes}}|null: the exposure for P_D >= target_pd on the "
     "headline's region (answer.focus_region) as the natural scatter runs over SCATTER_SWEEP_K (null: not "
     "detectable at that scatter).",
+    "inversion_design": "{facet (of region: the one whose night median differs most over the replayed "
+    "profiles), region, truth_kg_m3 [top, bottom], loose_bottom_kg_m3, prior_sd_kg_m3 [top, "
+    "bottom], prior_p_loose, natural_scatter_K, single_sample_dwell_s, hours_into_night [h] (since that night's "
+    "first sample in the record), local_times_h [h], "
+    "dwell_s [s], by_instrument {instrument: {sd_top_kg_m3, sd_bottom_kg_m3 (one sample at each of "
+    "hours_into_night), best_hours_into_night, p_loose, sd_bottom_three_local_times_kg_m3 (three samples at "
+    "local_times_h, each dwell of dwell_s), dwell_for_95pct_s (shortest dwell reaching 95 % of the longest's "
+    "expected P(loose); null: the data leave P(loose) at the prior's)}}}|null: expected posterior widths of the "
+    "inversion (inversion.expected_width: the posterior of noiseless data of the truth, the loose profile "
+    "clipped into the grid) on that facet's longest night; null without a complete regular density grid.",
     "detection_larger_patch": "{candidate_footprints, reference_footprints, region, by_instrument {instrument: "
     "{detectable, exposure, exposure_unit, dwell_s, passes, pd_limit}}}|null: the same test for a loose patch of "
     "LARGER_PATCH footprints against as many references (the patch size a rover team asks about).",
@@ -421,9 +439,138 @@ def _summary(
     focus = answer.focus_region(s)
     s["detectability_vs_scatter"] = _clean(_scatter_sweep(s, focus, instruments, obs))
     s["detection_larger_patch"] = _clean(_larger_patch(s, focus, instruments, obs))
+    s["inversion_design"] = _clean(inversion_design(A, instruments, obs))
     s["headline"] = answer.headline(s)  # from the cleaned numbers: the headline says what summary.json says
     assert set(s) == set(SUMMARY_KEYS), set(s) ^ set(SUMMARY_KEYS)
     return s
+
+
+#: Dwell [s] of each sample in the three-local-times design of ``inversion_design``
+DESIGN_DWELLS_S = (1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
+#: Most single-sample times of night evaluated by ``inversion_design`` (cost: one footprint each)
+DESIGN_MAX_TIMES = 24
+
+
+def _grid_forward(A, facet: int) -> Optional[inv.ForwardModel]:
+    """ForwardModel of the replay's two-layer profiles on one facet, or None unless they fill a regular grid
+    (>= 3 densities per layer, every top <= bottom node)."""
+    tops = np.asarray(A.replay["rho_top"].values, float)
+    bots = np.asarray(A.replay["rho_bottom"].values, float)
+    two = np.isfinite(tops) & np.isfinite(bots) & (tops < 3000) & (bots < 3000)
+    # the grid's profiles: densities used by >= 2 profiles (drops a lone nominal or loose profile replayed
+    # beside a grid off its nodes), each (top, bottom) pair once
+    vals, counts = np.unique(np.r_[tops[two], bots[two]], return_counts=True)
+    common = set(vals[counts >= 2].tolist())
+    keep, seen = [], set()
+    for i in np.flatnonzero(two):
+        pair = (float(tops[i]), float(bots[i]))
+        if pair[0] in common and pair[1] in common and pair not in seen:
+            keep.append(i)
+            seen.add(pair)
+    keep = np.asarray(keep, np.int64)
+    if keep.size < 6:
+        return None
+    T = np.asarray(A.replay["surface_temperature"].isel(facet=facet).values, np.float32)[keep][:, :, None]
+    try:
+        fm = inv.ForwardModel(T, tops[keep], bots[keep], A.times)
+    except ConfigError:
+        return None
+    P = fm.node_profile
+    need = fm.top_nodes[:, None] <= fm.bottom_nodes[None, :]
+    if min(P.shape) < 3 or np.any((P < 0) & need):
+        return None
+    return fm
+
+
+def _design_facet(A) -> int:
+    """The facet of the grid's region (the floor) whose night-time median differs most from nominal over the
+    replayed profiles: where the inversion has most to see (the representative floor facet if none differs)."""
+    region = A.regions.get(A.grid_region) if A.grid_region else None
+    maps = [np.abs(np.asarray(m, float)) for p, m in A.night_map.items() if not profiles.is_rock(p)]
+    if region is None or not np.any(region) or not maps:
+        return int(A.facets.get("floor", 0))
+    stack = np.stack(maps)
+    spread = np.where(np.isfinite(stack), stack, -1.0).max(axis=0)  # -1: no night value on that facet
+    idx = np.flatnonzero(region)
+    if spread[idx].max() < 0:
+        return int(A.facets.get("floor", 0))
+    return int(idx[int(np.argmax(spread[idx]))])
+
+
+def inversion_design(A, instruments: Sequence[ins.Instrument], obs: ins.Observation) -> Optional[dict]:
+    """Expected posterior width of the inversion versus time of night and dwell (SUMMARY_KEYS), or None."""
+    facet = _design_facet(A)
+    fm = _grid_forward(A, facet)
+    night = np.flatnonzero(np.asarray(A.night_f[:, facet], bool))
+    if fm is None or night.size < 3:
+        return None
+    # the longest run of consecutive night samples: one night, from its first sample
+    breaks = np.flatnonzero(np.diff(night) > 1)
+    starts, ends = np.r_[0, breaks + 1], np.r_[breaks, night.size - 1]
+    i = int(np.argmax(ends - starts))
+    one_night = night[starts[i] : ends[i] + 1]
+    t_h = (fm.times[one_night] - fm.times[one_night[0]]).astype("timedelta64[s]").astype(float) / 3600.0
+    pick = np.unique(np.linspace(0, one_night.size - 1, min(DESIGN_MAX_TIMES, one_night.size)).round().astype(int))
+    three = np.unique(np.linspace(0, one_night.size - 1, 5).round().astype(int)[1:4])
+    ta, ba = fm.top_nodes, fm.bottom_nodes
+    top = float(np.clip(800.0, ta[0], ta[-1]))
+    truth = (top, float(np.clip(max(1100.0, top), ba[0], ba[-1])))
+    by = {}
+    common = dict(truth_kg_m3=truth, natural_scatter_K=obs.natural_scatter_K)
+    for inst in instruments:
+        one = inv.expected_width(fm, 0, [fm.times[one_night[[k]]] for k in pick], [REFERENCE_DWELL_S], inst, **common)
+        des = inv.expected_width(fm, 0, [fm.times[one_night[three]]], DESIGN_DWELLS_S, inst, **common)
+        p = des["p_loose"][0]
+        informative = abs(p[-1] - des["prior_p_loose"]) > 0.05
+        ok = np.flatnonzero(p >= 0.95 * p[-1])
+        by[inst.name] = dict(
+            sd_top_kg_m3=one["sd_top_kg_m3"][:, 0],
+            sd_bottom_kg_m3=one["sd_bottom_kg_m3"][:, 0],
+            best_hours_into_night=float(t_h[pick][int(np.argmin(one["sd_bottom_kg_m3"][:, 0]))]),
+            p_loose=p,
+            sd_bottom_three_local_times_kg_m3=des["sd_bottom_kg_m3"][0],
+            dwell_for_95pct_s=float(DESIGN_DWELLS_S[ok[0]]) if informative and ok.size else None,
+        )
+    return dict(
+        facet=facet,
+        region=A.grid_region,
+        truth_kg_m3=list(truth),
+        loose_bottom_kg_m3=inv.LOOSE_BOTTOM_KG_M3,
+        prior_sd_kg_m3=des["prior_sd_kg_m3"],
+        prior_p_loose=des["prior_p_loose"],
+        natural_scatter_K=obs.natural_scatter_K,
+        single_sample_dwell_s=REFERENCE_DWELL_S,
+        hours_into_night=t_h[pick],
+        local_times_h=t_h[three],
+        dwell_s=list(DESIGN_DWELLS_S),
+        by_instrument=by,
+    )
+
+
+def _fig_inversion_design(summary: dict, path) -> None:
+    d = summary["inversion_design"]
+    fig, axes = _figure(1, 2, size=(11.0, 4.2))
+    ax = axes[0]
+    for name, v in d["by_instrument"].items():
+        ax[0].plot(d["hours_into_night"], v["sd_bottom_kg_m3"], ".-", label=name)
+        ax[1].semilogx(d["dwell_s"], v["p_loose"], "o-", label=name)
+    ax[0].axhline(d["prior_sd_kg_m3"][1], color="k", ls=":", label="prior")
+    ax[1].axhline(d["prior_p_loose"], color="k", ls=":", label="prior")
+    t, b = d["truth_kg_m3"]
+    ax[0].set(
+        xlabel="hours into the night [h]",
+        ylabel="expected posterior sd, bottom [kg m-3]",
+        title=f"one {d['single_sample_dwell_s']:g} s sample, facet {d['facet']}",
+    )
+    ax[1].set(
+        xlabel="dwell per sample [s]",
+        ylabel=f"expected P(bottom < {d['loose_bottom_kg_m3']:g} kg m-3)",
+        ylim=(0, 1),
+        title=f"truth {t:g}/{b:g}, three local times",
+    )
+    for a in ax:
+        a.legend(fontsize=8)
+    fig.savefig(path)
 
 
 def _focus_values(s: dict, focus: Optional[str]):
@@ -1577,6 +1724,9 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
             _fig_local_time(summary, fig_dir / "detection_local_time.png")
             figures.append("detection_local_time.png")
         advance()
+        if summary["inversion_design"]:
+            _fig_inversion_design(summary, fig_dir / "inversion_design.png")
+            figures.append("inversion_design.png")
         if summary["detectability_vs_scatter"]:
             _fig_detectability_scatter(summary, fig_dir / "detectability_scatter.png")
             figures.append("detectability_scatter.png")
@@ -1597,5 +1747,7 @@ def _write_report(all_A, out_dir: Path, overwrite, advance, instruments, observa
         summary["figures"] = figures
         summary["snapshot_note"] = note
         json_tmp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-        html_tmp.write_text(_html(summary, fig_dir, {**FIGURES, **SNAPSHOTS, **SITE_FIGURES}), encoding="utf-8")
+        html_tmp.write_text(
+            _html(summary, fig_dir, {**FIGURES, **SNAPSHOTS, **SITE_FIGURES, **INVERSION_FIGURES}), encoding="utf-8"
+        )
     return out_dir / "report.html"

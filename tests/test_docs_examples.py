@@ -15,7 +15,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "docs" / "examples"
 #: The scripts of docs/examples, each run by a test below.
-TESTED = ["default_crater", "dem_site", "density_grid"]
+TESTED = ["default_crater", "dem_site", "density_grid", "inversion"]
 NUMBER = re.compile(r"^(?P<name>[^:]+): (?P<value>[-+]?\d+(?:\.\d+)?)(?: (?P<unit>.+))?$")
 
 
@@ -88,3 +88,24 @@ def test_density_grid(tmp_path):
     # Fig. 7.7a: both layers matter, each changes the floor by kelvins across 800-2000 kg m-3
     assert n["bottom 800 -> 2000 under an 800 top"] > 1.0
     assert n["top 800 -> 2000 over a 2000 bottom"] > 0.5
+
+
+def test_inversion(tmp_path):
+    n = run_example("inversion", tmp_path)
+    assert n["facets"] == 150 and n["profiles"] == 28  # 800:2000:200 -> 7 densities, top <= bottom: 28
+    assert (
+        n["loose footprints on the traverse"] >= 3 and n["traverse footprints"] > n["loose footprints on the traverse"]
+    )
+    # Three noisy night samples per footprint: the loose patch leans loose, the nominal floor nominal, neither
+    # certain (the shared 0.94 K natural scatter is a third of the ~2.6 K signal); the prior says 0.32.
+    assert n["mean P(loose) in the patch"] > n["prior P(loose)"] + 0.15
+    assert n["mean P(loose) outside the patch"] < n["prior P(loose)"] - 0.05
+    # One sample leaves the bottom density about as uncertain as the prior (one number, two densities; the
+    # posterior sd may exceed the prior's where the data favour the triangle's extremes)
+    assert 0.8 * n["prior sd of the bottom density"] < n["best single-sample sd of the bottom density"]
+    assert n["best single-sample sd of the bottom density"] < 1.2 * n["prior sd of the bottom density"]
+    # Diviner ch7 (NETD 2.75 K at 50 K) needs a finite dwell; the 7.5-14 um microbolometer sees nothing at 50 K
+    assert 0.128 <= n["dwell needed, diviner_ch7"] <= 1000.0
+    assert n["expected P(loose) with 1000 s stares, diviner_ch7"] > 0.6
+    assert abs(n["expected P(loose) with 1000 s stares, microbolometer"] - n["prior P(loose)"]) < 0.05
+    assert n["NETD of one integration at 50 K, microbolometer"] > 1e4

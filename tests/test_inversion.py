@@ -50,6 +50,14 @@ def test_woodbury_equals_dense():
         sign, logdet = np.linalg.slogdet(C)
         ref = -0.5 * (r @ np.linalg.solve(C, r) + logdet + n * np.log(2 * np.pi))
         assert ll[p] == pytest.approx(ref, rel=1e-9)
+    # one covariance shared by all points (the covariance at the measurements): the factored-once path
+    ll1 = inv.log_likelihood(y, m, d[:, :1], V[:, :1])
+    C = np.diag(d[:, 0]) + V[:, 0] @ V[:, 0].T
+    sign, logdet = np.linalg.slogdet(C)
+    for p in range(P):
+        r = y - m[:, p]
+        ref = -0.5 * (r @ np.linalg.solve(C, r) + logdet + n * np.log(2 * np.pi))
+        assert ll1[p] == pytest.approx(ref, rel=1e-9)
 
 
 def test_noiseless_grid_profile_recovered():
