@@ -215,6 +215,10 @@ def replay(
     property_set: Optional[str] = None,
     allow_inverted: bool = False,
     progress: Any = None,
+    scheduler: Optional[str] = None,
+    workers: Optional[int] = None,
+    chunk_facets: int = 2000,
+    chunk_profiles: int = 8,
 ) -> Dataset:
     """Replay a run's saved fluxes against other density profiles (the IR stays the run's, thesis 7.2).
 
@@ -233,6 +237,14 @@ def replay(
         The thesis's procedure instead of the periodic steady state (see ``crater-thermal replay``).
     property_set : "apollo" | "hayne2017", optional
         Default: the run's.
+    scheduler : str, optional
+        Address of a dask.distributed scheduler (``tcp://host:8786``): the columns are solved in
+        chunks by its workers, which must read the run's file and ``out``'s folder (shared
+        filesystem); the result equals a local replay. Needs the ``distributed`` extra.
+    workers : int, optional
+        Without ``scheduler``: a local dask cluster of this many one-thread processes.
+    chunk_facets, chunk_profiles : int
+        With ``scheduler`` or ``workers``: facets and profiles of one task (chunk).
 
     Returns
     -------
@@ -240,6 +252,28 @@ def replay(
         ``surface_temperature(profile, time, facet)`` [K], lazily from ``out`` or in memory.
     """
     rep = _reporter(progress)
+    if scheduler is not None or workers is not None:
+        from crater_thermal import cluster
+
+        if out is None:
+            raise ConfigError("a replay on a dask cluster needs out= (a path its workers' results are assembled into)")
+        path = cluster.replay_file(
+            _as_file(run, Path(str(out) + ".flux.nc")),
+            list(profiles),
+            output=out,
+            overwrite=overwrite,
+            scheduler=scheduler,
+            workers=workers,
+            density_grid=density_grid,
+            initial_temperature=initial_temperature_K,
+            fixed_spinup=fixed_spinup,
+            property_set=property_set,
+            allow_inverted=allow_inverted,
+            progress=None,
+            facet_block=chunk_facets,
+            profile_block=chunk_profiles,
+        )
+        return io.open_written(path)
     kw = dict(
         density_grid=density_grid,
         initial_temperature=initial_temperature_K,

@@ -364,12 +364,21 @@ def replay(
     output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
+    scheduler: Optional[str] = typer.Option(
+        None,
+        "--scheduler",
+        help="dask scheduler address (tcp://host:8786): workers solve the columns in chunks; they must read FLUX "
+        "and OUTPUT's folder. An interrupted replay resumes its finished chunks when run again.",
+    ),
+    workers: Optional[int] = typer.Option(None, "--workers", help="A local dask cluster of N one-thread processes."),
+    chunk_facets: int = typer.Option(2000, "--chunk-facets", help="With --scheduler/--workers: facets per task."),
+    chunk_profiles: int = typer.Option(8, "--chunk-profiles", help="With --scheduler/--workers: profiles per task."),
 ) -> None:
     """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
     from crater_thermal import api
     from crater_thermal.progress import reporter
 
-    api.replay(
+    ds = api.replay(
         flux,
         profile,
         density_grid=density_grid,
@@ -380,7 +389,14 @@ def replay(
         out=output,
         overwrite=overwrite,
         progress=reporter(progress),
-    ).close()
+        scheduler=scheduler,
+        workers=workers,
+        chunk_facets=chunk_facets,
+        chunk_profiles=chunk_profiles,
+    )
+    if "replay_chunks" in ds.attrs:
+        typer.echo(f"chunks: {ds.attrs['replay_chunks']} ({ds.attrs['replay_chunks_resumed']} resumed)")
+    ds.close()
     typer.echo(f"wrote {output}")
 
 

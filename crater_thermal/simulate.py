@@ -128,6 +128,8 @@ def replay_fluxes(
         the record itself when the file has no spin-up fluxes).
     fixed_spinup : with no ``initial_temperature``: start from the equilibrium estimate and run the
         spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
+        The periodic start tests convergence column by column (``thermal.periodic_state``
+        ``per_column``), so a column's result does not depend on the batching.
     write : ``write(profiles_slice, times_slice, facets_slice, T)`` receives float32 surface
         temperatures [K] of shape (profiles, times, facets); None: return them all.
     progress : optional ``progress(done, total)`` callback, in column-batch time steps (the total
@@ -182,7 +184,9 @@ def replay_fluxes(
                     batch.window(solver, "spin")
             else:
                 solver.set_equilibrium(surface_K=eq)
-                pinfo = thermal.periodic_state(solver, batch.period_map(solver, spin_which), tol_K=tol_K)
+                pinfo = thermal.periodic_state(
+                    solver, batch.period_map(solver, spin_which), tol_K=tol_K, per_column=True
+                )
                 info["periodic_iterations"].append(int(pinfo["iterations"]))
                 info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
             batch.window(solver, "rec", _ReplayRecorder(write, p0, len(chunk), f0, f1))
