@@ -219,6 +219,7 @@ def replay(
     workers: Optional[int] = None,
     chunk_facets: int = 2000,
     chunk_profiles: int = 8,
+    resume: bool = False,
 ) -> Dataset:
     """Replay a run's saved fluxes against other density profiles (the IR stays the run's, thesis 7.2).
 
@@ -239,12 +240,16 @@ def replay(
         Default: the run's.
     scheduler : str, optional
         Address of a dask.distributed scheduler (``tcp://host:8786``): the columns are solved in
-        chunks by its workers, which must read the run's file and ``out``'s folder (shared
-        filesystem); the result equals a local replay. Needs the ``distributed`` extra.
+        chunks by its workers, which read ``run``'s file at the same path (a shared filesystem);
+        the results come back to this process, which writes ``out``. The temperatures equal a
+        local replay's. Needs the ``distributed`` extra (see :doc:`/cluster`).
     workers : int, optional
-        Without ``scheduler``: a local dask cluster of this many one-thread processes.
+        Instead of ``scheduler``: a local dask cluster of this many one-thread processes.
     chunk_facets, chunk_profiles : int
         With ``scheduler`` or ``workers``: facets and profiles of one task (chunk).
+    resume : bool
+        With ``scheduler`` or ``workers``: keep the finished chunks of an interrupted replay with the
+        same ``out``, inputs, profiles, options and chunking (saved in ``OUT.chunks/``).
 
     Returns
     -------
@@ -252,28 +257,6 @@ def replay(
         ``surface_temperature(profile, time, facet)`` [K], lazily from ``out`` or in memory.
     """
     rep = _reporter(progress)
-    if scheduler is not None or workers is not None:
-        from crater_thermal import cluster
-
-        if out is None:
-            raise ConfigError("a replay on a dask cluster needs out= (a path its workers' results are assembled into)")
-        path = cluster.replay_file(
-            _as_file(run, Path(str(out) + ".flux.nc")),
-            list(profiles),
-            output=out,
-            overwrite=overwrite,
-            scheduler=scheduler,
-            workers=workers,
-            density_grid=density_grid,
-            initial_temperature=initial_temperature_K,
-            fixed_spinup=fixed_spinup,
-            property_set=property_set,
-            allow_inverted=allow_inverted,
-            progress=None,
-            facet_block=chunk_facets,
-            profile_block=chunk_profiles,
-        )
-        return io.open_written(path)
     kw = dict(
         density_grid=density_grid,
         initial_temperature=initial_temperature_K,
@@ -282,22 +265,51 @@ def replay(
         allow_inverted=allow_inverted,
         progress=rep,
     )
+    if scheduler is not None or workers is not None:
+        from crater_thermal import cluster
+
+        if scheduler is not None and workers is not None:
+            raise ConfigError("--scheduler and --workers: give one (a remote scheduler, or a local cluster)")
+        flux = _file_of(run)
+        if flux is None:
+            raise ConfigError(
+                "a replay on a dask cluster reads the run from a file every worker can open: save the dataset "
+                "(ds.to_netcdf(path)) and pass the path"
+            )
+        kw.update(
+            scheduler=scheduler,
+            workers=workers,
+            chunk_facets=chunk_facets,
+            chunk_profiles=chunk_profiles,
+            resume=resume,
+        )
+        replay_file = cluster.replay_file
+    elif resume:
+        raise ConfigError("--resume continues a replay on a dask cluster; give --scheduler or --workers")
+    else:
+        replay_file = runner.replay_file
     with _scratch_folder() as d:
         flux = _as_file(run, d / "flux.nc")
         if out is None:
-            path = runner.replay_file(flux, list(profiles), output=d / "replay.nc", **kw)
+            path = replay_file(flux, list(profiles), output=d / "replay.nc", **kw)
             return _in_memory(path, io.open_replay)
-        path = runner.replay_file(flux, list(profiles), output=out, overwrite=overwrite, **kw)
+        path = replay_file(flux, list(profiles), output=out, overwrite=overwrite, **kw)
     return io.open_written(path)
+
+
+def _file_of(ds_or_path) -> Optional[Path]:
+    """The file a dataset was opened from (or the path itself); None for a dataset only in memory."""
+    if isinstance(ds_or_path, (str, os.PathLike)):
+        return Path(ds_or_path)
+    source = ds_or_path.encoding.get("source")
+    return Path(source) if source and os.path.isfile(source) else None
 
 
 def _as_file(ds_or_path, scratch: Path) -> Path:
     """The file of a dataset: its own path, the file it was opened from, or a scratch copy."""
-    if isinstance(ds_or_path, (str, os.PathLike)):
-        return Path(ds_or_path)
-    source = ds_or_path.encoding.get("source")
-    if source and os.path.isfile(source):
-        return Path(source)
+    path = _file_of(ds_or_path)
+    if path is not None:
+        return path
     io.write_dataset_atomic(ds_or_path, scratch)
     return scratch
 

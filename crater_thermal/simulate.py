@@ -257,15 +257,16 @@ class _ReplayForcing:
         return absorbed_solar_of(self.ds, sol, slice(k0, k1), cols) + self.eps * self.ds[ir][k0:k1, cols].values
 
     def equilibrium_surface(self, solver, which: str) -> np.ndarray:
-        """The columns' equilibrium surface temperature [K], time-averaged over the window ``which``."""
+        """The columns' equilibrium surface temperature [K], time-averaged over the window ``which``.
+
+        The samples are summed one after the other whatever the size of the blocks read, so that the
+        estimate (a column's start) does not depend on how many columns share the batch."""
         n, rows = len(self.t[which]), self.rows
-        return (
-            sum(
-                solver.equilibrium_surface(self.absorbed(which, a, min(n, a + rows))) * (min(n, a + rows) - a)
-                for a in range(0, n, rows)
-            )
-            / n
-        )
+        total = 0.0
+        for a in range(0, n, rows):
+            for q in solver.equilibrium_surface_samples(self.absorbed(which, a, min(n, a + rows))):
+                total = total + q
+        return total / n
 
     def window(self, solver, which: str, record_into=None) -> None:
         """Run the columns through a window block by block (blocks overlap by one sample)."""

@@ -494,9 +494,14 @@ class ColumnSolver:
         """Time mean of ((absorbed + G) / (eps sigma))^1/4 [K] per forcing column of an absorbed-flux
         series (nt, n) [W m-2]; the surface of :meth:`equilibrium_profile`. Means of consecutive blocks
         of a long series, weighted by their lengths, give the same estimate without holding it whole."""
+        return np.mean(self.equilibrium_surface_samples(absorbed), axis=0)
+
+    def equilibrium_surface_samples(self, absorbed) -> np.ndarray:
+        """((absorbed + G) / (eps sigma))^1/4 [K] of every sample (nt, n) of an absorbed-flux series
+        (nt, n) [W m-2]: the terms of :meth:`equilibrium_surface`'s mean."""
         a = np.asarray(absorbed, dtype=np.float64)
         es = max(self.emissivity, 1e-3) * SIGMA
-        return np.mean(((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es) ** 0.25, axis=0)
+        return ((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es) ** 0.25
 
     def equilibrium_profile(self, absorbed=None, surface_K=None) -> np.ndarray:
         """Equilibrium estimate (ncol, nz) [K] from an absorbed-flux series (nt, ncol or divisor).
