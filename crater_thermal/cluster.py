@@ -60,7 +60,9 @@ def connect(scheduler: str | None = None, workers: int | None = None):
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise missing_extra("dask.distributed", "distributed", "replays on a dask cluster (--scheduler, --workers)") from None
+        raise missing_extra(
+            "dask.distributed", "distributed", "replays on a dask cluster (--scheduler, --workers)"
+        ) from None
     if scheduler:
         try:
             return Client(scheduler, timeout=CONNECT_TIMEOUT_S), None
@@ -70,7 +72,14 @@ def connect(scheduler: str | None = None, workers: int | None = None):
                 f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
                 "(dask scheduler) or leave out --scheduler"
             ) from None
-    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None)
+    cluster = LocalCluster(
+        n_workers=int(workers),
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        scheduler_kwargs={"dashboard_address": ":0"},  # its HTTP endpoints on a free port, not 8787
+    )
     return Client(cluster), cluster
 
 
@@ -223,7 +232,7 @@ def replay_file(
             options["property_set"] = property_set
         ds = io.read_flux_dataset(flux_path, load=False)
         try:
-            nf, nt, npf = ds.sizes["facet"], ds.sizes["time"], len(profiles)
+            nf, npf = ds.sizes["facet"], len(profiles)
             fb, pb = int(chunk_facets), int(chunk_profiles)
             chunks = [
                 (i, j, f0, min(nf, f0 + fb), p0, min(npf, p0 + pb))
