@@ -76,6 +76,34 @@ def _worker_stats():
     return {"maxrss_bytes": r.ru_maxrss * 1024, "cpu_s": r.ru_utime + r.ru_stime}
 
 
+PROBE = """
+import json, os, resource, sys
+import psutil
+sys.path.insert(0, {repo!r})
+from crater_thermal import cluster, thermal
+profiles = list(thermal.density_grid_profiles({grid!r}))[: {n_prof}]
+cluster.solve_chunk({run!r}, profiles[:1], 0, 1, {{}})  # imports and kernels loaded: the idle worker
+idle = psutil.Process().memory_info().rss
+cluster.solve_chunk({run!r}, profiles, 0, {n_fac}, {{}})
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps({{"idle_rss_bytes": idle, "peak_rss_bytes": peak}}))
+"""
+
+
+def chunk_memory_probe(run: Path, grid: str, n_fac: int, n_prof: int) -> dict:
+    """Peak memory of one chunk (``n_fac`` facets x ``n_prof`` profiles) solved in a fresh process, as a
+    worker does, against that process's resident memory once imports and kernels are loaded."""
+    import subprocess
+
+    code = PROBE.format(repo=str(REPO), grid=grid, n_prof=n_prof, run=str(run), n_fac=n_fac)
+    env = {**os.environ, "CRATER_THERMAL_QUIET": "1", "PYTHONWARNINGS": "ignore"}
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    out.update(facets=n_fac, profiles=n_prof, columns=n_fac * n_prof, wall_s=round(time.perf_counter() - t, 1))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", type=Path, default=None, help="run.nc to replay (default: run the thesis case)")
@@ -84,7 +112,19 @@ def main() -> None:
     ap.add_argument("--chunk-facets", type=int, default=2000)
     ap.add_argument("--chunk-profiles", type=int, default=2)
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "distributed.json")
+    ap.add_argument(
+        "--probe-only",
+        action="store_true",
+        help="only measure one chunk's memory (502 facets x 8 profiles of --run) into the existing --out JSON",
+    )
     args = ap.parse_args()
+    if args.probe_only:
+        result = json.loads(args.out.read_text())
+        result["chunk_memory_probe"] = chunk_memory_probe(args.run, args.grid, 502, 8)
+        result["model_1M_facets"] = model_1m(result)
+        args.out.write_text(json.dumps(result, indent=2) + "\n")
+        print(json.dumps(result["chunk_memory_probe"]))
+        return
     os.environ.setdefault("CRATER_THERMAL_QUIET", "1")
     import warnings
 
@@ -203,11 +243,13 @@ def model_1m(r: dict, facets: int = 1_000_000, chunk_facets: int = 2000, chunk_p
     chunk_cols = chunk_facets * chunk_profiles
     d = r["dask"]
     nz, nt = r["cells_per_column"], r["samples"]
+    probe = r.get("chunk_memory_probe")
+    idle = probe["idle_rss_bytes"] if probe else d["worker_idle_rss_bytes"]
     # a worker: its measured idle RSS + the periodic start's mode blocks (4 (n, nz, nz) float64 arrays of
     # at most 4096 columns) + the forcing and float64 records (at most chunk_mb = 256 MB) + the float32
     # result held and pickled once (2x) + ~20 float64 state arrays of nz per column
     chunk_mem = (
-        d["worker_idle_rss_bytes"]
+        idle
         + 4 * min(4096, chunk_cols) * nz * nz * 8
         + min(256 * 2**20, (nt + r["spinup_samples"]) * chunk_facets * 8 + nt * chunk_cols * 8)
         + 2 * chunk_cols * nt * 4
@@ -222,7 +264,19 @@ def model_1m(r: dict, facets: int = 1_000_000, chunk_facets: int = 2000, chunk_p
             # every result passes through the client and its disk: ~1 GB/s of network and disk assumed
             "client_io_h_at_1GB_s": round(out_bytes / 1e9 / 3600, 2),
         }
+    checked = {}
+    if probe:  # the same formula for the probed chunk, against its measured peak
+        pc, pf = probe["columns"], probe["facets"]
+        formula = (
+            idle
+            + 4 * min(4096, pc) * nz * nz * 8
+            + min(256 * 2**20, (nt + r["spinup_samples"]) * pf * 8 + nt * pc * 8)
+            + 2 * pc * nt * 4
+            + 20 * nz * 8 * pc
+        )
+        checked = {"probe_formula_bytes": int(formula), "probe_measured_peak_bytes": probe["peak_rss_bytes"]}
     return {
+        **checked,
         "facets": facets,
         "columns": cols,
         "measured_core_s_per_column": round(core_s_per_column, 5),

@@ -261,7 +261,7 @@ def _compute(flux_path, profiles, options, todo, folder, fp, scheduler, workers,
     """Solve the chunks ``todo`` on the cluster, saving each result in ``folder`` as it arrives."""
     client, cluster = connect(scheduler, workers)
     try:
-        from distributed import as_completed  # present: connect imported distributed
+        from distributed import KilledWorker, as_completed  # present: connect imported distributed
 
         futures = {
             client.submit(
@@ -279,7 +279,14 @@ def _compute(flux_path, profiles, options, todo, folder, fp, scheduler, workers,
         }
         with simulate.stage(progress, f"replay on dask ({len(todo)} chunks)") as report:
             for done, fut in enumerate(as_completed(futures), 1):
-                T, info = fut.result()
+                try:
+                    T, info = fut.result()
+                except KilledWorker:
+                    raise ConfigError(
+                        f"dask gave up {futures[fut].stem}: the workers that ran it died (out of memory? see "
+                        "their logs); smaller --chunk-facets/--chunk-profiles need less memory per worker; run "
+                        "again with --resume to keep the finished chunks"
+                    ) from None
                 _save_chunk(futures[fut], T, info)
                 fut.release()  # the worker may drop the chunk's result now
                 del T
