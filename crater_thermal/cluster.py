@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -79,6 +80,7 @@ def connect(scheduler: str | None = None, workers: int | None = None):
         host="127.0.0.1",
         dashboard_address=None,
         scheduler_kwargs={"dashboard_address": ":0"},  # its HTTP endpoints on a free port, not 8787
+        silence_logs=logging.ERROR,  # not dask's warnings about the tasks an interrupted command cancels
     )
     return Client(cluster), cluster
 

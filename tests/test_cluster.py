@@ -233,6 +233,25 @@ def test_local_cluster_workers_equals_local_replay(case, tmp_path):
     _assert_equals_local(out, ref)
 
 
+def test_interrupted_local_cluster_keeps_its_chunks(case, tmp_path):
+    """Ctrl-C on a --workers replay: exit 130, one line saying how to resume, the finished chunks kept,
+    no output."""
+    d, _ = case
+    out = tmp_path / "replay.nc"
+    proc = _popen_cli("replay", d / "run.nc", "--density-grid", GRID, "-o", out, "--workers", "2", *CHUNKS)
+    try:
+        _wait_for_chunks(cluster.chunk_folder(out), proc)
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("error: interrupted (SIGINT)") and "--resume" in last, stderr
+    assert not out.exists() and any(cluster.chunk_folder(out).glob("chunk_*.npz"))
+
+
 def test_columns_do_not_depend_on_their_batch(case):
     """Each column's periodic start converges on its own: a profile replayed alone, or a facet range
     alone, gives the same float32 temperatures as inside the batch of every column."""
