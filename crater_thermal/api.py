@@ -215,6 +215,11 @@ def replay(
     property_set: Optional[str] = None,
     allow_inverted: bool = False,
     progress: Any = None,
+    scheduler: Optional[str] = None,
+    workers: Optional[int] = None,
+    chunk_facets: int = 2000,
+    chunk_profiles: int = 8,
+    resume: bool = False,
 ) -> Dataset:
     """Replay a run's saved fluxes against other density profiles (the IR stays the run's, thesis 7.2).
 
@@ -233,6 +238,18 @@ def replay(
         The thesis's procedure instead of the periodic steady state (see ``crater-thermal replay``).
     property_set : "apollo" | "hayne2017", optional
         Default: the run's.
+    scheduler : str, optional
+        Address of a dask.distributed scheduler (``tcp://host:8786``): the columns are solved in
+        chunks by its workers, which read ``run``'s file at the same path (a shared filesystem);
+        the results come back to this process, which writes ``out``. The temperatures equal a
+        local replay's. Needs the ``distributed`` extra (see :doc:`/cluster`).
+    workers : int, optional
+        Instead of ``scheduler``: a local dask cluster of this many one-thread processes.
+    chunk_facets, chunk_profiles : int
+        With ``scheduler`` or ``workers``: facets and profiles of one task (chunk).
+    resume : bool
+        With ``scheduler`` or ``workers``: keep the finished chunks of an interrupted replay with the
+        same ``out``, inputs, profiles, options and chunking (saved in ``OUT.chunks/``).
 
     Returns
     -------
@@ -248,22 +265,51 @@ def replay(
         allow_inverted=allow_inverted,
         progress=rep,
     )
+    if scheduler is not None or workers is not None:
+        from crater_thermal import cluster
+
+        if scheduler is not None and workers is not None:
+            raise ConfigError("--scheduler and --workers: give one (a remote scheduler, or a local cluster)")
+        flux = _file_of(run)
+        if flux is None:
+            raise ConfigError(
+                "a replay on a dask cluster reads the run from a file every worker can open: save the dataset "
+                "(ds.to_netcdf(path)) and pass the path"
+            )
+        kw.update(
+            scheduler=scheduler,
+            workers=workers,
+            chunk_facets=chunk_facets,
+            chunk_profiles=chunk_profiles,
+            resume=resume,
+        )
+        replay_file = cluster.replay_file
+    elif resume:
+        raise ConfigError("--resume continues a replay on a dask cluster; give --scheduler or --workers")
+    else:
+        replay_file = runner.replay_file
     with _scratch_folder() as d:
         flux = _as_file(run, d / "flux.nc")
         if out is None:
-            path = runner.replay_file(flux, list(profiles), output=d / "replay.nc", **kw)
+            path = replay_file(flux, list(profiles), output=d / "replay.nc", **kw)
             return _in_memory(path, io.open_replay)
-        path = runner.replay_file(flux, list(profiles), output=out, overwrite=overwrite, **kw)
+        path = replay_file(flux, list(profiles), output=out, overwrite=overwrite, **kw)
     return io.open_written(path)
+
+
+def _file_of(ds_or_path) -> Optional[Path]:
+    """The file a dataset was opened from (or the path itself); None for a dataset only in memory."""
+    if isinstance(ds_or_path, (str, os.PathLike)):
+        return Path(ds_or_path)
+    source = ds_or_path.encoding.get("source")
+    return Path(source) if source and os.path.isfile(source) else None
 
 
 def _as_file(ds_or_path, scratch: Path) -> Path:
     """The file of a dataset: its own path, the file it was opened from, or a scratch copy."""
-    if isinstance(ds_or_path, (str, os.PathLike)):
-        return Path(ds_or_path)
-    source = ds_or_path.encoding.get("source")
-    if source and os.path.isfile(source):
-        return Path(source)
+    path = _file_of(ds_or_path)
+    if path is not None:
+        return path
     io.write_dataset_atomic(ds_or_path, scratch)
     return scratch
 

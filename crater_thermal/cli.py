@@ -364,23 +364,51 @@ def replay(
     output: Path = typer.Option(..., "-o", "--output", help="Replay dataset to write (netCDF)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
+    scheduler: Optional[str] = typer.Option(
+        None,
+        "--scheduler",
+        help="dask scheduler address (tcp://host:8786): its workers solve the columns in chunks, reading FLUX at "
+        "the same path; this process writes OUTPUT. See the docs' cluster page.",
+    ),
+    workers: Optional[int] = typer.Option(None, "--workers", help="A local dask cluster of N one-thread processes."),
+    chunk_facets: int = typer.Option(2000, "--chunk-facets", help="With --scheduler/--workers: facets per task."),
+    chunk_profiles: int = typer.Option(8, "--chunk-profiles", help="With --scheduler/--workers: profiles per task."),
+    resume: bool = typer.Option(
+        False, "--resume", help="With --scheduler/--workers: keep the finished chunks of an interrupted replay."
+    ),
 ) -> None:
     """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
-    from crater_thermal import api
+    from crater_thermal import api, cluster
+    from crater_thermal.errors import Interrupted
     from crater_thermal.progress import reporter
 
-    api.replay(
-        flux,
-        profile,
-        density_grid=density_grid,
-        initial_temperature_K=initial_temperature,
-        fixed_spinup=fixed_spinup,
-        property_set=property_set,
-        allow_inverted=allow_inverted,
-        out=output,
-        overwrite=overwrite,
-        progress=reporter(progress),
-    ).close()
+    try:
+        ds = api.replay(
+            flux,
+            profile,
+            density_grid=density_grid,
+            initial_temperature_K=initial_temperature,
+            fixed_spinup=fixed_spinup,
+            property_set=property_set,
+            allow_inverted=allow_inverted,
+            out=output,
+            overwrite=overwrite,
+            progress=reporter(progress),
+            scheduler=scheduler,
+            workers=workers,
+            chunk_facets=chunk_facets,
+            chunk_profiles=chunk_profiles,
+            resume=resume,
+        )
+    except Interrupted as exc:
+        folder = cluster.chunk_folder(output)
+        if folder.exists():
+            exc.hint = f"finished chunks kept in {folder}: run the same command with --resume to continue"
+        raise
+    if "replay_chunks" in ds.attrs:
+        n, kept = int(ds.attrs["replay_chunks"]), int(ds.attrs["replay_chunks_resumed"])
+        typer.echo(f"chunks: {n} ({kept} resumed, {n - kept} computed)")
+    ds.close()
     typer.echo(f"wrote {output}")
 
 

@@ -1,1 +1,328 @@
-"""(being written: issue cluster)."""
+"""A replay on a dask.distributed cluster: (profile x facet) columns in chunks, solved by workers.
+
+Each chunk (a block of facets x a block of profiles) is one dask task, a pure function of the flux
+store's path, the chunk's facet range, its profiles and the options: the worker opens the flux store
+by path (so every worker must be able to read it at that path: a shared filesystem), replays the
+chunk's columns with :func:`crater_thermal.simulate.replay_fluxes` and returns the float32 surface
+temperatures to the client. The client saves each chunk as it arrives, atomically, in the chunk
+folder ``OUT.chunks/`` beside the output (workers write nothing), then assembles the chunks into the
+same replay dataset a local replay writes and removes the folder.
+
+Each column's periodic start converges on its own (``thermal.periodic_state(per_column=True)``) and
+its equilibrium estimate sums the samples in the same order whatever the batch, so a column's
+temperatures do not depend on which chunk it is in: the assembled replay equals a local one.
+
+A worker that fails or is lost mid-task has its task re-run by the scheduler (``retries`` for errors
+raised by the task; lost workers are rescheduled by dask itself). A client that is killed leaves its
+finished chunks and the folder's fingerprint (inputs, profiles, options, chunking); the same command
+with ``resume=True`` (``--resume``) keeps them and computes only the others.
+
+dask is imported only here, inside the functions that need it; a local replay never imports it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from crater_thermal import io, runner, simulate
+from crater_thermal.errors import ConfigError, OutputExistsError
+from crater_thermal.extras import missing_extra
+
+#: Seconds to wait for a dask scheduler to answer before giving up [s].
+CONNECT_TIMEOUT_S = 10.0
+#: Default facets per chunk (one dask task).
+CHUNK_FACETS = 2000
+#: Default profiles per chunk (one dask task).
+CHUNK_PROFILES = 8
+
+
+def connect(scheduler: str | None = None, workers: int | None = None):
+    """A dask.distributed client: of the scheduler at ``scheduler`` (``tcp://host:8786``), or of a new
+    local cluster of ``workers`` processes with one thread each.
+
+    Returns
+    -------
+    (client, cluster) : the cluster is None for a remote scheduler (the caller closes both).
+
+    Raises
+    ------
+    MissingExtraError
+        dask.distributed is not installed.
+    ConfigError
+        The scheduler does not answer within :data:`CONNECT_TIMEOUT_S`, or ``workers`` < 1.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise missing_extra(
+            "dask.distributed", "distributed", "replays on a dask cluster (--scheduler, --workers)"
+        ) from None
+    if scheduler:
+        try:
+            return Client(scheduler, timeout=CONNECT_TIMEOUT_S), None
+        except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, timed out, malformed
+            reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+            raise ConfigError(
+                f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
+                "(dask scheduler) or leave out --scheduler"
+            ) from None
+    cluster = LocalCluster(
+        n_workers=int(workers),
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        scheduler_kwargs={"dashboard_address": ":0"},  # its HTTP endpoints on a free port, not 8787
+        silence_logs=logging.ERROR,  # not dask's warnings about the tasks an interrupted command cancels
+    )
+    return Client(cluster), cluster
+
+
+def chunk_folder(output) -> Path:
+    """The folder of an unfinished distributed replay's chunks: ``OUT.chunks`` beside ``output``."""
+    return Path(str(output) + ".chunks")
+
+
+def chunk_path(folder, fb: int, pb: int) -> Path:
+    """The saved result of chunk (facet block ``fb``, profile block ``pb``) in ``folder``."""
+    return Path(folder) / f"chunk_f{fb:05d}_p{pb:04d}.npz"
+
+
+def solve_chunk(flux_path: str, profiles: list, f0: int, f1: int, options: dict):
+    """Replay facets ``f0:f1`` of the flux store at ``flux_path`` against ``profiles``. Runs on a worker.
+
+    The conduction kernels run on one thread (the worker's threads are the parallelism, as dask sets
+    one BLAS/OpenMP thread per worker thread).
+
+    Returns
+    -------
+    T : (len(profiles), n_times, f1 - f0) float32 surface temperatures [K]
+    info : dict (start, periodic iterations and residuals [K] of the chunk's batches)
+    """
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    ds = io.read_flux_dataset(flux_path, load=False)
+    try:
+        return simulate.replay_fluxes(ds.isel(facet=slice(f0, f1)), profiles, progress=None, **options)
+    finally:
+        ds.close()
+        numba.set_num_threads(threads)
+
+
+def _fingerprint(flux_path, profiles, options, facet_block, profile_block) -> str:
+    st = os.stat(flux_path)
+    text = json.dumps(
+        [
+            str(Path(flux_path).resolve()),
+            st.st_size,
+            st.st_mtime_ns,
+            [repr(p) for p in profiles],
+            options,
+            facet_block,
+            profile_block,
+        ],
+        sort_keys=True,
+    )
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _open_chunk_folder(folder: Path, fp: str, output, resume: bool, overwrite: bool) -> None:
+    """Keep (``resume``, same fingerprint), discard (``overwrite``) or refuse an earlier chunk folder;
+    leave ``folder`` existing with this replay's fingerprint."""
+    stamp = folder / "fingerprint.json"
+    if folder.exists():
+        try:
+            same = json.loads(stamp.read_text()).get("fingerprint") == fp
+        except (OSError, ValueError):
+            same = False
+        if resume and not same:
+            if not overwrite:
+                raise ConfigError(
+                    f"{folder} holds chunks of a different replay (other flux file, profiles, options or "
+                    "chunking): repeat that replay's command, or pass --overwrite to discard them"
+                )
+            shutil.rmtree(folder)
+        elif not resume:
+            if not overwrite:
+                raise OutputExistsError(
+                    f"{folder} holds an unfinished replay of output {output}: pass --resume to continue it, or "
+                    "--overwrite to discard it and start again"
+                )
+            shutil.rmtree(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if not stamp.exists():
+        tmp = stamp.with_name(".fingerprint.json.tmp")
+        tmp.write_text(json.dumps({"fingerprint": fp, "output": str(output)}))
+        os.replace(tmp, stamp)
+
+
+def _save_chunk(path: Path, T, info) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, T=np.asarray(T, np.float32), info=json.dumps(info))
+    os.replace(tmp, path)
+
+
+def replay_file(
+    flux_path,
+    labels,
+    *,
+    output,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    density_grid=None,
+    initial_temperature=None,
+    fixed_spinup=False,
+    property_set=None,
+    allow_inverted=False,
+    overwrite=False,
+    resume=False,
+    progress=None,
+    chunk_facets: int = CHUNK_FACETS,
+    chunk_profiles: int = CHUNK_PROFILES,
+    retries: int = 3,
+):
+    """``crater-thermal replay --scheduler/--workers``: the replay of :func:`runner.replay_file`, its
+    columns solved in chunks of ``chunk_facets`` facets x ``chunk_profiles`` profiles on a dask cluster.
+
+    Parameters
+    ----------
+    flux_path : path of the run or flux dataset; every worker must read it at this path.
+    labels, density_grid, initial_temperature, fixed_spinup, property_set, allow_inverted, overwrite :
+        as :func:`runner.replay_file` (``initial_temperature`` [K]).
+    output : path of the replay dataset (netCDF), written by the client.
+    scheduler : address of a dask scheduler (``tcp://host:8786``); or
+    workers : the number of one-thread worker processes of a local cluster.
+    resume : keep the finished chunks of an interrupted call with the same inputs, profiles, options
+        and chunking (``OUT.chunks/``) and compute only the others.
+    progress : optional reporter (:mod:`crater_thermal.progress`), in chunks.
+    chunk_facets, chunk_profiles : size of one task (chunk); its result is
+        ``chunk_profiles x n_times x chunk_facets x 4`` bytes.
+    retries : times the scheduler re-runs a task that raised before giving up.
+
+    Returns
+    -------
+    Path of the written replay; its attributes ``replay_chunks`` and ``replay_chunks_resumed`` count
+    the chunks and those kept from an interrupted call. The temperatures equal a local replay's bit
+    for bit.
+    """
+    if scheduler is None and workers is None:
+        raise ConfigError("a replay on dask needs a scheduler address or a number of local workers")
+    if scheduler is None and int(workers) < 1:
+        raise ConfigError(f"--workers {workers}: need at least 1 worker process")
+    if int(chunk_facets) < 1 or int(chunk_profiles) < 1:
+        raise ConfigError(
+            f"--chunk-facets {chunk_facets} / --chunk-profiles {chunk_profiles}: chunks need at least 1 of each"
+        )
+    io.check_output(output, overwrite, inputs=[flux_path])
+    output = Path(output)
+    with io.output_lock(output):
+        if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
+            raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
+        profiles = runner.resolve_profiles(labels, density_grid, allow_inverted)
+        options = {"initial_temperature": initial_temperature, "fixed_spinup": bool(fixed_spinup)}
+        if property_set is not None:
+            options["property_set"] = property_set
+        ds = io.read_flux_dataset(flux_path, load=False)
+        try:
+            nf, npf = ds.sizes["facet"], len(profiles)
+            fb, pb = int(chunk_facets), int(chunk_profiles)
+            chunks = [
+                (i, j, f0, min(nf, f0 + fb), p0, min(npf, p0 + pb))
+                for i, f0 in enumerate(range(0, nf, fb))
+                for j, p0 in enumerate(range(0, npf, pb))
+            ]
+            folder = chunk_folder(output)
+            fp = _fingerprint(flux_path, profiles, options, fb, pb)
+            _open_chunk_folder(folder, fp, output, resume, overwrite)
+            todo = [c for c in chunks if not chunk_path(folder, c[0], c[1]).exists()]
+            try:
+                if todo:
+                    _compute(flux_path, profiles, options, todo, folder, fp, scheduler, workers, retries, progress)
+            except BaseException:
+                if not any(folder.glob("chunk_*.npz")):  # nothing finished: nothing to resume
+                    shutil.rmtree(folder, ignore_errors=True)
+                raise
+            _assemble(ds, profiles, chunks, folder, output, overwrite, initial_temperature, len(chunks) - len(todo))
+        finally:
+            ds.close()
+    shutil.rmtree(folder, ignore_errors=True)
+    return output
+
+
+def _compute(flux_path, profiles, options, todo, folder, fp, scheduler, workers, retries, progress) -> None:
+    """Solve the chunks ``todo`` on the cluster, saving each result in ``folder`` as it arrives."""
+    client, cluster = connect(scheduler, workers)
+    try:
+        from distributed import KilledWorker, as_completed  # present: connect imported distributed
+
+        futures = {
+            client.submit(
+                solve_chunk,
+                str(flux_path),
+                profiles[p0:p1],
+                f0,
+                f1,
+                options,
+                key=f"crater-thermal-replay-{fp}-f{i}-p{j}",
+                retries=retries,
+                pure=False,
+            ): chunk_path(folder, i, j)
+            for i, j, f0, f1, p0, p1 in todo
+        }
+        with simulate.stage(progress, f"replay on dask ({len(todo)} chunks)") as report:
+            for done, fut in enumerate(as_completed(futures), 1):
+                try:
+                    T, info = fut.result()
+                except KilledWorker:
+                    raise ConfigError(
+                        f"dask gave up {futures[fut].stem}: the workers that ran it died (out of memory? see "
+                        "their logs); smaller --chunk-facets/--chunk-profiles need less memory per worker; run "
+                        "again with --resume to keep the finished chunks"
+                    ) from None
+                _save_chunk(futures[fut], T, info)
+                fut.release()  # the worker may drop the chunk's result now
+                del T
+                if report is not None:
+                    report(done, len(todo))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _assemble(ds, profiles, chunks, folder, output, overwrite, initial_temperature, resumed) -> None:
+    """Write the replay dataset from the saved chunks (the same schema a local replay writes)."""
+    nf, nt, npf = ds.sizes["facet"], ds.sizes["time"], len(profiles)
+    tops, bottoms = zip(*(simulate.profile_densities(p) for p in profiles))
+    skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
+    variables = {"surface_temperature": (("profile", "time", "facet"), (npf, nt, nf), {"units": "K"}, "f4")}
+    iters, resid, start = [], [], None
+    with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK) as stream:
+        for i, j, f0, f1, p0, p1 in chunks:
+            with np.load(chunk_path(folder, i, j)) as z:
+                info = json.loads(str(z["info"]))
+                stream("surface_temperature", (slice(p0, p1), slice(0, nt), slice(f0, f1)), z["T"])
+            start = info["start"]
+            iters += info["periodic_iterations"]
+            resid += info["periodic_residual_K"]
+        stream.set_attrs(
+            {
+                "replay_start": start,
+                "periodic_iterations": iters or None,
+                "periodic_residual_K": resid or None,
+                "initial_temperature_K": initial_temperature,
+                "ir_assumption": "saved nominal IR (thesis 7.2)",
+                "replay_chunks": len(chunks),
+                "replay_chunks_resumed": resumed,
+            }
+        )

@@ -128,6 +128,8 @@ def replay_fluxes(
         the record itself when the file has no spin-up fluxes).
     fixed_spinup : with no ``initial_temperature``: start from the equilibrium estimate and run the
         spin-up window once (the fixed spin-up of a run made with ``spinup = "fixed"``).
+        The periodic start tests convergence column by column (``thermal.periodic_state``
+        ``per_column``), so a column's result does not depend on the batching.
     write : ``write(profiles_slice, times_slice, facets_slice, T)`` receives float32 surface
         temperatures [K] of shape (profiles, times, facets); None: return them all.
     progress : optional ``progress(done, total)`` callback, in column-batch time steps (the total
@@ -182,7 +184,9 @@ def replay_fluxes(
                     batch.window(solver, "spin")
             else:
                 solver.set_equilibrium(surface_K=eq)
-                pinfo = thermal.periodic_state(solver, batch.period_map(solver, spin_which), tol_K=tol_K)
+                pinfo = thermal.periodic_state(
+                    solver, batch.period_map(solver, spin_which), tol_K=tol_K, per_column=True
+                )
                 info["periodic_iterations"].append(int(pinfo["iterations"]))
                 info["periodic_residual_K"].append(float(np.max(pinfo["residual_K"])))
             batch.window(solver, "rec", _ReplayRecorder(write, p0, len(chunk), f0, f1))
@@ -253,15 +257,16 @@ class _ReplayForcing:
         return absorbed_solar_of(self.ds, sol, slice(k0, k1), cols) + self.eps * self.ds[ir][k0:k1, cols].values
 
     def equilibrium_surface(self, solver, which: str) -> np.ndarray:
-        """The columns' equilibrium surface temperature [K], time-averaged over the window ``which``."""
+        """The columns' equilibrium surface temperature [K], time-averaged over the window ``which``.
+
+        The samples are summed one after the other whatever the size of the blocks read, so that the
+        estimate (a column's start) does not depend on how many columns share the batch."""
         n, rows = len(self.t[which]), self.rows
-        return (
-            sum(
-                solver.equilibrium_surface(self.absorbed(which, a, min(n, a + rows))) * (min(n, a + rows) - a)
-                for a in range(0, n, rows)
-            )
-            / n
-        )
+        total = 0.0
+        for a in range(0, n, rows):
+            for q in solver.equilibrium_surface_samples(self.absorbed(which, a, min(n, a + rows))):
+                total = total + q
+        return total / n
 
     def window(self, solver, which: str, record_into=None) -> None:
         """Run the columns through a window block by block (blocks overlap by one sample)."""

@@ -494,9 +494,14 @@ class ColumnSolver:
         """Time mean of ((absorbed + G) / (eps sigma))^1/4 [K] per forcing column of an absorbed-flux
         series (nt, n) [W m-2]; the surface of :meth:`equilibrium_profile`. Means of consecutive blocks
         of a long series, weighted by their lengths, give the same estimate without holding it whole."""
+        return np.mean(self.equilibrium_surface_samples(absorbed), axis=0)
+
+    def equilibrium_surface_samples(self, absorbed) -> np.ndarray:
+        """((absorbed + G) / (eps sigma))^1/4 [K] of every sample (nt, n) of an absorbed-flux series
+        (nt, n) [W m-2]: the terms of :meth:`equilibrium_surface`'s mean."""
         a = np.asarray(absorbed, dtype=np.float64)
         es = max(self.emissivity, 1e-3) * SIGMA
-        return np.mean(((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es) ** 0.25, axis=0)
+        return ((np.maximum(a, 0.0) + max(self.geothermal_flux, 0.0)) / es) ** 0.25
 
     def equilibrium_profile(self, absorbed=None, surface_K=None) -> np.ndarray:
         """Equilibrium estimate (ncol, nz) [K] from an absorbed-flux series (nt, ncol or divisor).
@@ -733,6 +738,7 @@ def periodic_state(
     max_iter: int = 30,
     chunk: int = 4096,
     anderson: bool = True,
+    per_column: bool = False,
 ) -> dict:
     """Find the periodic steady state x = period_map(x) and leave the solver in it.
 
@@ -756,6 +762,12 @@ def periodic_state(
     anderson : bool
         Per-column Anderson(1) mixing of successive quasi-Newton steps (default True; saves one
         of ~5 iterations in about half the cases measured, never cost one).
+    per_column : bool
+        Test convergence column by column and freeze a converged column at its start state (its
+        map is then re-run from the same state, so it keeps its converged result) while the others
+        iterate (default False). Only valid when ``period_map`` is column-separable (a replay: no
+        coupling between columns); it makes each column's result independent of which other
+        columns share its batch (a distributed replay in chunks equals a local one bit for bit).
 
     Returns
     -------
@@ -775,6 +787,7 @@ def periodic_state(
     res = np.full(solver.ncol, np.inf)
     converged = False
     y = x
+    frozen = np.zeros(solver.ncol, bool)
     for it in range(1, max_iter + 1):
         solver.reset_accumulators()
         y = np.asarray(period_map(x), dtype=float)
@@ -807,7 +820,12 @@ def periodic_state(
         # converged: the period map moves the state by <= tol_K and the predicted distance to
         # the fixed point (the quasi-Newton step) is <= tol_K too (a small residual alone can
         # hide a slow deep mode: its residual is (1 - g) times its distance, g ~ 0.99 per year)
-        if history[-1] <= tol_K and step_hist[-1] <= tol_K:
+        if per_column:
+            frozen |= (res <= tol_K) & (step <= tol_K)
+            if frozen.all():
+                converged = True
+                break
+        elif history[-1] <= tol_K and step_hist[-1] <= tol_K:
             converged = True
             break
         x_new = x + dx
@@ -821,7 +839,8 @@ def periodic_state(
             gam = np.clip(gam, -2.0, 2.0)
             x_new = x_new - gam[:, None] * ((x - x_old) + df)
         prev = (x, dx)
-        x = np.maximum(x_new, 2.0)
+        x_new = np.maximum(x_new, 2.0)
+        x = np.where(frozen[:, None], x, x_new) if per_column else x_new
     solver.set_state(y)
     solver.time_s = t_start
     return {

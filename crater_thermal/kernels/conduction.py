@@ -354,11 +354,19 @@ def _run_batch(
     refine = np.zeros(nl, np.int64)
     st = np.zeros(nl, np.int64)
     fail = np.full(nl, -1, np.int64)
-    e_abs = np.zeros(nl)
-    e_emit = np.zeros(nl)
-    a_h = np.zeros(nl)
-    a_time = 0.0
-    nsteps = np.zeros(nl)
+    # the accumulators continue the columns' sums step after step (not a per-call sum added at the
+    # end), so that they do not depend on how a series was cut into calls (a replay's time blocks)
+    e_abs = np.empty(nl)
+    e_emit = np.empty(nl)
+    a_h = np.empty(nl)
+    a_time = np.empty(nl)
+    nsteps = np.empty(nl)
+    for j in range(nl):
+        e_abs[j] = acc[c0 + j, 0]
+        e_emit[j] = acc[c0 + j, 1]
+        a_h[j] = acc[c0 + j, 2]
+        a_time[j] = acc[c0 + j, 3]
+        nsteps[j] = acc[c0 + j, 4]
     if record:
         for j in range(nl):
             out[0, c0 + j] = Tb[0, j]
@@ -473,7 +481,8 @@ def _run_batch(
                     t0 = Tb[0, j]
                     a_h[j] += dt * 4.0 * es * t0 * t0 * t0
                     nsteps[j] += 1
-            a_time += dt
+            for j in range(nl):
+                a_time[j] += dt
         bad = False
         for j in range(nl):
             if st[j] == OK:
@@ -497,11 +506,11 @@ def _run_batch(
                 T[c, i] = Tb[i, j]
         status[c] = st[j]
         fail_idx[c] = fail[j]
-        acc[c, 0] += e_abs[j]
-        acc[c, 1] += e_emit[j]
-        acc[c, 2] += a_h[j]
-        acc[c, 3] += a_time
-        acc[c, 4] += nsteps[j]
+        acc[c, 0] = e_abs[j]
+        acc[c, 1] = e_emit[j]
+        acc[c, 2] = a_h[j]
+        acc[c, 3] = a_time[j]
+        acc[c, 4] = nsteps[j]
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -544,7 +553,7 @@ def run_columns(
     equal parts (error / 16). Decided per column: results never depend on the batch.
     times : (nt,) [s]; absorbed : (nt, nforce) [W m-2]; fidx : (ncol,) forcing column per column.
     out : (nt, ncol) surface temperatures at the samples (written when ``record``).
-    acc : (ncol, N_ACC) accumulators (added to). status, fail_idx : (ncol,) int64 outputs
+    acc : (ncol, N_ACC) accumulators (continued step by step). status, fail_idx : (ncol,) int64 outputs
     (status code, index of the forcing interval where the column failed or -1).
     """
     nb = (T.shape[0] + LANES - 1) // LANES
