@@ -484,17 +484,6 @@ SCHEMA: Tuple[Key, ...] = (
         "(lagged from 10,000 facets)",
         choices=choices.SPINUP_IR_METHODS,
     ),
-    K(
-        "period",
-        "spinup_coarse_steps",
-        "int",
-        3,
-        "lagged periodic spin-up only: the first windows take every n-th flux sample (n flux steps per "
-        "step) until their periodic state converges, then full-resolution windows converge it to "
-        "`periodic_tol_K`; 1 = every window at full resolution (the plain method)",
-        lo=1,
-        hi=24,
-    ),
     # [steps]
     K(
         "steps",

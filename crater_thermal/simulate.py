@@ -502,11 +502,6 @@ def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> 
 LAGGED_SPINUP_MIN_FACETS = 10_000
 
 
-#: The coarse spin-up windows (``[period] spinup_coarse_steps``) stop at this multiple of the periodic
-#: tolerance; the full-resolution windows after them stop at the tolerance itself.
-COARSE_TOL_FACTOR = 10.0
-
-
 def spinup_ir_method(method: str, F, n_facets: int) -> str:
     """ "coupled" or "lagged": the IR exchange of the periodic spin-up windows for ``[period] spinup_ir``
     ``method`` ("auto" | "coupled" | "lagged"), the operator ``F`` (None: no exchange) and the facet count."""
@@ -546,18 +541,6 @@ def spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
         solver.set_equilibrium(surface_K=window.equilibrium_start())
     years, tol_K = period.spinup_years, period.periodic_tol_K
     if period.spinup == "periodic" and spinup_ir_method(period.spinup_ir, fc.F, fc.mesh.n_facets) == "lagged":
-        coarse = int(getattr(period, "spinup_coarse_steps", 1) or 1)
-        coarse_windows = 0
-        if coarse > 1 and window.set_coarse(coarse):
-            # the coarse windows (every n-th sample) converge the deep state at 1/n of a window's cost, to
-            # COARSE_TOL_FACTOR x the tolerance: their fixed point differs from the full-resolution one by
-            # about 0.1 K anyway, and the full-resolution windows below converge it to the stated tolerance
-            with stage(progress, f"spin-up (periodic state, lagged IR, {coarse}-sample steps)") as report:
-                cinfo = thermal.periodic_state(
-                    solver, window.period_map(window.lagged, report), tol_K=COARSE_TOL_FACTOR * tol_K, anderson=False
-                )
-            coarse_windows = int(cinfo["iterations"])
-            window.set_fine()
         with stage(progress, "spin-up (periodic state, lagged IR)") as report:
             # no Anderson mixing: successive windows have different forcing (the IR moves with them),
             # and mixing their steps cost a window (measured: 7 instead of 6 on a 1,500-facet crater)
@@ -567,14 +550,9 @@ def spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
             f"periodic steady state over {years} yr (tolerance {tol_K} K), "
             "each spin-up window driven by the previous window's IR"
         )
-        if coarse_windows:
-            method += (
-                f"; {coarse_windows} windows on every {coarse} samples' first, then "
-                f"{int(info['iterations'])} at full resolution"
-            )
         return {
             "start_method": method,
-            "iterations": int(info["iterations"]) + coarse_windows,
+            "iterations": int(info["iterations"]),
             "residual": info["residual_K"],
         }, window.ir_end
     if period.spinup == "periodic":
@@ -627,51 +605,6 @@ class _SpinUpWindow:
         self.passes = 0
         self.ir_end = None
         self.lag_in, self.lag_out = None, "lag_ir0"
-        self.fine_t = spin_t
-        #: series of the sunlight driving the window ("drive": the forcing's own, every sample)
-        self.drive = "drive"
-        #: sample indices of the coarse level (None at full resolution)
-        self.index = None
-
-    def _solar(self, a: int, b: int) -> np.ndarray:
-        """Sunlight rows a..b-1 [W m-2] of the current level (coarse rows from the store)."""
-        if self.drive == "drive":
-            return self.fc.rows(self.fc.drive, a, b)
-        return self.fc.store.read(self.drive, a, b)
-
-    def set_coarse(self, every: int) -> bool:
-        """Run the next windows on every ``every``-th sample (and the last): the sunlight of those
-        samples is copied into the store once (series ``coarse_drive``). False (nothing changed) when the
-        window is too short for it or the forcing is not streamed."""
-        if self.fc.store is None or self.n < 4 * every:
-            return False
-        idx = np.unique(np.r_[np.arange(0, self.n, every), self.n - 1])
-        block = self.block
-        for c0 in range(0, len(idx), block):
-            sel = idx[c0 : c0 + block]
-            rows = self.fc.rows(self.fc.drive, int(sel[0]), int(sel[-1]) + 1)[sel - sel[0]]
-            self.fc.store.write("coarse_drive", c0, rows)
-        self.index, self.drive = idx, "coarse_drive"
-        self.t, self.n = self.fine_t[idx], len(idx)
-        self.lag_in, self.lag_out = None, "lagc_ir0"
-        return True
-
-    def set_fine(self) -> None:
-        """Back to every sample: the next (lagged) window is driven by the last coarse window's IR
-        series, interpolated linearly in time to every sample."""
-        idx, tc, coarse_in = self.index, self.t, self.lag_in
-        self.t, self.n, self.drive, self.index = self.fine_t, len(self.fine_t), "drive", None
-        if coarse_in is None:  # no coarse window ran: start as at full resolution
-            self.lag_in, self.lag_out = None, "lag_ir0"
-            return
-        for b0 in range(0, self.n, self.block):
-            k = np.arange(b0, min(self.n, b0 + self.block))
-            j = np.clip(np.searchsorted(idx, k, side="right") - 1, 0, len(idx) - 2)
-            w = ((self.t[k] - tc[j]) / (tc[j + 1] - tc[j]))[:, None]
-            lo, hi = int(j[0]), int(j[-1]) + 2
-            rows = self.fc.store.read(coarse_in, lo, hi)
-            self.fc.store.write("lag_ir0", b0, (1.0 - w) * rows[j - lo] + w * rows[j + 1 - lo])
-        self.lag_in, self.lag_out = "lag_ir0", "lag_ir1"
 
     def equilibrium_start(self) -> np.ndarray:
         """Surface temperatures [K] of the equilibrium start: sunlight plus the IR of a radiative-equilibrium
@@ -735,13 +668,20 @@ class _SpinUpWindow:
         on_step = self._progress(report, expected)
         fc, ns, block = self.fc, self.n, self.block
         if self.lag_in is None:
-            run_window(self.stepper, self.t, self._solar, block, on_ir=self._keep(self.lag_out), on_step=on_step)
-            self.lag_in, self.lag_out = self.lag_out, self.lag_out[:-1] + "1"
+            run_window(
+                self.stepper,
+                self.t,
+                lambda a, b: fc.rows(fc.drive, a, b),
+                block,
+                on_ir=self._keep(self.lag_out),
+                on_step=on_step,
+            )
+            self.lag_in, self.lag_out = self.lag_out, "lag_ir1"
             return
         for b0 in range(0, ns, block):
             b1 = min(ns, b0 + block)
             e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
-            sol = self._solar(b0, e)
+            sol = fc.rows(fc.drive, b0, e)
             ir = fc.store.read(self.lag_in, b0, e)
             T = self.solver.run_series(self.t[b0:e], self.stepper.absorbed(sol, ir), record=True)
             rows = self.stepper.ir_rows(T[: b1 - b0])
@@ -751,7 +691,7 @@ class _SpinUpWindow:
             del sol, ir, T, rows
             if on_step is not None:
                 on_step(e - 1)
-        self.lag_in, self.lag_out = self.lag_out, self.lag_in
+        self.lag_in, self.lag_out = self.lag_out, ("lag_ir1" if self.lag_out == "lag_ir0" else "lag_ir0")
 
     def save_lagged_spin_ir(self) -> None:
         """Save as ``spin_ir`` the IR series the last lagged pass ran with (replays re-run the spin-up from
