@@ -285,6 +285,18 @@ def _step(
         e_emit[j] += dt * es * TRB_QW1 * t1 * t1 * t1 * t1
 
 
+def interleave(a: np.ndarray) -> np.ndarray:
+    """(ncol, k) per-column coefficients as (nb, k, LANES), C-contiguous, batch bi holding columns
+    bi*LANES ... (the layout :func:`run_columns` reads); the last batch is padded with copies of the last
+    column (never written back)."""
+    ncol, k = a.shape
+    nb = (ncol + LANES - 1) // LANES
+    pad = np.empty((nb * LANES, k))
+    pad[:ncol] = a
+    pad[ncol:] = a[ncol - 1] if ncol else 0.0
+    return np.ascontiguousarray(pad.reshape(nb, LANES, k).transpose(0, 2, 1))
+
+
 @njit(cache=True, error_model="numpy")
 def _run_batch(
     bi,
@@ -318,23 +330,18 @@ def _run_batch(
     c0 = bi * LANES
     nl = min(LANES, ncol - c0)
     Tb = np.empty((nz, nl))
-    mb = np.empty((nz, nl))
-    b0b = np.empty((nz - 1, nl))
-    b3b = np.empty((nz - 1, nl))
-    e0b = np.empty((nz - 1, nl))
-    e1b = np.empty((nz - 1, nl))
+    # the batch's coefficients, already interleaved (nz or nz-1, LANES): no copy per call
+    mb = m[bi]
+    b0b = b0[bi]
+    b3b = b3[bi]
+    e0b = e0[bi]
+    e1b = e1[bi]
     anyrock = False
     for j in range(nl):
         if rock[c0 + j] != 0:
             anyrock = True
         for i in range(nz):
             Tb[i, j] = T[c0 + j, i]
-            mb[i, j] = m[c0 + j, i]
-        for i in range(nz - 1):
-            b0b[i, j] = b0[c0 + j, i]
-            b3b[i, j] = b3[c0 + j, i]
-            e0b[i, j] = e0[c0 + j, i]
-            e1b[i, j] = e1[c0 + j, i]
     K = np.empty((nz - 1, nl))
     Cc = np.empty((nz, nl))
     R = np.empty((nz, nl))
@@ -535,7 +542,9 @@ def run_columns(
     Parameters
     ----------
     T : (ncol, nz) float64 [K], updated in place.
-    m : (ncol, nz) [kg m-2]; b0, b3, e0, e1 : (ncol, nz-1); rock : (ncol,) uint8 (1: rock term).
+    m : (nb, nz, LANES) [kg m-2]; b0, b3, e0, e1 : (nb, nz-1, LANES): the columns' coefficients
+    interleaved by batch of :data:`LANES` (:func:`interleave`; nb = ceil(ncol / LANES)), so that a
+    call copies none of them; rock : (ncol,) uint8 (1: rock term).
     ccoef : (5,); ctmin [K]; rdz : (nz-1,) inverse link lengths [m-1]; es = eps sigma
     [W m-2 K-4]; G [W m-2]; scheme : SCHEME_BE or SCHEME_TRBDF2; dt_max [s];
     adapt_K [K]: local-error threshold (TR-BDF2 only; 0 disables). After each sub-step, a column
