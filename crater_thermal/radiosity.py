@@ -234,18 +234,24 @@ class ScatteringSolver:
     def n_facets(self) -> int:
         return self.F.shape[0]
 
-    def _iterate(self, rhs: np.ndarray, B0: np.ndarray | None) -> np.ndarray:
-        """Fixed point ``B <- rhs + A F B`` for rhs (nf, k), from B0 (default: rhs, the first bounce)."""
+    def _iterate(self, rhs: np.ndarray, B0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Fixed point ``B <- rhs + A F B`` for rhs (nf, k), from B0 (default: rhs, the first bounce).
+
+        Returns ``(B, FB)``: the last iterate and the product ``F B'`` of the one before it that formed
+        it (``B = rhs + A FB`` exactly). ``FB`` differs from ``F B`` by at most the row sum times the last
+        change (below :data:`ITERATIVE_RTOL` of the largest exitance), so it serves as the scattered
+        irradiance without one more product."""
         a = self.albedo[:, None]
         B = rhs.copy() if B0 is None else np.array(B0, dtype=float).reshape(rhs.shape)
         scale = max(float(np.abs(rhs).max()), np.finfo(float).tiny)
         for it in range(1, ITERATIVE_MAX + 1):
-            Bn = rhs + a * self.F.matvec(B)
+            FB = np.asarray(self.F.matvec(B)).reshape(rhs.shape)
+            Bn = rhs + a * FB
             change = float(np.abs(Bn - B).max())
             B = Bn
             if change <= ITERATIVE_RTOL * scale:
                 self.iterations = max(self.iterations, it)
-                return B
+                return B, FB
         raise SolverError(
             f"scattered sunlight: the fixed-point solve did not converge in {ITERATIVE_MAX} "
             f"products (last change {change:.3g} W m-2)"
@@ -257,12 +263,18 @@ class ScatteringSolver:
         ``B0`` (same shape): starting guess of the iterative solve (compressed operator only), e.g. the
         previous step's exitance; ignored by the LU and bounce methods.
         """
+        return self._exitance(E_direct, B0)[0]
+
+    def _exitance(self, E_direct: np.ndarray, B0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`exitance` and, from the iterative solve, the scattered irradiance ``F B`` of its last
+        product (same shape; None from the LU and bounce methods)."""
         E = np.asarray(E_direct, dtype=float)
         if E.shape[-1] != self.n_facets or E.ndim not in (1, 2):
             raise ConfigError(f"E_direct has shape {E.shape}; expected ({self.n_facets},) or (nt, {self.n_facets})")
         rhs = (self.albedo * E).T  # (nf,) or (nf, nt)
         if self.n_facets == 0:
-            return np.zeros_like(E)
+            return np.zeros_like(E), None
+        FB = None
         if self.method == "exact" and self._lu is not None:
             B = self._lu.solve(rhs)
         elif self.method == "exact":
@@ -270,12 +282,15 @@ class ScatteringSolver:
             R = rhs.reshape(self.n_facets, -1)
             G = None if B0 is None else np.asarray(B0, dtype=float).T.reshape(R.shape)
             B = np.zeros_like(R)
+            FB = np.zeros_like(R)
             # samples with no sunlight anywhere (night over the whole mesh) have B = 0 exactly: skipped
             lit = np.flatnonzero(np.any(R != 0.0, axis=0))
             for c in range(0, len(lit), ITERATIVE_BLOCK):
                 cols = lit[c : c + ITERATIVE_BLOCK]
-                B[:, cols] = self._iterate(np.ascontiguousarray(R[:, cols]), None if G is None else G[:, cols])
-            B = B.reshape(rhs.shape)
+                B[:, cols], FB[:, cols] = self._iterate(
+                    np.ascontiguousarray(R[:, cols]), None if G is None else G[:, cols]
+                )
+            B, FB = B.reshape(rhs.shape), FB.reshape(rhs.shape).T
         else:
             # B = sum_{k=0}^{n-1} (A F)^k A E   (n reflections in total)
             B = np.zeros_like(rhs)
@@ -284,7 +299,7 @@ class ScatteringSolver:
                 B = B + term
                 if k + 1 < self.n_bounces:
                     term = self.F.matvec(term) * (self.albedo if rhs.ndim == 1 else self.albedo[:, None])
-        return np.asarray(B).T
+        return np.asarray(B).T, FB
 
     def solar_incident(self, E_direct: np.ndarray) -> np.ndarray:
         """Direct + scattered shortwave irradiance [W m-2].
@@ -301,7 +316,9 @@ class ScatteringSolver:
             at zero (a run's flux file refuses negative irradiance).
         """
         E = np.asarray(E_direct, dtype=float)
-        B = self.exitance(E)
+        B, FB = self._exitance(E, None)
+        if FB is not None:  # the iterative solve's last product is the scattered irradiance (see _iterate)
+            return E + np.maximum(FB, 0.0)
         if E.ndim == 1:
             return E + np.maximum(np.asarray(self.F.matvec(B)), 0.0)
         Q = E.copy()

@@ -405,6 +405,14 @@ class ColumnSolver:
         self.ccoef = np.asarray(self.pset.c_coeffs, dtype=float)
         self.dz = np.ascontiguousarray(g.dz)
         self.rdz = 1.0 / self.dz
+        self._batched = None
+
+    def _interleaved(self) -> tuple:
+        """The coefficients ``m, b0, b3, e0, e1`` in the kernel's batch layout (``kernels.conduction.interleave``),
+        made once: a call then copies none of them (at 10,000 columns the copies cost as much as one step)."""
+        if self._batched is None:
+            self._batched = tuple(_k.interleave(x) for x in (self.m, self.b0, self.b3, self.e0, self.e1))
+        return self._batched
 
     @property
     def ncol(self) -> int:
@@ -542,12 +550,11 @@ class ColumnSolver:
     def _run(self, times, a, fidx, record, t_offset, out=None, cols=None):
         nt = times.shape[0]
         if cols is None:
-            T, m, b0, b3, e0, e1, rock, acc = self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.acc
+            T, rock, acc = self.T, self.rock, self.acc
+            m, b0, b3, e0, e1 = self._interleaved()
         else:  # a subset of the columns (copies, written back below)
-            T, m, b0, b3, e0, e1, rock, acc = (
-                np.ascontiguousarray(x[cols])
-                for x in (self.T, self.m, self.b0, self.b3, self.e0, self.e1, self.rock, self.acc)
-            )
+            T, rock, acc = (np.ascontiguousarray(x[cols]) for x in (self.T, self.rock, self.acc))
+            m, b0, b3, e0, e1 = (_k.interleave(x[cols]) for x in (self.m, self.b0, self.b3, self.e0, self.e1))
         ncol = T.shape[0]
         if out is None:
             out = np.empty((nt, ncol)) if record else np.empty((1, 1))
