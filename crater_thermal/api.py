@@ -641,6 +641,7 @@ def invert(
     refine: int = 4,
     natural_scatter_K: Optional[float] = None,
     offset_K: float = 0.0,
+    model_error_K: Union[str, float] = "auto",
     output: Optional[PathLike] = None,
     overwrite: bool = False,
     max_offset_m: Optional[float] = None,
@@ -668,6 +669,10 @@ def invert(
     offset_K : float [K]
         1-sigma calibration offset (at the instrument's reference temperature), shared by a footprint's
         samples and marginalized; 0: none.
+    model_error_K : ``"auto"`` or float [K]
+        Interpolation (model) error between grid densities in the likelihood: ``"auto"`` estimates it from
+        the grid (leave one node out, :meth:`crater_thermal.inversion.ForwardModel.model_error_levers`),
+        a number is a white 1-sigma error per sample [K], 0 takes the interpolation as exact.
     output : path-like, optional
         Write the posterior there (netCDF, atomically); then the written dataset is returned.
     overwrite : bool
@@ -766,6 +771,7 @@ def invert(
         refine=refine,
         natural_scatter_K=scatter,
         offset_K=offset_K,
+        model_error_K=model_error_K,
     )
     if output is None:
         return post
@@ -775,6 +781,14 @@ def invert(
         "refine": int(refine),
         "natural_scatter_K": scatter,
         "offset_K": float(offset_K),
+        "model_error": (
+            "auto: density-interpolation error estimated from the grid, leave one node out (each interior node "
+            "interpolated from its neighbours at double spacing along top, bottom and the diagonal, the residual "
+            "scaled by 1/4 to the grid's spacing; covariance twice the sum of the mean outer products over the "
+            "nodes, correlated over a footprint's samples); variable model_error_K: its rms 1-sigma per footprint"
+            if isinstance(model_error_K, str)
+            else f"{float(model_error_K):g} K white (per sample) 1-sigma added to the noise"
+        ),
         "noise_model": "white NETD(T)^2 (1/n + t_int/knee) per sample (or sigma_K); natural scatter, calibration "
         "offset and gain shared by a footprint's samples, marginalized (crater_thermal.inversion)",
         "run": str(run),

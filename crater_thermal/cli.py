@@ -728,6 +728,12 @@ def invert(
         "--offset-k",
         help="1-sigma calibration offset [K] at the instrument's reference temperature, marginalized (default 0).",
     ),
+    model_error: str = typer.Option(
+        "auto",
+        "--model-error-k",
+        help="Interpolation error between grid densities [K]: auto (estimated from the grid, leave one node "
+        "out, correlated over a footprint's samples), or a 1-sigma per sample in K (0: interpolation exact).",
+    ),
     max_offset_m: Optional[float] = typer.Option(
         None, "--max-offset-m", help="Farthest an x_m/y_m position may lie from its facet [m] (default: 2 facet sizes)."
     ),
@@ -742,6 +748,13 @@ def invert(
     """
     from crater_thermal import api
 
+    if model_error != "auto":
+        from crater_thermal.errors import ConfigError
+
+        try:
+            model_error = float(model_error)
+        except ValueError:
+            raise ConfigError(f"--model-error-k {model_error}: give 'auto' or a number of kelvin (e.g. 0.05)") from None
     ds = api.invert(
         run,
         grid_replay,
@@ -752,6 +765,7 @@ def invert(
         prior=prior,
         natural_scatter_K=natural_scatter,
         offset_K=offset_k,
+        model_error_K=model_error,
         output=output,
         overwrite=overwrite,
         max_offset_m=max_offset_m,

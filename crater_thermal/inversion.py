@@ -340,6 +340,61 @@ class ForwardModel:
             inside[idx] = True
         return prof, wt, inside
 
+    # -- model (interpolation) error ------------------------------------------------------------
+    @functools.cached_property
+    def _second_differences(self) -> list[np.ndarray]:
+        """Per direction (top, bottom, diagonal) the (K_d, n_profile) stencils ``(T_- - 2 T_0 + T_+) / 8``
+        of every grid node whose two neighbours along that direction are profiles of the grid."""
+        P = self.node_profile
+        nt, nb = P.shape
+        out = []
+        for di, dj in ((1, 0), (0, 1), (1, 1)):
+            rows = []
+            for i in range(di, nt - di):
+                for j in range(dj, nb - dj):
+                    a, b, c = P[i - di, j - dj], P[i, j], P[i + di, j + dj]
+                    if min(a, b, c) < 0:
+                        continue
+                    r = np.zeros(self.T.shape[0])
+                    r[a], r[b], r[c] = 0.125, -0.25, 0.125
+                    rows.append(r)
+            if rows:
+                out.append(np.array(rows))
+        return out
+
+    def model_error_levers(self, times, facets, facet_weight=None) -> np.ndarray:
+        """Columns ``V_m`` (n, q) [K] of the density-interpolation error covariance ``V_m V_m^T`` of n samples.
+
+        Estimated from the grid itself, leave one node out: each interior node's temperature is
+        interpolated from its two neighbours at double spacing (along top, bottom and the diagonal);
+        the residual ``T_0 - (T_- + T_+) / 2 = -D / 2`` (``D`` the second difference), scaled to the grid's
+        spacing by 1/4 (linear interpolation error grows as the spacing squared), is ``D / 8``: the largest
+        error of a linear interpolation over one grid step, at the cell's centre. The covariance is twice
+        the sum over the three directions of the mean outer product of these residual time series over
+        the grid's nodes (twice: a bilinear cell's centre error ``(D_t + D_b) / 8`` has a second moment
+        <= 2 (D_t^2 + D_b^2) / 64). Conservative: the cell-centre (largest) error, kept correlated over the
+        samples as the error of one density is (one set of coefficients per footprint). Mixed samples mix
+        the residuals with the facet weights (linear in temperature: the error is small).
+
+        Parameters
+        ----------
+        times : (n,) datetime64; facets : (n,) or (n, k) int; facet_weight : (n, k) float or None.
+
+        Returns
+        -------
+        (n, q) float [K], q <= n (compressed by SVD; q = 0 for a grid without three nodes in a line).
+        """
+        fac = np.asarray(facets, np.int64)
+        fac = fac[:, None] if fac.ndim == 1 else fac
+        w = np.full(fac.shape, 1.0 / fac.shape[1]) if facet_weight is None else np.asarray(facet_weight, float)
+        Tp = sum(w[:, j : j + 1] * self.profile_temperatures(times, fac[:, j]) for j in range(fac.shape[1]))
+        cols = [Tp @ S.T * math.sqrt(2.0 / S.shape[0]) for S in self._second_differences]
+        if not cols:
+            return np.zeros((fac.shape[0], 0))
+        u, sv, _ = np.linalg.svd(np.concatenate(cols, axis=1), full_matrices=False)
+        keep = sv > 1e-9 * max(float(sv[0]), 1e-30)
+        return u[:, keep] * sv[keep]
+
     # -- time interpolation ----------------------------------------------------------------------
     def _time_index(self, times) -> tuple[np.ndarray, np.ndarray]:
         ts = (np.asarray(times, "datetime64[ns]") - self.times[0]).astype(np.int64) / 1e9
@@ -478,6 +533,9 @@ class Posterior:
     prior : (n_top, n_bottom) float          prior mass per node (sums to 1).
     log_evidence : (n_fp,) float             log of the marginal likelihood (up to the prior's node count).
     loose_bottom_kg_m3 : float [kg m-3]     threshold of ``p_loose``.
+    n_samples : (n_fp,) int                  samples per footprint.
+    model_error_K : (n_fp,) float [K]        rms over the footprint's samples of the model (interpolation)
+                                            error's 1-sigma used in the likelihood.
     """
 
     footprint: np.ndarray
@@ -488,6 +546,8 @@ class Posterior:
     log_evidence: np.ndarray
     loose_bottom_kg_m3: float = LOOSE_BOTTOM_KG_M3
     n_samples: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: (n_fp,) rms over a footprint's samples of the model-error 1-sigma in the likelihood [K]
+    model_error_K: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def marginal_top(self) -> np.ndarray:
@@ -696,6 +756,7 @@ def invert(
     refine: int = DEFAULT_REFINE,
     natural_scatter_K: float = ins.NATURAL_SCATTER_K,
     offset_K: float = 0.0,
+    model_error_K: Union[str, float] = "auto",
     independent: bool = False,
     validate: bool = True,
 ) -> Posterior:
@@ -713,6 +774,10 @@ def invert(
     natural_scatter_K : float [K]  footprint natural scatter (shared by the footprint's samples).
     offset_K : float [K]           1-sigma calibration offset, in K at the instrument's ``t_ref_K``
         (a radiance offset; shared by a footprint's samples). 0: none.
+    model_error_K : ``"auto"`` or float [K]   the forward model's interpolation error between grid
+        densities. ``"auto"``: estimated from the grid (:meth:`ForwardModel.model_error_levers`: leave one
+        node out, correlated over a footprint's samples); a number: a white (per sample) error of that
+        1-sigma size added to every sample's variance; 0: none (the grid interpolation taken as exact).
     independent : bool             treat samples as independent (overconfident; for comparison only).
 
     Returns
@@ -722,9 +787,14 @@ def invert(
     inst = _resolve_instrument(instrument, obs)
     if validate:
         obs.validate(forward.times, forward.n_facets)
-    for key, v in (("natural_scatter_K", natural_scatter_K), ("offset_K", offset_K)):
+    auto = isinstance(model_error_K, str)
+    if auto and model_error_K != "auto":
+        raise ConfigError(f"model_error_K={model_error_K!r} unknown; allowed: 'auto' or a number >= 0 [K]")
+    me = 0.0 if auto else float(model_error_K)
+    for key, v in (("natural_scatter_K", natural_scatter_K), ("offset_K", offset_K), ("model_error_K", me)):
         if not (math.isfinite(v) and v >= 0):
             raise ConfigError(f"{key}={v} out of range [0, inf)")
+    extra_white = me**2
     if not (math.isfinite(loose_bottom_kg_m3) and loose_bottom_kg_m3 > 0):
         raise ConfigError(f"loose_bottom_kg_m3={loose_bottom_kg_m3} out of range (0, inf)")
     ta, ba = forward.density_axes(refine)
@@ -741,11 +811,19 @@ def invert(
     prob = np.zeros((fps.size, ta.size * ba.size))
     log_ev = np.zeros(fps.size)
     counts = np.diff(bounds)
+    me_rms = np.zeros(fps.size)
     for f in range(fps.size):
         idx = order[bounds[f] : bounds[f + 1]]
         m = _mix(forward, obs.time[idx], obs.facet[idx], obs.facet_weight[idx], Wd, inst.band)
         y_ref = obs.T_b_K[idx][:, None]  # the covariance at the measurements (module docstring)
         white, levers = noise_model(y_ref, obs, idx, inst, natural_scatter_K=natural_scatter_K, offset_K=offset_K)
+        if auto:
+            vm = forward.model_error_levers(obs.time[idx], obs.facet[idx], obs.facet_weight[idx])
+            levers = np.concatenate([levers, vm[:, None, :]], axis=2)
+            me_rms[f] = math.sqrt(float(np.mean(np.sum(vm**2, axis=1))))
+        else:
+            white = white + extra_white
+            me_rms[f] = math.sqrt(extra_white)
         ll = log_likelihood(obs.T_b_K[idx], m, white, levers, independent=independent) + log_prior
         top = ll.max()
         p = np.exp(ll - top)
@@ -761,6 +839,7 @@ def invert(
         log_evidence=log_ev,
         loose_bottom_kg_m3=float(loose_bottom_kg_m3),
         n_samples=counts,
+        model_error_K=me_rms,
     )
 
 

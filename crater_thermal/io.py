@@ -1174,7 +1174,7 @@ def write_posterior(
     ``bottom_kg_m3``). Variables: ``probability(footprint, top, bottom)`` (posterior mass per node),
     ``prior(top, bottom)``, ``marginal_top``, ``marginal_bottom``, ``p_loose`` (P(bottom < threshold)),
     ``map_top_kg_m3``/``map_bottom_kg_m3``, ``mean_*``, ``sd_*``, ``correlation``, ``credible_90``
-    (bool mask of the 90 % highest-posterior region), ``log_evidence``, ``n_samples``, ``degeneracy``
+    (bool mask of the 90 % highest-posterior region), ``log_evidence``, ``n_samples``, ``model_error_K``, ``degeneracy``
     (one sentence per footprint), and ``facet`` (footprint): the facet at the centre of all of a footprint's
     samples, -1 where their centres differ (``footprint_facet``; all -1 when not given), which maps the footprints
     (``crater-thermal export posterior.nc --run run.nc --variable p_loose``). ``attrs`` (prior,
@@ -1210,6 +1210,11 @@ def write_posterior(
         "credible_90": (("footprint", "top", "bottom"), post.credible_region(0.9).astype(np.int8), {"units": "1"}),
         "log_evidence": (fp, post.log_evidence, {"units": "1"}),
         "n_samples": (fp, np.asarray(post.n_samples, np.int64), {"units": "1"}),
+        "model_error_K": (
+            fp,
+            np.asarray(post.model_error_K, float),
+            {"units": "K", "long_name": "rms over the footprint's samples of the model (interpolation) error 1-sigma"},
+        ),
         "degeneracy": (fp, np.asarray(post.degeneracy(), dtype=str)),
         "facet": (
             fp,
