@@ -348,6 +348,7 @@ def test_cli_invert_writes_posterior(site):
         assert np.all((ds["p_loose"].values >= 0) & (ds["p_loose"].values <= 1))
         assert ds.attrs["instrument"] == "diviner_ch7" and ds.attrs["offset_K"] == 0.5
         assert ds["p_loose"].attrs["threshold_bottom_kg_m3"] == 1500.0
+        assert ds.attrs["model_error"].startswith("auto: ") and np.all(ds["model_error_K"].values > 0)
         # the truth (1300/1300) is loose: the data must lean that way on the observed facet
         assert ds["p_loose"].values[0] > 0.5
     # the P(loose) map: each observed facet's pixel holds its footprint's p_loose, unobserved facets NaN
@@ -412,6 +413,39 @@ def test_cli_wrong_unit_column_and_existing_output(site, tmp_path):
     assert r.returncode == 2 and "--overwrite" in r.stderr
     r = cli("invert", d / "run.nc", d / "run.nc", good, "-o", tmp_path / "p.nc")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_cli_model_error_option(site, tmp_path):
+    """--model-error-k 0.05: a white 0.05 K per sample, stated in the file; the posterior equals the API's with
+    that white term (sigma_K-free rows: the instrument noise plus 0.05^2 on the diagonal, checked against an
+    explicit per-sample sigma_K table: sqrt(NETD^2 (1/n + t_int/knee) + 0.05^2)); a bad value exits 2."""
+    d = site["dir"]
+    obs = tmp_path / "obs.csv"
+    rows = _rows(site)
+    _csv(obs, rows)
+    out = tmp_path / "p.nc"
+    r = cli("invert", d / "run.nc", d / "grid.nc", obs, "-o", out, "--model-error-k", "0.05")
+    assert r.returncode == 0, r.stderr
+    T = np.array([row[2] for row in rows])
+    netd = INST.netd_ref_K * float(ins.band_radiance_derivative(INST.t_ref_K, INST.band)) / ins.band_radiance_derivative(
+        T, INST.band
+    )
+    per = 1.0 / ins.n_samples(DWELL_S, INST.integration_s) + INST.integration_s / INST.knee_s
+    sig = np.sqrt(netd**2 * per + 0.05**2)
+    lines = ["time,facet,brightness_temperature_K,dwell_s,footprint,sigma_K"]
+    lines += [f"{t},{f},{Tb},{dw},{fp},{sg:.17g}" for (t, f, Tb, dw, fp), sg in zip(rows, sig)]
+    with_sigma = tmp_path / "sigma.csv"
+    with_sigma.write_text("\n".join(lines) + "\n")
+    ref = ct.invert(d / "run.nc", d / "grid.nc", with_sigma, model_error_K=0.0)
+    with xr.open_dataset(out) as ds:
+        assert ds.attrs["model_error"].startswith("0.05 K white")
+        np.testing.assert_allclose(ds["model_error_K"].values, 0.05)
+        np.testing.assert_allclose(ds["probability"].values, ref.probability, rtol=1e-6, atol=1e-12)
+    r = cli("invert", d / "run.nc", d / "grid.nc", obs, "-o", tmp_path / "q.nc", "--model-error-k", "big")
+    assert r.returncode == 2 and "--model-error-k" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = cli("invert", d / "run.nc", d / "grid.nc", obs, "-o", tmp_path / "q.nc", "--model-error-k", "-1")
+    assert r.returncode == 2 and "model_error_K" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "q.nc").exists()
 
 
 def test_report_observation_design(site):
