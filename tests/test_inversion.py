@@ -107,3 +107,32 @@ def test_mixing_matches_instrument():
     p = PAIRS.index((1300.0, 1700.0))
     ref = ins.mixed_band_temperature(fm.T[p, k, 0], fm.T[p, k, 1], 0.3, band)
     assert np.max(np.abs(got - ref)) < 1e-4
+
+
+def test_model_error_levers_quadratic_grid():
+    """On a grid of a known quadratic T = 60 + a(t) x^2 + b(t) y^2 + c x y (x, y: top, bottom in grid steps)
+    the leave-one-node-out estimate is analytic: second differences D = 2a, 2b, 2(a + b + c) along top,
+    bottom and the diagonal, covariance V V^T = 2 sum_d (D_d / 8)(D_d / 8)^T over the samples (1e-9: float
+    round-off). The true bilinear/triangle interpolation error of that function (from ``predict``, against the
+    function itself) never exceeds the estimated 1-sigma; a linear function has no model error."""
+    h = np.arange(48.0)
+    a, b, c = 0.3 * np.exp(-h / 20.0), 0.1 + 0.002 * h, -0.05
+    x = lambda rho: (rho - 1100.0) / 200.0  # noqa: E731
+    T = np.empty((len(PAIRS), 48, 1))
+    for p, (t, bo) in enumerate(PAIRS):
+        T[p, :, 0] = 60.0 + a * x(t) ** 2 + b * x(bo) ** 2 + c * x(t) * x(bo)
+    fm = inv.ForwardModel(T, [p[0] for p in PAIRS], [p[1] for p in PAIRS], TIMES)
+    k = np.arange(0, 48, 3)
+    V = fm.model_error_levers(TIMES[k], np.zeros(k.size, int))
+    g = np.stack([2 * a[k], 2 * b[k], 2 * (a[k] + b[k] + c)], axis=1) / 8.0
+    np.testing.assert_allclose(V @ V.T, 2 * g @ g.T, rtol=1e-9, atol=1e-12)
+    sd = np.sqrt(np.sum(V**2, axis=1))
+    # points inside cells (full cells and the diagonal's triangles), against the function itself
+    pts = [(t, bo) for t in np.arange(1100.0, 1700.1, 50.0) for bo in np.arange(1100.0, 1700.1, 50.0) if t <= bo]
+    tops, bots = np.array(pts).T
+    pred = fm.predict(tops, bots, TIMES[k], np.zeros(k.size, int))
+    exact = 60.0 + a[k][:, None] * x(tops) ** 2 + b[k][:, None] * x(bots) ** 2 + c * x(tops) * x(bots)
+    err = np.abs(pred - exact).max(axis=1)
+    assert np.all(err > 0.01) and np.all(err <= sd), (err, sd)
+    lin = inv.ForwardModel(T * 0 + np.array([x(t) + 2 * x(bo) for t, bo in PAIRS])[:, None, None], *zip(*PAIRS), TIMES)
+    assert np.sum(lin.model_error_levers(TIMES[k], np.zeros(k.size, int)) ** 2) < 1e-18  # (n, 0) when exactly 0
