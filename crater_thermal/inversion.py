@@ -64,8 +64,9 @@ differ by the noise, so the two linearizations agree where the noise is small ag
   also for samples between the replay's times, against an independent run at half the time step.
 
 The offset, gain, scatter and model-error coefficients are nuisance parameters with Gaussian priors,
-integrated out analytically: that is the covariance above (``V`` gains the columns of ``V_m``). The likelihood is evaluated through the Woodbury identity and the
-matrix-determinant lemma with the low-rank part ``V = [s 1, sigma_o u, gain_error h, V_m]`` (``C = D + V V^T``)::
+integrated out analytically: that is the covariance above. The likelihood is evaluated through the
+Woodbury identity and the matrix-determinant lemma with the low-rank part
+``V = [s 1, sigma_o u, gain_error h, V_m]`` (``C = D + V V^T``)::
 
     r^T C^-1 r = r^T D^-1 r - b^T A^-1 b,   log det C = sum log d_i + log det A,
     A = I_q + V^T D^-1 V,  b = V^T D^-1 r,

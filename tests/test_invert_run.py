@@ -427,9 +427,8 @@ def test_cli_model_error_option(site, tmp_path):
     r = cli("invert", d / "run.nc", d / "grid.nc", obs, "-o", out, "--model-error-k", "0.05")
     assert r.returncode == 0, r.stderr
     T = np.array([row[2] for row in rows])
-    netd = INST.netd_ref_K * float(ins.band_radiance_derivative(INST.t_ref_K, INST.band)) / ins.band_radiance_derivative(
-        T, INST.band
-    )
+    dL_ref = float(ins.band_radiance_derivative(INST.t_ref_K, INST.band))
+    netd = INST.netd_ref_K * dL_ref / ins.band_radiance_derivative(T, INST.band)
     per = 1.0 / ins.n_samples(DWELL_S, INST.integration_s) + INST.integration_s / INST.knee_s
     sig = np.sqrt(netd**2 * per + 0.05**2)
     lines = ["time,facet,brightness_temperature_K,dwell_s,footprint,sigma_K"]
