@@ -2,7 +2,8 @@
 grid (800:2000:100, refine 4: 1,225 posterior nodes) with 100 observations, and a 10k-footprint site map
 measured directly (one footprint per facet of a 10,000-facet grid replay, 10 samples each: an orbital map
 at several local times). The API's reading of the run, replay and table and the writing of posterior.nc
-are not timed here.
+are not timed here. Each is timed with the model-error term estimated from the grid (the default,
+model_error_K="auto") and without it (0), in the same run.
 
 The grid temperatures are synthetic (smooth in density and time; float32 like a replay file), not a
 replay: the cost does not depend on the values. Writes bench/results/invert.json.
@@ -53,11 +54,18 @@ t0 = time.perf_counter()
 for _ in range(reps):
     p = inv.invert(fm, one)
 t_one = (time.perf_counter() - t0) / reps
+t0 = time.perf_counter()
+for _ in range(reps):
+    inv.invert(fm, one, model_error_K=0.0)
+t_one_exact = (time.perf_counter() - t0) / reps
 many = table(10_000, 10)
 t0 = time.perf_counter()
 post = inv.invert(fm, many)
 t_10k = time.perf_counter() - t0
 assert post.probability.shape[0] == 10_000
+t0 = time.perf_counter()
+inv.invert(fm, many, model_error_K=0.0)
+t_10k_exact = time.perf_counter() - t0
 out = {
     "grid_profiles": len(pairs),
     "refine": inv.DEFAULT_REFINE,
@@ -65,6 +73,11 @@ out = {
     "one_footprint_100_samples_s": t_one,
     "map_10000_footprints_10_samples_s": t_10k,
     "map_per_footprint_ms": 1e3 * t_10k / 10_000,
+    "model_error": "auto (the default) in the two timings above; *_model_error_0_s: model_error_K=0 (no term)",
+    "one_footprint_100_samples_model_error_0_s": t_one_exact,
+    "map_10000_footprints_10_samples_model_error_0_s": t_10k_exact,
+    "ratio_auto_over_0_one_footprint": t_one / t_one_exact,
+    "ratio_auto_over_0_map": t_10k / t_10k_exact,
     "replay_facets": nf,
     "replay_times": nt,
     "load_average_1min_at_end": os.getloadavg()[0],
