@@ -541,6 +541,7 @@ def observation_design(
     refine: int = 4,
     natural_scatter_K: Optional[float] = None,
     offset_K: float = 0.0,
+    model_error_K: Union[str, float] = "auto",
 ) -> dict:
     """Expected posterior width of an observation design on one facet (observation design, issue 23).
 
@@ -567,7 +568,7 @@ def observation_design(
         The profile assumed under the footprint (default: the thesis's loose 800/1100).
     loose_bottom_kg_m3 : float [kg m-3]
         Threshold of the expected P(loose).
-    refine, natural_scatter_K, offset_K :
+    refine, natural_scatter_K, offset_K, model_error_K :
         As :func:`invert`.
 
     Returns
@@ -622,6 +623,7 @@ def observation_design(
         natural_scatter_K=scatter,
         offset_K=offset_K,
         loose_bottom_kg_m3=loose_bottom_kg_m3,
+        model_error_K=model_error_K,
     )
     out["time"] = fm.times[first]
     out["hours_after_sunset"] = since[np.searchsorted(night, first)] / 3600.0

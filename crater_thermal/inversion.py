@@ -876,6 +876,7 @@ def expected_width(
     offset_K: float = 0.0,
     prior="uniform",
     loose_bottom_kg_m3: float = LOOSE_BOTTOM_KG_M3,
+    model_error_K: Union[str, float] = "auto",
 ) -> dict:
     """Expected posterior widths of a design: sample times x dwell, on one facet.
 
@@ -892,6 +893,7 @@ def expected_width(
     instrument : Instrument or preset name.
     truth_kg_m3 : (top, bottom) [kg m-3]   the profile assumed under the footprint.
     loose_bottom_kg_m3 : float [kg m-3]    threshold of the expected ``p_loose``.
+    model_error_K : ``"auto"`` or float [K]   the grid's interpolation error in the likelihood (:func:`invert`).
 
     Returns
     -------
@@ -930,6 +932,7 @@ def expected_width(
         natural_scatter_K=natural_scatter_K,
         offset_K=offset_K,
         loose_bottom_kg_m3=loose_bottom_kg_m3,
+        model_error_K=model_error_K,
     )
     shape = (len(designs), dwells.size)
     sd = post.sd_kg_m3

@@ -187,6 +187,13 @@ def test_model_error_keeps_low_noise_calibrated(site):
     assert lo <= hit <= hi, (hit, lo, hi)
     hit0, lo0, _ = coverage(site, site["T_truth"], k, site["times"], 0.1, 41, 0.0)
     assert hit0 < lo0, (hit0, lo0)
+    # the expected width of a design at that noise counts the term too: wider with it than without
+    quiet = scaled_instrument(0.1)
+    kw = dict(truth_kg_m3=(1350.0, 1650.0), refine=REFINE, natural_scatter_K=0.1 * ins.NATURAL_SCATTER_K)
+    design = [site["times"][k]]
+    w_auto = inv.expected_width(site["fm"], site["facet"], design, [DWELL_S], quiet, **kw)
+    w_0 = inv.expected_width(site["fm"], site["facet"], design, [DWELL_S], quiet, model_error_K=0.0, **kw)
+    assert w_auto["sd_bottom_kg_m3"][0, 0] > w_0["sd_bottom_kg_m3"][0, 0], (w_auto, w_0)
     # the term's size is the grid's: a few hundredths of a kelvin, well under the stated noise's ~1 K
     obs = table(site, k, site["T_truth"][:1, k])
     me = inv.invert(site["fm"], obs, INST, prior=site["prior"], refine=REFINE).model_error_K[0]
