@@ -33,7 +33,7 @@ import numpy as np
 
 from crater_thermal import io, runner, simulate
 from crater_thermal.errors import ConfigError, OutputExistsError
-from crater_thermal.extras import missing_extra
+from crater_thermal.extras import connect_scheduler, missing_extra
 
 #: Seconds to wait for a dask scheduler to answer before giving up [s].
 CONNECT_TIMEOUT_S = 10.0
@@ -65,14 +65,8 @@ def connect(scheduler: str | None = None, workers: int | None = None):
             "dask.distributed", "distributed", "replays on a dask cluster (--scheduler, --workers)"
         ) from None
     if scheduler:
-        try:
-            return Client(scheduler, timeout=CONNECT_TIMEOUT_S), None
-        except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, timed out, malformed
-            reason = " ".join(str(exc).split())[:160] or type(exc).__name__
-            raise ConfigError(
-                f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
-                "(dask scheduler) or leave out --scheduler"
-            ) from None
+        purpose = "replays on a dask cluster (--scheduler, --workers)"
+        return connect_scheduler(scheduler, purpose, CONNECT_TIMEOUT_S, "leave out --scheduler"), None
     cluster = LocalCluster(
         n_workers=int(workers),
         threads_per_worker=1,

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Sequence
 
 from crater_thermal.errors import ConfigError
-from crater_thermal.extras import missing_extra
+from crater_thermal.extras import connect_scheduler
 from crater_thermal.progress import bar
 
 #: Seconds to wait for a dask scheduler to answer before giving up [s].
@@ -146,18 +146,12 @@ def _connect(scheduler: str):
     ConfigError
         No scheduler answers at that address within :data:`SCHEDULER_TIMEOUT_S`.
     """
-    try:
-        from distributed import Client
-    except ImportError:
-        raise missing_extra("dask.distributed", "distributed", "sweeps on a dask cluster (--scheduler)") from None
-    try:
-        return Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
-    except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, timed out, malformed
-        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
-        raise ConfigError(
-            f"--scheduler {scheduler}: cannot reach a dask scheduler there ({reason}); start one "
-            "(dask scheduler) or leave out --scheduler to run on local processes"
-        ) from None
+    return connect_scheduler(
+        scheduler,
+        "sweeps on a dask cluster (--scheduler)",
+        SCHEDULER_TIMEOUT_S,
+        "leave out --scheduler to run on local processes",
+    )
 
 
 def _clean_exit_on_sigterm() -> None:
