@@ -62,6 +62,7 @@ part and runs of low-rank blocks balanced by stored entries, each thread adding 
 from __future__ import annotations
 
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
@@ -514,6 +515,7 @@ class _Builder:
         self.g2cum = None  # row mode: prefix sums of the estimated G row sums squared [m4]
         self.dropped_blocks = 0
         self.dropped_pairs = 0
+        self._count_lock = threading.Lock()  # the counters above are updated from the build's threads
 
     # ---- row-relative budgets
     def estimate_row_sums(self, n_rays: int = ROWSUM_RAYS, seed: int = 0) -> np.ndarray:
@@ -615,8 +617,9 @@ class _Builder:
         fro2 = float(np.einsum("ij,ij->", M, M))
         budget = self.budget(s, t, fro2)
         if fro2 <= budget:  # row mode only: the whole block is within its share of the rows' budget
-            self.dropped_blocks += 1
-            self.dropped_pairs += nz
+            with self._count_lock:
+                self.dropped_blocks += 1
+                self.dropped_pairs += nz
             return
         # float32 factors (4 bytes per number) against 8 bytes per sparse non-zero (value + column)
         rmax = min(int(8 * nz / (4 * (m + n))), min(m, n) // 2)
@@ -649,7 +652,8 @@ class _Builder:
         if self.mode == "row":  # drop the smallest entries while their sum of squares is within budget
             order = np.argsort(v * v)
             keep = order[np.cumsum(v[order] ** 2) > budget]
-            self.dropped_pairs += len(v) - len(keep)
+            with self._count_lock:
+                self.dropped_pairs += len(v) - len(keep)
             i, j, v = i[keep], j[keep], v[keep]
         coo.append((i + int(tr.lo[s]), j + int(tr.lo[t]), v))
 
