@@ -1,6 +1,8 @@
 """Benchmark: compressed view-factor operator against the exact sparse matrix (issue 13, item 2).
 
 Run:  PYTHONPATH=$PWD python bench/viewfactor_operator.py [--sizes 10000 25000 50000] [--big 100000]
+      [--row-tolerance 0.003 0.01 0.03]  (also the row-relative operator, issue 24: each tolerance is a
+      variant ``compressed-row@TOL`` built, timed and compared like the default one)
 
 Terrain: a synthetic crater-in-terrain height field (20 km square, a 10 km paraboloid crater 2 km deep
 with a raised rim, 20 m Gaussian roughness), two triangles per grid cell, at each size.  Every
@@ -53,6 +55,10 @@ def terrain(n_facets: int, seed: int = 0):
     return Mesh(V, np.concatenate([np.stack([a, b, d], 1), np.stack([b, c, d], 1)]), {"kind": "file"})
 
 
+#: Compressed variants: bench name -> ``tolerance_mode`` of :func:`compressed_view_factors`.
+MODES = {"compressed": "block", "compressed-row": "row"}
+
+
 def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -66,7 +72,9 @@ def child(method: str, n: int, tol: float, out_npz: str) -> dict:
     from crater_thermal.raytrace import RayTracer
 
     small = terrain(600)
-    warm = vo.view_factor_operator(small, RayTracer(small), method=method, tolerance=tol)  # numba warm-up
+    kind = "exact" if method == "exact" else "compressed"
+    mode = MODES.get(method, "block")
+    warm = vo.view_factor_operator(small, RayTracer(small), method=kind, tolerance=tol, tolerance_mode=mode)  # warm-up
     warm @ np.ones(small.n_facets), warm @ np.ones((small.n_facets, 2))
     mesh = terrain(n)
     tracer = RayTracer(mesh)
@@ -79,7 +87,7 @@ def child(method: str, n: int, tol: float, out_npz: str) -> dict:
     if method == "exact":
         op = vo.SparseViewFactors(vf.view_factor_matrix(mesh, tracer))
     else:
-        op = vo.compressed_view_factors(mesh, tracer, tol)
+        op = vo.compressed_view_factors(mesh, tracer, tol, tolerance_mode=MODES[method])
     build_s, build_cpu_s = time.perf_counter() - w0, time.process_time() - c0
     peak = _rss_mb()
     prods = {k: op @ x for k, x in fields.items()}
@@ -95,6 +103,7 @@ def child(method: str, n: int, tol: float, out_npz: str) -> dict:
     np.savez(out_npz, **prods)
     res = {
         "method": method,
+        "tolerance": tol,
         "facets": mesh.n_facets,
         "build_s": build_s,
         "build_cpu_s": build_cpu_s,
@@ -112,7 +121,7 @@ def child(method: str, n: int, tol: float, out_npz: str) -> dict:
 
 
 def _run_child(method, n, tol, tmp) -> tuple[dict, str]:
-    npz = os.path.join(tmp, f"{method}_{n}.npz")
+    npz = os.path.join(tmp, f"{method}_{tol:g}_{n}.npz")
     cmd = [sys.executable, __file__, "--child", method, str(n), "--tolerance", str(tol), "--npz", npz]
     p = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
     if p.returncode != 0:
@@ -136,6 +145,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--big", type=int, nargs="*", default=[100_000], help="compressed operator only")
     ap.add_argument("--exact-max", type=int, default=50_000, help="largest size built exactly")
     ap.add_argument("--tolerance", type=float, default=None)
+    ap.add_argument(
+        "--row-tolerance",
+        type=float,
+        nargs="*",
+        default=[],
+        help="also build the row-relative operator (tolerance_mode='row') at these tolerances",
+    )
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "viewfactor_operator.json"))
     ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--npz", default=None, help=argparse.SUPPRESS)
@@ -149,42 +165,48 @@ def main(argv=None) -> dict:
         return res
 
     load0 = os.getloadavg()
-    rows_exact, rows_comp, errors = [], [], []
+    variants = [("compressed", tol)] + [("compressed-row", float(t)) for t in args.row_tolerance]
+    rows_exact, errors = [], []
+    rows_comp = {f"{m}@{t:g}": [] for m, t in variants}
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
             ex = None
             if n <= args.exact_max:
                 ex, npz_e = _run_child("exact", n, tol, tmp)
                 rows_exact.append(ex)
-            co, npz_c = _run_child("compressed", n, tol, tmp)
-            rows_comp.append(co)
-            if ex is not None and "error" not in ex and "error" not in co:
-                with np.load(npz_e) as ze, np.load(npz_c) as zc:
-                    err = {"facets": co["facets"]}
-                    for k in ("emitted", "scattered"):
-                        err[f"rel_error_{k}"] = float(np.linalg.norm(zc[k] - ze[k]) / np.linalg.norm(ze[k]))
-                    err["rowsum_max_abs_diff"] = float(np.abs(zc["ones"] - ze["ones"]).max())
-                    err["rowsum_max_exact"] = float(ze["ones"].max())
-                    err["memory_ratio"] = ex["nbytes"] / co["nbytes"]
-                    errors.append(err)
-                    print(json.dumps(err), file=sys.stderr, flush=True)
+            for m, t in variants:
+                co, npz_c = _run_child(m, n, t, tmp)
+                rows_comp[f"{m}@{t:g}"].append(co)
+                if ex is not None and "error" not in ex and "error" not in co:
+                    with np.load(npz_e) as ze, np.load(npz_c) as zc:
+                        err = {"variant": f"{m}@{t:g}", "facets": co["facets"]}
+                        for k in ("emitted", "scattered"):
+                            err[f"rel_error_{k}"] = float(np.linalg.norm(zc[k] - ze[k]) / np.linalg.norm(ze[k]))
+                            err[f"max_abs_error_over_max_{k}"] = float(
+                                np.max(np.abs(zc[k] - ze[k]) / np.abs(ze[k]).max())
+                            )
+                        err["rowsum_max_abs_diff"] = float(np.abs(zc["ones"] - ze["ones"]).max())
+                        err["rowsum_max_exact"] = float(ze["ones"].max())
+                        err["memory_ratio"] = ex["nbytes"] / co["nbytes"]
+                        errors.append(err)
+                        print(json.dumps(err), file=sys.stderr, flush=True)
         for n in args.big:
-            co, _ = _run_child("compressed", n, tol, tmp)
-            rows_comp.append(co)
+            for m, t in variants:
+                co, _ = _run_child(m, n, t, tmp)
+                rows_comp[f"{m}@{t:g}"].append(co)
     ok_e = [r for r in rows_exact if "error" not in r]
-    ok_c = [r for r in rows_comp if "error" not in r]
+    keys = ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb", "matvec_s")
+    exps = {"exact": {k: _exponent(ok_e, k) for k in keys}}
+    for v, rows in rows_comp.items():
+        exps[v] = {k: _exponent([r for r in rows if "error" not in r], k) for k in keys}
     result = {
         "tolerance": tol,
         "terrain": "20 km height field, 10 km paraboloid crater 2 km deep, raised rim, 20 m roughness",
         "exact": rows_exact,
-        "compressed": rows_comp,
+        "compressed": rows_comp.pop(f"compressed@{tol:g}"),
+        **({"compressed_variants": rows_comp} if rows_comp else {}),
         "errors": errors,
-        "exponents": {
-            "exact": {k: _exponent(ok_e, k) for k in ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb", "matvec_s")},
-            "compressed": {
-                k: _exponent(ok_c, k) for k in ("build_s", "build_cpu_s", "nbytes", "peak_rss_mb", "matvec_s")
-            },
-        },
+        "exponents": exps,
         "load_average_start": load0,
         "load_average_end": os.getloadavg(),
         "cpu_count": os.cpu_count(),

@@ -31,6 +31,12 @@ its symmetry), in blocks of a hierarchical partition:
   All-zero blocks (facets that face away from each other, coplanar plains, fully occluded pairs) cost
   nothing.
 
+Row-relative variant (``tolerance_mode="row"``, issue 24): each far block's budget is instead a share
+of ``tolerance`` times the row sums of the rows it touches (:meth:`_Builder.budget`; row sums estimated
+with :data:`ROWSUM_RAYS` cosine-weighted rays per facet), so blocks of tiny grazing entries get a loose
+budget: low rank, their smallest sparse entries dropped, or dropped whole.  Not the default: measured
+against the exact matrix in ``docs/performance.md`` (memory, F x error, night temperatures).
+
 Error control: every far block satisfies ``||M - M~||_F <= tol ||M||_F`` and near blocks are exact, so
 ``||G - G~||_F <= tol ||G||_F``; products with the smooth, positive fields the model uses (emitted IR,
 scattered sunlight) come out far more accurate than this bound (measured in
@@ -56,6 +62,7 @@ part and runs of low-rank blocks balanced by stored entries, each thread adding 
 from __future__ import annotations
 
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
@@ -70,6 +77,7 @@ from crater_thermal.geometry import Mesh
 __all__ = [
     "METHODS",
     "DEFAULT_TOLERANCE",
+    "TOLERANCE_MODES",
     "AUTO_COMPRESSED_MIN_FACETS",
     "ViewFactorOperator",
     "SparseViewFactors",
@@ -88,6 +96,11 @@ DEFAULT_TOLERANCE = 1e-3
 #: takes 6x the memory (9x at 25k), and above 8,000 facets its scattering solve is a sparse LU of a
 #: matrix with 0.05-0.12 N^2 non-zeros; below, the exact matrix and its dense LU are cheaper.
 AUTO_COMPRESSED_MIN_FACETS = 10_000
+#: Far-block error control: ``"block"`` (each block to ``tolerance`` of its own norm, the default) or
+#: ``"row"`` (to ``tolerance`` of the row sums of the rows it touches; :func:`compressed_view_factors`).
+TOLERANCE_MODES = ("block", "row")
+#: Cosine-weighted rays per facet of the row-sum estimate behind ``tolerance_mode="row"``.
+ROWSUM_RAYS = 64
 #: Facets per leaf cluster of the kd-tree.
 LEAF_SIZE = 32
 #: Admissibility: far when ``max(diam_s, diam_t) <= ADMISSIBILITY * distance``.
@@ -479,7 +492,7 @@ def _recompress(U: np.ndarray, V: np.ndarray, R: np.ndarray, budget: float) -> t
 class _Builder:
     """Computes the blocks of one operator (shared geometry in cluster order, the tracer, settings)."""
 
-    def __init__(self, mesh: Mesh, tracer, tree: _Tree, tolerance: float):
+    def __init__(self, mesh: Mesh, tracer, tree: _Tree, tolerance: float, mode: str = "block"):
         from crater_thermal import viewfactors as vf
 
         p = tree.perm
@@ -498,6 +511,69 @@ class _Builder:
         self.near_factor = float(vf.NEAR_DISTANCE_FACTOR)
         self.cos_cut = float(vf.COS_CUTOFF)
         self.ones = np.ones(RAY_CHUNK, np.float32)
+        self.mode = mode
+        self.g2cum = None  # row mode: prefix sums of the estimated G row sums squared [m4]
+        self.dropped_blocks = 0
+        self.dropped_pairs = 0
+        self._count_lock = threading.Lock()  # the counters above are updated from the build's threads
+
+    # ---- row-relative budgets
+    def estimate_row_sums(self, n_rays: int = ROWSUM_RAYS, seed: int = 0) -> np.ndarray:
+        """Monte-Carlo row sums of F [-] (cluster order): the fraction of ``n_rays`` cosine-weighted rays
+        from each facet that hit the scene (stratified in azimuth and cos^2 of the zenith angle, one
+        random rotation per facet).  Sets the budgets of ``mode="row"``; returns (n,) float."""
+        n = len(self.A)
+        k = int(n_rays)
+        # stratified cosine-weighted directions in the local frame: sin^2(zenith) uniform, azimuth uniform
+        q = int(np.ceil(np.sqrt(k)))
+        a, b = np.meshgrid((np.arange(q) + 0.5) / q, (np.arange(q) + 0.5) / q)
+        u1, u2 = a.ravel()[:k], b.ravel()[:k]
+        rs = np.sqrt(u1)
+        local = np.column_stack([rs * np.cos(2 * np.pi * u2), rs * np.sin(2 * np.pi * u2), np.sqrt(1.0 - u1)])
+        rng = np.random.default_rng(seed)
+        hits = np.zeros(n)
+        per = max(1, RAY_CHUNK // k)
+        for f0 in range(0, n, per):
+            f1 = min(n, f0 + per)
+            nrm = self.N[f0:f1]
+            helper = np.where(np.abs(nrm[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+            e1 = np.cross(nrm, helper)
+            e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+            e2 = np.cross(nrm, e1)
+            phi = rng.uniform(0.0, 2 * np.pi, f1 - f0)[:, None]
+            c, sn = np.cos(phi), np.sin(phi)
+            lx = c * local[None, :, 0] - sn * local[None, :, 1]
+            ly = sn * local[None, :, 0] + c * local[None, :, 1]
+            d = lx[..., None] * e1[:, None] + ly[..., None] * e2[:, None] + local[None, :, 2, None] * nrm[:, None]
+            o32 = np.ascontiguousarray(np.repeat(self.P[f0:f1], k, axis=0), np.float32)
+            d32 = np.ascontiguousarray(d.reshape(-1, 3), np.float32)
+            blocked = self.tracer.run_raw(o32, d32, None, "OCCLUDED")
+            hits[f0:f1] = (blocked.reshape(f1 - f0, k) != -1).sum(axis=1)
+        return hits / k
+
+    def set_row_sums(self, rowsum: np.ndarray) -> None:
+        """Row mode: budgets from row sums of F (cluster order) [-]."""
+        g = self.A * np.asarray(rowsum, float)
+        self.g2cum = np.concatenate([[0.0], np.cumsum(g * g)])
+
+    def budget(self, s: int, t: int, fro2: float) -> float:
+        """Allowed ``||M - M~||_F^2`` [m4] of the block (s, t) whose ``||M||_F^2`` is fro2.
+
+        ``"block"``: ``tol^2 fro2``.  ``"row"``: ``tol^2 / N^2 min(n_t sum_{i in s} g_i^2,
+        n_s sum_{j in t} g_j^2)`` with ``g_i = A_i rowsum_i`` (N facets, n_s and n_t the block's rows and
+        columns): each block gets the share ``n_t / N`` of the budget ``tol^2 g_i^2 / N`` of its rows,
+        summed over the rows of the cluster.  If that held row by row (it holds for the cluster's rows
+        together, and the row sums are Monte-Carlo estimates), Cauchy-Schwarz would give
+        ``|(G x - G~ x)_i| <= tol g_i rms(x)`` for each triangle; the measured errors are far below
+        (bench/viewfactor_operator.py)."""
+        if self.mode == "block":
+            return self.tol * self.tol * fro2
+        tr = self.tree
+        r0, r1, c0, c1 = int(tr.lo[s]), int(tr.hi[s]), int(tr.lo[t]), int(tr.hi[t])
+        n = len(self.A)
+        gs = self.g2cum[r1] - self.g2cum[r0]
+        gt = self.g2cum[c1] - self.g2cum[c0]
+        return self.tol * self.tol / (n * n) * min((c1 - c0) * gs, (r1 - r0) * gt)
 
     def _trace(self, o32, d32, n):
         return self.tracer.run_raw(o32[:n], d32[:n], self.ones[:n], "OCCLUDED")
@@ -539,13 +615,18 @@ class _Builder:
         if nz == 0:
             return
         fro2 = float(np.einsum("ij,ij->", M, M))
+        budget = self.budget(s, t, fro2)
+        if fro2 <= budget:  # row mode only: the whole block is within its share of the rows' budget
+            with self._count_lock:
+                self.dropped_blocks += 1
+                self.dropped_pairs += nz
+            return
         # float32 factors (4 bytes per number) against 8 bytes per sparse non-zero (value + column)
         rmax = min(int(8 * nz / (4 * (m + n))), min(m, n) // 2)
         if rmax >= 1:
             U = np.empty((m, rmax))
             V = np.empty((n, rmax))
             R = M.copy()
-            budget = self.tol * self.tol * fro2
             r = kv.aca_full(R, budget, rmax, U, V)
             if r >= 0:
                 Uk, Vk = _recompress(U[:, :r], V[:, :r], R, budget)
@@ -567,7 +648,14 @@ class _Builder:
                     self._compress(M[ra, rb], a, b, lowrank, coo)
             return
         i, j = np.nonzero(M)
-        coo.append((i + int(tr.lo[s]), j + int(tr.lo[t]), M[i, j]))
+        v = M[i, j]
+        if self.mode == "row":  # drop the smallest entries while their sum of squares is within budget
+            order = np.argsort(v * v)
+            keep = order[np.cumsum(v[order] ** 2) > budget]
+            with self._count_lock:
+                self.dropped_pairs += len(v) - len(keep)
+            i, j, v = i[keep], j[keep], v[keep]
+        coo.append((i + int(tr.lo[s]), j + int(tr.lo[t]), v))
 
     # ---- near blocks
     def near_blocks(self, blocks):
@@ -627,6 +715,7 @@ def compressed_view_factors(
     leaf_size: int = LEAF_SIZE,
     admissibility: float = ADMISSIBILITY,
     max_block_entries: int = MAX_BLOCK_ENTRIES,
+    tolerance_mode: str = "block",
 ) -> CompressedViewFactors:
     """Build the compressed view-factor operator (module docstring) without holding the full matrix.
 
@@ -643,6 +732,13 @@ def compressed_view_factors(
         Worker threads (default: the tracer's).
     leaf_size, admissibility, max_block_entries :
         Tuning (see :data:`LEAF_SIZE`, :data:`ADMISSIBILITY`, :data:`MAX_BLOCK_ENTRIES`).
+    tolerance_mode : {"block", "row"}
+        ``"block"`` (default): every far block to ``tolerance`` of its own Frobenius norm.  ``"row"``:
+        far blocks to a budget relative to the row sums of the rows they touch
+        (:meth:`_Builder.budget`: about ``|(F x - F~ x)_i| <= tolerance rowsum_i rms(x)`` per row),
+        so that far blocks of tiny (grazing) entries are stored at low rank, truncated or dropped;
+        the row sums come from :data:`ROWSUM_RAYS` cosine-weighted rays per facet.  Near blocks are
+        exact in both modes.
 
     Returns
     -------
@@ -655,6 +751,8 @@ def compressed_view_factors(
     tolerance = float(tolerance)
     if not (0.0 < tolerance <= 0.1):
         raise ConfigError(f"view-factor tolerance = {tolerance!r} is outside (0, 0.1]")
+    if tolerance_mode not in TOLERANCE_MODES:
+        raise ConfigError(f"tolerance_mode = {tolerance_mode!r}; allowed: {', '.join(TOLERANCE_MODES)}")
     if tracer is None:
         from crater_thermal.raytrace import RayTracer
 
@@ -665,7 +763,12 @@ def compressed_view_factors(
     nf = mesh.n_facets
     tree = _Tree(np.asarray(mesh.centroids), np.asarray(mesh.facet_size), int(leaf_size))
     far, near = _partition(tree, float(vf.NEAR_DISTANCE_FACTOR), float(admissibility), int(max_block_entries))
-    builder = _Builder(mesh, tracer, tree, tolerance)
+    builder = _Builder(mesh, tracer, tree, tolerance, tolerance_mode)
+    t_rowsum = 0.0
+    if tolerance_mode == "row":
+        t0 = time.perf_counter()
+        builder.set_row_sums(builder.estimate_row_sums())
+        t_rowsum = time.perf_counter() - t0
     # work units: far blocks one by one (largest first), near blocks batched
     far.sort(key=lambda st: -tree.size(st[0]) * tree.size(st[1]))
     units = [("far", st) for st in far]
@@ -746,6 +849,10 @@ def compressed_view_factors(
         "sparse_pairs": n_sparse,
         "near_pairs": int(near_pairs),
         "rays": int(rays),
+        "tolerance_mode": tolerance_mode,
+        "dropped_blocks": int(builder.dropped_blocks),
+        "dropped_pairs": int(builder.dropped_pairs),
+        "rowsum_estimate_s": t_rowsum,
     }
     op = CompressedViewFactors(
         tree.perm, np.asarray(mesh.areas), sparse, (r0, r1, c0, c1, rank, uoff, voff, U, V), None, tolerance, stats
@@ -779,6 +886,7 @@ def view_factor_operator(
     tolerance: float = DEFAULT_TOLERANCE,
     cache_dir=None,
     progress: Callable | None = None,
+    tolerance_mode: str = "block",
 ) -> ViewFactorOperator:
     """The view-factor operator of a mesh: exact sparse matrix or compressed (module docstring).
 
@@ -794,6 +902,8 @@ def view_factor_operator(
         Exact matrix only: its ``.npz`` cache folder.
     progress : callable, optional
         ``progress(done, total)`` (:mod:`crater_thermal.progress` contract).
+    tolerance_mode : {"block", "row"}
+        Compressed operator only: see :func:`compressed_view_factors`.
 
     Returns
     -------
@@ -806,4 +916,4 @@ def view_factor_operator(
     kind = resolve_method(method, mesh.n_facets)
     if kind == "exact":
         return SparseViewFactors(vf.view_factor_matrix(mesh, tracer, cache_dir=cache_dir, progress=progress))
-    return compressed_view_factors(mesh, tracer, tolerance, progress=progress)
+    return compressed_view_factors(mesh, tracer, tolerance, progress=progress, tolerance_mode=tolerance_mode)
