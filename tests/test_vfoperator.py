@@ -240,24 +240,27 @@ def test_coupled_night_temperatures_match_exact():
     exact = vo.SparseViewFactors(view_factor_matrix(m, tr))
     comp = vo.compressed_view_factors(m, tr, leaf_size=16)
     assert comp.stats["lowrank_blocks"] > 0  # the far field is really compressed here
-    # one lunation at 4 h steps, Sun at azimuth turning once, elevation -3..+5 deg (half the time night)
-    t = np.arange(0.0, 29.53 * 86400.0, 4 * 3600.0)
-    ph = 2 * np.pi * t / (29.53 * 86400.0)
-    el = np.radians(1.0 + 4.0 * np.sin(ph))
-    az = ph
-    sun = np.column_stack([np.cos(el) * np.sin(az), np.cos(el) * np.cos(az), np.sin(el)])
-    E = illumination.direct_irradiance(m, tr, sun, np.full(len(t), AU), disk=None)
-    out = {}
-    for name, op in (("exact", exact), ("compressed", comp)):
-        solar = radiosity.ScatteringSolver(op, 0.12).solar_incident(E)
-        solver = thermal.ColumnSolver(["1300/1800"] * m.n_facets)
-        solver.set_uniform(150.0)
-        T, _ = radiosity.CoupledStepper(solver, op, 0.12, 0.95).run(t, solar)
-        out[name] = T
-    night = E == 0.0
+    out, night = _lunation_temperatures(m, tr, {"exact": exact, "compressed": comp})
     assert night.mean() > 0.3
     # issue 13: coupled-run night temperatures within 0.05 K of the exact matrix's
     assert np.abs(out["compressed"] - out["exact"])[night].max() <= 0.05
+
+
+def _lunation_temperatures(m, tr, operators):
+    """Surface temperatures [K] of a coupled lunation (4 h steps, Sun elevation -3..+5 deg turning once in
+    azimuth) with each of ``operators`` (name -> operator), and the night mask (no direct sunlight)."""
+    t = np.arange(0.0, 29.53 * 86400.0, 4 * 3600.0)
+    ph = 2 * np.pi * t / (29.53 * 86400.0)
+    el = np.radians(1.0 + 4.0 * np.sin(ph))
+    sun = np.column_stack([np.cos(el) * np.sin(ph), np.cos(el) * np.cos(ph), np.sin(el)])
+    E = illumination.direct_irradiance(m, tr, sun, np.full(len(t), AU), disk=None)
+    out = {}
+    for name, op in operators.items():
+        solar = radiosity.ScatteringSolver(op, 0.12).solar_incident(E)
+        solver = thermal.ColumnSolver(["1300/1800"] * m.n_facets)
+        solver.set_uniform(150.0)
+        out[name], _ = radiosity.CoupledStepper(solver, op, 0.12, 0.95).run(t, solar)
+    return out, E == 0.0
 
 
 def test_operator_interface_and_bad_input():
@@ -320,20 +323,7 @@ def test_row_relative_coupled_night_temperatures_match_exact():
     # up to 0.11 K (measured): shadowed facets' IR comes from far blocks whose rows have small sums
     row = vo.view_factor_operator(m, tr, method="compressed", tolerance=3e-3, tolerance_mode="row")
     assert row.stats["lowrank_blocks"] > 0
-    # one lunation at 4 h steps, Sun elevation -3..+5 deg turning once in azimuth (half the time night)
-    t = np.arange(0.0, 29.53 * 86400.0, 4 * 3600.0)
-    ph = 2 * np.pi * t / (29.53 * 86400.0)
-    el = np.radians(1.0 + 4.0 * np.sin(ph))
-    sun = np.column_stack([np.cos(el) * np.sin(ph), np.cos(el) * np.cos(ph), np.sin(el)])
-    E = illumination.direct_irradiance(m, tr, sun, np.full(len(t), AU), disk=None)
-    out = {}
-    for name, op in (("exact", exact), ("row", row)):
-        solar = radiosity.ScatteringSolver(op, 0.12).solar_incident(E)
-        solver = thermal.ColumnSolver(["1300/1800"] * m.n_facets)
-        solver.set_uniform(150.0)
-        T, _ = radiosity.CoupledStepper(solver, op, 0.12, 0.95).run(t, solar)
-        out[name] = T
-    night = E == 0.0
+    out, night = _lunation_temperatures(m, tr, {"exact": exact, "row": row})
     assert night.mean() > 0.3
     # issue 24: night temperatures within 0.05 K of the exact matrix's
     assert np.abs(out["row"] - out["exact"])[night].max() <= 0.05
