@@ -245,16 +245,20 @@ def model_1m(r: dict, facets: int = 1_000_000, chunk_facets: int = 2000, chunk_p
     nz, nt = r["cells_per_column"], r["samples"]
     probe = r.get("chunk_memory_probe")
     idle = probe["idle_rss_bytes"] if probe else d["worker_idle_rss_bytes"]
+
     # a worker: its measured idle RSS + the periodic start's mode blocks (4 (n, nz, nz) float64 arrays of
     # at most 4096 columns) + the forcing and float64 records (at most chunk_mb = 256 MB) + the float32
     # result held and pickled once (2x) + ~20 float64 state arrays of nz per column
-    chunk_mem = (
-        idle
-        + 4 * min(4096, chunk_cols) * nz * nz * 8
-        + min(256 * 2**20, (nt + r["spinup_samples"]) * chunk_facets * 8 + nt * chunk_cols * 8)
-        + 2 * chunk_cols * nt * 4
-        + 20 * nz * 8 * chunk_cols
-    )
+    def chunk_memory(columns, facets):
+        return (
+            idle
+            + 4 * min(4096, columns) * nz * nz * 8
+            + min(256 * 2**20, (nt + r["spinup_samples"]) * facets * 8 + nt * columns * 8)
+            + 2 * columns * nt * 4
+            + 20 * nz * 8 * columns
+        )
+
+    chunk_mem = chunk_memory(chunk_cols, chunk_facets)
     out_bytes = cols * r["samples"] * 4
     machines = {}
     for n, cores in ((1, 32), (4, 32), (16, 32), (64, 32)):
@@ -266,14 +270,7 @@ def model_1m(r: dict, facets: int = 1_000_000, chunk_facets: int = 2000, chunk_p
         }
     checked = {}
     if probe:  # the same formula for the probed chunk, against its measured peak
-        pc, pf = probe["columns"], probe["facets"]
-        formula = (
-            idle
-            + 4 * min(4096, pc) * nz * nz * 8
-            + min(256 * 2**20, (nt + r["spinup_samples"]) * pf * 8 + nt * pc * 8)
-            + 2 * pc * nt * 4
-            + 20 * nz * 8 * pc
-        )
+        formula = chunk_memory(probe["columns"], probe["facets"])
         checked = {"probe_formula_bytes": int(formula), "probe_measured_peak_bytes": probe["peak_rss_bytes"]}
     return {
         **checked,
