@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_process import cli
 
 import crater_thermal as ct
 from crater_thermal import io
@@ -41,13 +42,6 @@ flux_step_hours = 4.0
 """
 #: Series compared between the API's Dataset and the CLI's run.nc.
 SERIES = ("solar_incident", "solar_direct", "ir_incident", "surface_temperature")
-
-
-def cli(*args):
-    env = dict(os.environ, PYTHONPATH=str(REPO), CRATER_THERMAL_QUIET="1")
-    return subprocess.run(
-        [sys.executable, "-m", "crater_thermal", *map(str, args)], env=env, capture_output=True, text=True, timeout=600
-    )
 
 
 @pytest.fixture(scope="module")

@@ -10,11 +10,7 @@ temperature by :func:`instrument.band_brightness_temperature`: an implementation
 likelihood's linearized covariance.
 """
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
+import cli_process
 import numpy as np
 import pytest
 import xarray as xr
@@ -24,7 +20,6 @@ import crater_thermal as ct
 from crater_thermal import instrument as ins
 from crater_thermal import inversion as inv
 
-REPO = Path(__file__).resolve().parents[1]
 GRID = "1300:1900:100"
 #: Posterior nodes per grid step: 100 kg m-3 -> 50 kg m-3 nodes (63 off-grid truth nodes)
 REFINE = 2
@@ -40,10 +35,7 @@ OFFSET_K = 0.5
 
 
 def cli(*args):
-    env = dict(os.environ, PYTHONPATH=str(REPO), CRATER_THERMAL_QUIET="1")
-    return subprocess.run(
-        [sys.executable, "-m", "crater_thermal", *map(str, args)], env=env, capture_output=True, text=True, timeout=300
-    )
+    return cli_process.cli(*args, timeout=300)
 
 
 @pytest.fixture(scope="module")
