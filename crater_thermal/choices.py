@@ -51,8 +51,9 @@ SPINUP_MODES = ("periodic", "fixed")
 #: with the IR series of the previous one), "auto" (simulate.spinup_ir_method: lagged on large meshes).
 SPINUP_IR_METHODS = ("auto", "coupled", "lagged")
 #: How a coupled step gets the IR at its end (radiosity.CoupledStepper): extrapolated from the exact IR of
-#: the two previous samples (one conduction solve per step), or predictor-corrector (two).
-IR_COUPLING_SCHEMES = ("extrapolated", "predictor")
+#: the two previous samples (one conduction solve per step), or predictor-corrector (two); or "relaxed":
+#: waveform relaxation over windows of samples (crater_thermal.waveform; what a distributed run uses).
+IR_COUPLING_SCHEMES = ("extrapolated", "predictor", "relaxed")
 #: Thermophysical property sets (materials.PROPERTY_SETS has one PropertySet per name).
 PROPERTY_SETS = ("apollo", "hayne2017")
 #: Limb-darkening laws of the Sun's disk (illumination.LIMB_DARKENING_COEFFS has one law per name).

@@ -516,7 +516,9 @@ SCHEMA: Tuple[Key, ...] = (
         "extrapolated",
         "IR at the end of a coupled step: extrapolated in time from the exact IR of the two samples before "
         "(one conduction solve per step), or predictor-corrector (a predictor solve, then the step again "
-        "with the predicted IR: two solves); docs/model.md: accuracy of each",
+        "with the predicted IR: two solves), or relaxed (waveform relaxation: every column through a window of "
+        "samples with the previous iterate's IR, repeated to 0.001 K; the fully implicit exchange, and the "
+        "scheme of a distributed run); docs/model.md: accuracy of each",
         choices=choices.IR_COUPLING_SCHEMES,
     ),
     # [surface]

@@ -15,6 +15,7 @@ which works on arrays and callbacks. Here a case becomes files:
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import shutil
 from pathlib import Path
@@ -22,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from crater_thermal import io, profiles, radiosity, simulate, thermal
+from crater_thermal import io, profiles, radiosity, simulate, thermal, waveform
 from crater_thermal.constants import AU
 from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 
@@ -110,7 +111,14 @@ def _scratch_path(out_path) -> str:
 
 
 def run_case(
-    case, out_path, *, resume: bool = False, overwrite: bool = False, progress=None, timer: simulate.Timer | None = None
+    case,
+    out_path,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress=None,
+    timer: simulate.Timer | None = None,
+    columns=None,
 ):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
 
@@ -124,12 +132,19 @@ def run_case(
 
     ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view factors,
     horizon map, sunlight, spin-up windows, recorded period, writing); None (or False) for none.
+
+    ``columns``: where the columns are conducted with ``[steps] ir_coupling = "relaxed"`` (waveform
+    relaxation, :mod:`crater_thermal.waveform`): None for this process, or a factory
+    ``columns(case, fc, store)`` -> context manager yielding a backend (the dask cluster of
+    :mod:`crater_thermal.cluster_run`, which forces the relaxed scheme).
     """
     out_path = Path(out_path)
     io.refuse_input_as_output(out_path, case_inputs(case))
     with io.output_lock(out_path):
         try:
-            return _run_case(case, out_path, resume=resume, overwrite=overwrite, progress=progress, timer=timer)
+            return _run_case(
+                case, out_path, resume=resume, overwrite=overwrite, progress=progress, timer=timer, columns=columns
+            )
         except BaseException:  # failed or interrupted: the scratch store is kept only for a checkpoint
             if not Path(checkpoint_path(out_path)).exists():
                 shutil.rmtree(_scratch_path(out_path), ignore_errors=True)
@@ -142,7 +157,7 @@ def case_inputs(case) -> list:
     return [p for p in (case.path, c.mesh, c.dem) if p]
 
 
-def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer):
+def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer, columns=None):
     """The steps of a run, in order: checkpoint, geometry and Sun, sunlight, start of the record, record, write."""
     ckpt_path = Path(checkpoint_path(out_path))
     ckpt = _read_checkpoint(case, out_path, ckpt_path, resume, overwrite)
@@ -169,8 +184,26 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer)
     del tracer
     solver, stepper = _coupled_solver(case, nominal, fc, incidence)
     checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer)
-    spin_info, k0, ir_k = _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints, timer, progress)
-    _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, timer, progress)
+    with contextlib.ExitStack() as stack:
+        cols = None
+        if case.steps.ir_coupling == "relaxed" or columns is not None:
+            if columns is None:
+                cols = waveform.LocalColumns(
+                    _coupled_solver(case, nominal, fc, incidence)[0],
+                    fc.F,
+                    float(case.surface.albedo),
+                    float(case.surface.emissivity),
+                    incidence,
+                )
+            else:
+                cols = stack.enter_context(columns(case, fc, store))
+        spin_info, k0, ir_k = _start_of_record(
+            case, fc, solver, stepper, store, block, ckpt, checkpoints, timer, progress, cols
+        )
+        if cols is None:
+            _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, timer, progress)
+        else:
+            _record_relaxed(case, fc, cols, solver, store, block, k0, ir_k, checkpoints, spin_info, timer, progress)
     _write_run(
         case, fc, store, block, out_path, nominal, spin_info, incidence, ckpt is not None or overwrite, timer, progress
     )
@@ -243,7 +276,8 @@ def _coupled_solver(case, nominal, fc, incidence: bool):
         float(case.surface.albedo),
         float(case.surface.emissivity),
         solar_is_absorbed=incidence,
-        ir_scheme=case.steps.ir_coupling,
+        # a relaxed run steps nothing: its stepper only gives the start's IR products
+        ir_scheme="extrapolated" if case.steps.ir_coupling == "relaxed" else case.steps.ir_coupling,
     )
     return solver, stepper
 
@@ -274,7 +308,7 @@ class _Checkpoints:
             )
 
 
-def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints, timer, progress):
+def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints, timer, progress, cols=None):
     """The state at the first sample to compute: from the checkpoint, or the spin-up (then checkpointed).
 
     Returns ``(spin_info, k0, ir_k0)``: the start's diagnostics, the record sample the state belongs to,
@@ -294,7 +328,10 @@ def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints,
     spin_t = simulate.seconds_since(fc.spin_times, fc.times[0])
     save_spin = case.output.save_spinup_fluxes and fc.n_spin > 0
     with timer("conduction_spinup"):
-        spin_info, ir_start = simulate.spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
+        if cols is None or fc.n_spin == 0:
+            spin_info, ir_start = simulate.spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress)
+        else:
+            spin_info, ir_start = _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, progress)
     ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
     with timer("io"):
         store.write("T", 0, solver.surface_temperature[None, :])
@@ -352,6 +389,97 @@ def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, t
         rows.flush()
 
 
+def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, progress):
+    """:func:`simulate.spin_up` with the passes through the spin-up window relaxed (:class:`waveform.SpinUp`):
+    the periodic state over lagged passes (the first one relaxed window by window), or one relaxed pass
+    (fixed spin-up). Returns (info, IR [W m-2] at the record's first sample)."""
+    period = case.period
+    T0 = period.initial_temperature_K
+    if T0 is not None:
+        solver.set_uniform(float(T0))
+    else:
+        solver.set_equilibrium(surface_K=simulate.equilibrium_start(fc, solver, stepper, len(spin_t), block))
+    eps = float(case.surface.emissivity)
+    spin = waveform.SpinUp(
+        cols,
+        solver,
+        lambda a, b: fc.rows(fc.drive, a, b),
+        fc.store,
+        spin_t,
+        block,
+        eps,
+        waveform.DEFAULT_TOL_K,
+        waveform.DEFAULT_WINDOW,
+        save_spin,
+    )
+    years, tol_K = period.spinup_years, period.periodic_tol_K
+    if period.spinup == "periodic":
+        with simulate.stage(progress, "spin-up (periodic state, relaxed IR)") as report:
+            info = spin.periodic(tol_K, report)
+        method = (
+            f"periodic steady state over {years} yr (tolerance {tol_K} K), each spin-up window driven by the "
+            f"previous window's IR, the first relaxed to {waveform.DEFAULT_TOL_K} K"
+        )
+        return {
+            "start_method": method,
+            "iterations": int(info["iterations"]),
+            "residual": info["residual_K"],
+            "relaxation_iterations": spin.iterations,
+        }, spin.ir_end
+    start = f"uniform {float(T0)} K" if T0 is not None else "the equilibrium estimate"
+    x0 = solver.state()
+    with simulate.stage(progress, "spin-up (fixed, relaxed IR)") as report:
+        spin.coupled(None if report is None else (lambda k: report(k, len(spin_t) - 1)))
+    return {
+        "start_method": f"fixed spin-up {years} yr from {start}, IR relaxed to {waveform.DEFAULT_TOL_K} K",
+        "iterations": 1,
+        "residual": np.max(np.abs(solver.state() - x0), axis=1),
+        "relaxation_iterations": spin.iterations,
+    }, spin.ir_end
+
+
+def _record_relaxed(case, fc, cols, solver, store, block, k0, ir_k, checkpoints, spin_info, timer, progress) -> None:
+    """The recorded period from sample ``k0`` by waveform relaxation, in windows of
+    :data:`waveform.DEFAULT_WINDOW` samples aligned on multiples of it (a resumed run cuts the same
+    windows); rows into the store, a checkpoint at the first window end past every
+    ``[output] checkpoint_interval_steps`` steps."""
+    nt, off, W = len(fc.times), fc.record_offset, waveform.DEFAULT_WINDOW
+    rec_t = simulate.seconds_since(fc.times, fc.times[0])
+    every = case.output.checkpoint_interval_steps
+    eps = float(case.surface.emissivity)
+    rows = _RecordRows(store, block, fc.mesh.n_facets, k0 + 1, timer)
+    state = solver.state()
+    its = spin_info.setdefault("record_relaxation_iterations", [])
+    k = k0
+    with simulate.stage(progress, f"record {case.name} (relaxed IR)") as report:
+        while k < nt - 1:
+            k1 = min(nt - 1, (k // W + 1) * W)
+            with timer("io"):
+                sol = fc.rows(fc.drive, off + k, off + k1 + 1)
+            with timer("conduction_record"):
+                win, it, _ = waveform.relax(cols, state, rec_t[k : k1 + 1], sol, ir_k, eps)
+            its.append(it)
+            for j in range(1, len(win.T)):
+                rows.append(win.T[j], win.ir[j])
+            state, ir_k = win.end, win.ir[-1]
+            if every and k1 // every > k // every and k1 < nt - 1:
+                rows.flush()
+                solver.set_state(state)
+                checkpoints.save(k1, spin_info)
+            k = k1
+            if report is not None:
+                report(k - k0, nt - 1 - k0)
+        rows.flush()
+    solver.set_state(state)
+    spin_info["relaxation"] = {
+        "columns": getattr(cols, "description", "this process"),
+        "tolerance_K": waveform.DEFAULT_TOL_K,
+        "window_samples": W,
+        "spinup_iterations_per_window": spin_info.get("relaxation_iterations", []),
+        "record_iterations_per_window": its,
+    }
+
+
 def _write_run(case, fc, store, block, out_path, nominal, spin_info, incidence, overwrite, timer, progress) -> None:
     """``run.nc`` from the store, block by block (series as ``io.RUN_SERIES_DTYPE``)."""
     nt, ns, off, nf = len(fc.times), fc.n_spin, fc.record_offset, fc.mesh.n_facets
@@ -384,7 +512,10 @@ def _write_run(case, fc, store, block, out_path, nominal, spin_info, incidence, 
             "spinup_years": float(case.period.spinup_years),
             "initial_temperature_K": case.period.initial_temperature_K,
             "timing_s": dict(timer.split),
+            "ir_coupling": case.steps.ir_coupling if "relaxation" not in spin_info else "relaxed",
         }
+        if "relaxation" in spin_info:  # waveform relaxation: where, and its iterations per window
+            attrs["relaxation"] = spin_info["relaxation"]
         ds = io.run_dataset(
             fc.mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
         )

@@ -583,6 +583,17 @@ def spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
     }, window.ir_end
 
 
+def equilibrium_start(fc, solver, stepper, ns: int, block: int) -> np.ndarray:
+    """Surface temperatures [K] of the equilibrium start over the first ``ns`` sunlight rows: sunlight plus
+    the IR of a radiative-equilibrium crater as the first guess of the absorbed flux, averaged over them."""
+    es = stepper.emissivity * SIGMA
+    guess_T = _mean_over_rows(
+        fc, 0, ns, block, lambda sol: np.mean((np.maximum(stepper.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0)
+    )
+    guess_ir = stepper.ir(guess_T) if fc.F is not None else 0.0
+    return _mean_over_rows(fc, 0, ns, block, lambda sol: solver.equilibrium_surface(stepper.absorbed(sol, guess_ir)))
+
+
 class _SpinUpWindow:
     """Passes through the spin-up window from the solver's state, block by block, coupled or lagged.
 
@@ -612,17 +623,8 @@ class _SpinUpWindow:
         self.lag_in, self.lag_out = None, "lag_ir0"
 
     def equilibrium_start(self) -> np.ndarray:
-        """Surface temperatures [K] of the equilibrium start: sunlight plus the IR of a radiative-equilibrium
-        crater as the first guess of the absorbed flux, averaged over the window."""
-        fc, st, block, ns = self.fc, self.stepper, self.block, self.n
-        es = st.emissivity * SIGMA
-        guess_T = _mean_over_rows(
-            fc, 0, ns, block, lambda sol: np.mean((np.maximum(st.absorbed(sol, 0.0), 1e-3) / es) ** 0.25, axis=0)
-        )
-        guess_ir = st.ir(guess_T) if fc.F is not None else 0.0
-        return _mean_over_rows(
-            fc, 0, ns, block, lambda sol: self.solver.equilibrium_surface(st.absorbed(sol, guess_ir))
-        )
+        """Surface temperatures [K] of the equilibrium start (:func:`equilibrium_start`)."""
+        return equilibrium_start(self.fc, self.solver, self.stepper, self.n, self.block)
 
     def period_map(self, one_pass, report):
         """The map x -> state after one pass from state x (what :func:`thermal.periodic_state` iterates)."""

@@ -917,3 +917,177 @@ def view_factor_operator(
     if kind == "exact":
         return SparseViewFactors(vf.view_factor_matrix(mesh, tracer, cache_dir=cache_dir, progress=progress))
     return compressed_view_factors(mesh, tracer, tolerance, progress=progress, tolerance_mode=tolerance_mode)
+
+
+# --------------------------------------------------------------------------------------------- row blocks
+
+
+#: Arrays of a saved compressed operator (:func:`save_operator`), in its folder as ``NAME.npy``.
+_COMPRESSED_ARRAYS = (
+    "perm",
+    "areas_perm",
+    "indptr",
+    "indices",
+    "data",
+    "r0",
+    "r1",
+    "c0",
+    "c1",
+    "rank",
+    "uoff",
+    "voff",
+    "U",
+    "V",
+)
+
+
+def row_order(F: ViewFactorOperator) -> np.ndarray:
+    """The facet order in which contiguous runs of rows make cheap row blocks [-] (int64 facet indices):
+    the cluster order of a compressed operator (a run of it is a union of clusters, so few far blocks
+    touch it), the facet order of an exact matrix."""
+    if isinstance(F, CompressedViewFactors):
+        return F.perm.copy()
+    return np.arange(F.shape[0], dtype=np.int64)
+
+
+def save_operator(F: ViewFactorOperator, folder) -> None:
+    """Write ``F`` into ``folder`` (one ``.npy`` file per array and ``meta.json``) so that each worker of a
+    distributed run reads only its own rows (:func:`load_row_block`, memory-mapped reads).
+
+    Raises
+    ------
+    ConfigError
+        ``F`` is neither an exact nor a compressed operator.
+    """
+    import json
+    from pathlib import Path
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if isinstance(F, CompressedViewFactors):
+        for name in _COMPRESSED_ARRAYS:
+            np.save(folder / f"{name}.npy", getattr(F, name))
+        if F.scale is not None:
+            np.save(folder / "scale.npy", F.scale)
+        meta = {"kind": "compressed", "n": int(F.shape[0]), "scaled": F.scale is not None}
+    elif isinstance(F, SparseViewFactors):
+        m = F.matrix
+        for name in ("indptr", "indices", "data"):
+            np.save(folder / f"{name}.npy", getattr(m, name))
+        meta = {"kind": "exact", "n": int(F.shape[0])}
+    else:
+        raise ConfigError(f"cannot save a {type(F).__name__} for a distributed run; use an exact or compressed one")
+    (folder / "meta.json").write_text(json.dumps(meta))
+
+
+def load_row_block(folder, a: int, b: int) -> "RowBlock":
+    """Rows ``a .. b-1`` (positions in :func:`row_order`) of the operator saved in ``folder``: only the
+    stored entries those rows need are read into memory."""
+    import json
+    from pathlib import Path
+
+    folder = Path(folder)
+    meta = json.loads((folder / "meta.json").read_text())
+
+    def arr(name):
+        return np.load(folder / f"{name}.npy", mmap_mode="r")
+
+    n = int(meta["n"])
+    if not (0 <= a < b <= n):
+        raise ConfigError(f"row block {a}:{b} outside the operator's {n} rows")
+    if meta["kind"] == "exact":
+        indptr = arr("indptr")
+        lo, hi = int(indptr[a]), int(indptr[b])
+        sub = sp.csr_matrix(
+            (np.array(arr("data")[lo:hi]), np.array(arr("indices")[lo:hi]), np.array(indptr[a : b + 1]) - lo),
+            shape=(b - a, n),
+        )
+        return RowBlock(n, np.arange(a, b, dtype=np.int64), sub)
+    perm = arr("perm")
+    areas = np.array(arr("areas_perm")[a:b])
+    scale = np.array(arr("scale")) if meta.get("scaled") else None
+    # near part: rows a..b-1 of S + S^T, S strictly upper-triangular CSR in cluster order
+    indptr, indices, data = arr("indptr"), arr("indices"), arr("data")
+    lo, hi = int(indptr[a]), int(indptr[b])
+    upper = sp.csr_matrix(
+        (np.array(data[lo:hi], np.float64), np.array(indices[lo:hi]), np.array(indptr[a : b + 1]) - lo),
+        shape=(b - a, n),
+    )
+    # entries (i, j) of S with j in a..b-1 are entries (j, i) of S^T: one pass over the columns, in pieces
+    rows_t, cols_t, vals_t = [], [], []
+    step = 1 << 22
+    row_of = np.repeat(np.arange(n, dtype=np.int64), np.diff(np.asarray(indptr)))
+    for q0 in range(0, len(indices), step):
+        j = np.asarray(indices[q0 : q0 + step])
+        hit = np.flatnonzero((j >= a) & (j < b))
+        if hit.size:
+            rows_t.append(j[hit] - a)
+            cols_t.append(row_of[q0 + hit])
+            vals_t.append(np.asarray(data[q0 : q0 + step])[hit].astype(np.float64))
+    del row_of
+    near = upper
+    if rows_t:
+        lower = sp.csr_matrix(
+            (np.concatenate(vals_t), (np.concatenate(rows_t), np.concatenate(cols_t))), shape=(b - a, n)
+        )
+        near = (upper + lower).tocsr()
+    # far part: the low-rank blocks whose rows or columns meet a..b-1, factors copied out
+    r0, r1, c0, c1 = (np.asarray(arr(k)) for k in ("r0", "r1", "c0", "c1"))
+    keep = np.flatnonzero(((r0 < b) & (r1 > a)) | ((c0 < b) & (c1 > a)))
+    rank, uoff, voff = (np.asarray(arr(k))[keep] for k in ("rank", "uoff", "voff"))
+    U, V = arr("U"), arr("V")
+    m, nn = (r1[keep] - r0[keep]) * rank, (c1[keep] - c0[keep]) * rank
+    new_u = np.concatenate([[0], np.cumsum(m)]).astype(np.int64)
+    new_v = np.concatenate([[0], np.cumsum(nn)]).astype(np.int64)
+    Uk = np.empty(int(new_u[-1]), np.float32)
+    Vk = np.empty(int(new_v[-1]), np.float32)
+    for q in range(len(keep)):
+        Uk[new_u[q] : new_u[q + 1]] = U[uoff[q] : uoff[q] + m[q]]
+        Vk[new_v[q] : new_v[q + 1]] = V[voff[q] : voff[q] + nn[q]]
+    lowrank = (r0[keep], r1[keep], c0[keep], c1[keep], rank, new_u[:-1], new_v[:-1], Uk, Vk)
+    return RowBlock(
+        n, np.array(perm[a:b]), near, a=a, b=b, areas=areas, perm=np.array(perm), scale=scale, lowrank=lowrank
+    )
+
+
+class RowBlock:
+    """Some rows of a view-factor operator, held alone (a distributed run's worker holds those of its
+    facets): ``block.apply(X)`` is ``(F @ X)[block.facets]`` for X (n, k) over all facets, [unit of X].
+
+    Built by :func:`load_row_block`. For a compressed operator the product applies the low-rank blocks
+    that meet the rows (both halves of each, as the whole operator does; the half outside is discarded),
+    so ``apply`` equals the whole operator's product on these rows to round-off.
+    """
+
+    def __init__(self, n, facets, near, a=None, b=None, areas=None, perm=None, scale=None, lowrank=None):
+        self.n, self.facets, self.near = int(n), np.asarray(facets, np.int64), near
+        self.a, self.b, self.areas, self.perm, self.scale, self.lowrank = a, b, areas, perm, scale, lowrank
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held [B]."""
+        total = self.near.data.nbytes + self.near.indices.nbytes + self.near.indptr.nbytes + self.facets.nbytes
+        for x in (self.areas, self.perm, self.scale, *(self.lowrank or ())):
+            total += 0 if x is None else x.nbytes
+        return int(total)
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """``(F @ X)[facets]``: X (n, k) over all facets in facet order -> (len(facets), k)."""
+        X = np.asarray(X, np.float64)
+        if X.ndim != 2 or X.shape[0] != self.n:
+            raise ConfigError(f"row block product: operand has shape {X.shape}; expected ({self.n}, k)")
+        if self.perm is None:  # exact matrix: its rows
+            return np.asarray(self.near @ X)
+        from crater_thermal.kernels import vfoperator as kv
+
+        Xc = np.ascontiguousarray(X[self.perm])
+        if self.scale is not None:
+            Xc *= self.scale[:, None]
+        Y = np.asarray(self.near @ Xc)
+        if len(self.lowrank[4]):
+            full = np.zeros_like(Xc)
+            kv.lowrank_matvec(*self.lowrank, Xc, full, np.empty((2 * int(self.lowrank[4].max()), Xc.shape[1])))
+            Y += full[self.a : self.b]
+        if self.scale is not None:
+            Y *= self.scale[self.a : self.b, None]
+        return Y / self.areas[:, None]

@@ -1,0 +1,216 @@
+"""A coupled run on a dask.distributed cluster: the facet columns spread over workers, coupled through the
+radiation operator by waveform relaxation (:mod:`crater_thermal.waveform`).
+
+The command's process (the client) does what needs the whole scene once: the mesh, the view-factor
+operator, the Sun and the sunlight (direct and scattered), into the run's scratch store ``OUT.partial/``
+as a local run does. It writes the operator there (``OUT.partial/operator/``, one ``.npy`` file per
+array) and cuts the facets into chunks of contiguous rows of the operator's own order (clusters of the
+compressed operator). Each chunk's rows of the operator are loaded once by a worker, from that folder, as
+a dask task (:func:`crater_thermal.vfoperator.load_row_block`): the worker holds only the stored entries
+its rows need, and the scheduler loads them again elsewhere if that worker is lost. So the scratch store
+must be on a filesystem every worker reads at the same path.
+
+Then the time loop, window by window (the recorded period in windows of
+:data:`crater_thermal.waveform.DEFAULT_WINDOW` samples, the spin-up window in blocks): per relaxation
+iteration the client sends the window's emitted flux (samples x facets, float64, one copy per worker) and
+each chunk's start state and sunlight; each task forms its rows' IR from the emission and its rows of the
+operator, conducts its columns through the window on one thread, and returns their temperatures, IR and
+end state. The client checks convergence, keeps the state, writes the rows into the store and the
+checkpoints (``--resume`` works as for a local run), and at the end writes ``run.nc`` as a local run does.
+
+Tasks are pure functions of their inputs: a task whose worker dies is run again by the scheduler
+(``retries`` for errors it raises), and an iteration whose broadcast emission was lost is sent again.
+
+Equal to the single-process run with ``[steps] ir_coupling = "relaxed"`` within the relaxation tolerance
+(the chunks converge on the same fixed point; tested to 0.01 K); against the default extrapolated scheme
+the difference is that scheme's coupling error (``docs/model.md``).
+
+dask is imported only inside :func:`distributed_columns`'s context.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from crater_thermal import thermal, vfoperator, waveform
+from crater_thermal.errors import ConfigError
+
+#: Default facets per chunk (one task per chunk and iteration).
+CHUNK_FACETS = 4000
+#: Times dask re-runs a task that raised before the run stops.
+RETRIES = 3
+#: Times an iteration is sent again after its inputs were lost with a worker.
+RESENDS = 3
+
+_SOLVERS: dict = {}  # per worker process: a column solver per (options, columns), reused across tasks
+
+
+def _solver(options: dict, n: int):
+    key = (json.dumps(options, sort_keys=True), n)
+    s = _SOLVERS.get(key)
+    if s is None:
+        _SOLVERS.clear()  # one chunk size at a time: the last chunk may be shorter
+        s = _SOLVERS[key] = thermal.ColumnSolver(
+            [options["profile"]] * n,
+            property_set=options["property_set"],
+            emissivity=options["emissivity"],
+            geothermal_flux=options["geothermal_flux"],
+            **({"dt_max": options["dt_max"]} if options.get("dt_max") else {}),
+        )
+    return s
+
+
+def load_rows(folder: str, a: int, b: int):
+    """A worker's rows ``a:b`` of the saved operator (None when the run has no exchange). A dask task."""
+    return None if folder is None else vfoperator.load_row_block(folder, a, b)
+
+
+def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict):
+    """Conduct one chunk's columns through a window (runs on a worker, one thread).
+
+    Parameters
+    ----------
+    rows : the chunk's :class:`vfoperator.RowBlock` (None: no exchange).
+    facets : (m,) its facet indices; E : (n, nf) emitted flux of every facet [W m-2];
+    state : (m, nz) [K]; times_s : (n,) [s]; solar : (n, m) [W m-2]; ir0 : (m,) IR at sample 0 or None.
+    options : the columns' profile, property set, emissivity, geothermal flux, sub-step, albedo.
+
+    Returns
+    -------
+    (T (n, m), ir (n, m), end state (m, nz), accumulators (m, n_acc))
+    """
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        ir = np.zeros((len(times_s), len(facets))) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
+        if ir0 is not None:
+            ir[0] = ir0
+        solver = _solver(options, len(facets))
+        solver.set_state(state)
+        solver.reset_accumulators()
+        a = waveform.absorbed(solar, ir, options["albedo"], options["emissivity"], options["solar_is_absorbed"])
+        T = solver.run_series(times_s, a, record=True)
+        return T, ir, solver.T.copy(), solver.acc.copy()
+    finally:
+        numba.set_num_threads(threads)
+
+
+class DaskColumns:
+    """The waveform-relaxation backend (``solve`` as :meth:`waveform.LocalColumns.solve`) on a dask cluster."""
+
+    def __init__(self, client, chunks, row_futures, options, n_facets: int, n_workers: int):
+        self.client, self.chunks, self.row_futures, self.options = client, chunks, row_futures, options
+        self._n = int(n_facets)
+        self.rounds = 0
+        self.resent = 0
+        self.description = f"dask: {len(chunks)} chunks on {n_workers} worker(s) at start"
+
+    @property
+    def n_facets(self) -> int:
+        return self._n
+
+    def solve(self, state, times_s, solar, E, ir0=None) -> waveform.Window:
+        from distributed import KilledWorker
+
+        self.rounds += 1
+        for attempt in range(RESENDS + 1):
+            try:
+                return self._round(state, times_s, solar, E, ir0)
+            except KilledWorker as exc:
+                raise ConfigError(
+                    f"dask gave up a task of the run: the workers that ran it died ({exc.args[0] if exc.args else ''}; "
+                    "out of memory? see their logs); smaller --chunk-facets need less memory per worker; the "
+                    "checkpoint beside the output keeps the finished part: run again with --resume"
+                ) from None
+            except Exception as exc:  # an input lost with a worker (cancelled or missing data): send again
+                if attempt == RESENDS or not _is_lost_data(exc):
+                    raise
+                self.resent += 1
+
+    def _round(self, state, times_s, solar, E, ir0) -> waveform.Window:
+        client = self.client
+        E_f = client.scatter(np.ascontiguousarray(E, np.float64), broadcast=True, hash=False)
+        futures = [
+            client.submit(
+                solve_chunk,
+                self.row_futures[c],
+                idx,
+                E_f,
+                np.ascontiguousarray(state[idx]),
+                times_s,
+                np.ascontiguousarray(solar[:, idx]),
+                None if ir0 is None else ir0[idx],
+                self.options,
+                pure=False,
+                retries=RETRIES,
+            )
+            for c, idx in enumerate(self.chunks)
+        ]
+        parts = client.gather(futures)
+        n, nf = len(times_s), self._n
+        T, ir = np.empty((n, nf)), np.empty((n, nf))
+        end = np.empty((nf, parts[0][2].shape[1]))
+        acc = np.empty((nf, parts[0][3].shape[1]))
+        for idx, (t_c, ir_c, end_c, acc_c) in zip(self.chunks, parts):
+            T[:, idx], ir[:, idx], end[idx], acc[idx] = t_c, ir_c, end_c, acc_c
+        del futures, E_f
+        return waveform.Window(T, ir, end, acc)
+
+
+def _is_lost_data(exc) -> bool:
+    name = type(exc).__name__
+    return name in ("CancelledError", "FutureCancelledError", "FutureLostError") or "lost" in str(exc).lower()
+
+
+def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_FACETS):
+    """The ``columns`` factory of :func:`crater_thermal.runner.run_case` for a dask cluster: the scheduler at
+    ``scheduler`` (``tcp://host:8786``) or a local cluster of ``workers`` one-thread processes."""
+    if int(chunk_facets) < 1:
+        raise ConfigError(f"--chunk-facets {chunk_facets}: chunks need at least 1 facet")
+
+    @contextlib.contextmanager
+    def factory(case, fc, store):
+        from crater_thermal import cluster
+
+        nf = fc.mesh.n_facets
+        folder = None
+        order = np.arange(nf, dtype=np.int64)
+        if fc.F is not None:
+            folder = Path(store.folder) / "operator"
+            if not store.marked("operator"):
+                vfoperator.save_operator(fc.F, folder)
+                store.mark("operator")
+            order = vfoperator.row_order(fc.F)
+        client, cl = cluster.connect(scheduler, workers)
+        try:
+            n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+            size = min(int(chunk_facets), -(-nf // n_workers))  # at least one chunk per worker
+            bounds = [(a, min(nf, a + size)) for a in range(0, nf, size)]
+            tag = hashlib.sha256(f"{folder}:{nf}:{size}".encode()).hexdigest()[:12]
+            rows = [
+                client.submit(load_rows, None if folder is None else str(folder), a, b, key=f"ct-rows-{tag}-{a}")
+                for a, b in bounds
+            ]
+            options = {
+                "profile": case.surface.nominal_profile,
+                "property_set": case.surface.property_set,
+                "emissivity": float(case.surface.emissivity),
+                "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
+                "dt_max": float(case.steps.conduction_step_s) if case.steps.conduction_step_s else None,
+                "albedo": float(case.surface.albedo),
+                "solar_is_absorbed": case.surface.albedo_model != "constant",
+            }
+            yield DaskColumns(client, [order[a:b] for a, b in bounds], rows, options, nf, n_workers)
+        finally:
+            client.close()
+            if cl is not None:
+                cl.close()
+
+    return factory

@@ -1,0 +1,257 @@
+"""Waveform relaxation: the coupled IR exchange solved a window of samples at a time, columns apart.
+
+The coupled stepper (:class:`crater_thermal.radiosity.CoupledStepper`) exchanges IR between all columns at
+every flux step, so every column waits for every other at every step: one process. Waveform relaxation
+integrates every column over a whole *window* of samples with the emission of the previous iterate held as
+a known series, then recomputes the IR of every sample of the window from the new temperatures (one
+product with as many right-hand sides as samples), and repeats::
+
+    T(m+1) = conduct(state at the window's start, solar, IR = F e(T(m)))   over the window
+
+until ``max |T(m+1) - T(m)| <= tol_K`` over the window's samples and columns. Within an iteration the
+columns are independent, and the IR of a column needs only its own row of ``F``: the distributed run
+(:mod:`crater_thermal.cluster_run`) gives each worker some columns and the operator's rows of those
+columns, and exchanges only the window's emission (samples x facets) per iteration.
+
+Fixed point: the IR at every sample is ``F e(T)`` of the temperatures it produced, with the absorbed flux
+linear in time between samples, which is the implicit coupling the stepper's schemes approximate (their
+per-step defect test, ``radiosity.IR_DEFECT_W_M2``), so both agree within the two tolerances.
+
+Convergence: an iteration multiplies a temperature error by about ``eps x`` (the facet's view of the
+scene, ``F``'s row sum) ``x`` (the share of an absorbed-flux change that shows in the surface temperature
+within the window); on crater terrain that factor is 0.1-0.3, so the change between iterations bounds the
+remaining error (``change x q / (1 - q)``). The first iterate holds the emission of the window's start
+state; measured iteration counts are in ``docs/cluster.md``.
+
+Backends (``columns`` below) have ``n_facets`` and ``solve(state, times_s, solar, E, ir0)`` (see
+:meth:`LocalColumns.solve`); :class:`LocalColumns` runs them in this process (the reference the
+distributed backend is tested against).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from crater_thermal import radiosity, thermal
+from crater_thermal.errors import SolverError
+
+#: Default convergence tolerance of a window [K]: the largest change of any surface temperature between
+#: two iterations (the remaining error is a fraction of it, see the module docstring).
+DEFAULT_TOL_K = 1e-3
+#: Most iterations per window before the run stops with an error.
+MAX_ITERATIONS = 30
+#: Samples per window of the recorded period (4 days at 4 h): the iterations a window needs grow with
+#: its length, the exchanges per sample shrink (measured in ``docs/cluster.md``).
+DEFAULT_WINDOW = 24
+
+
+@dataclass
+class Window:
+    """The result of one pass of the columns over a window of n samples.
+
+    Attributes
+    ----------
+    T : (n, nf) surface temperatures [K]; row 0 is the start state's.
+    ir : (n, nf) the IR irradiance [W m-2] that drove the pass (row 0: the given start IR).
+    end : (nf, nz) the columns' state at the window's last sample [K].
+    acc : (nf, n_acc) the conduction kernel's accumulators of the pass (for ``thermal.periodic_state``).
+    """
+
+    T: np.ndarray
+    ir: np.ndarray
+    end: np.ndarray
+    acc: np.ndarray
+
+
+class LocalColumns:
+    """Every facet's column in this process.
+
+    Parameters
+    ----------
+    solver : thermal.ColumnSolver with one column per facet (its state is overwritten by each solve).
+    F : view-factor operator (``F @ X`` for X (nf, k)), or None for no exchange.
+    albedo, emissivity : [-]
+    solar_is_absorbed : the solar rows are already absorbed sunlight [W m-2] (incidence-dependent albedo).
+    """
+
+    def __init__(self, solver, F, albedo: float, emissivity: float, solar_is_absorbed: bool = False):
+        self.solver, self.F = solver, F
+        self.albedo, self.emissivity, self.solar_is_absorbed = float(albedo), float(emissivity), solar_is_absorbed
+
+    @property
+    def n_facets(self) -> int:
+        return self.solver.ncol
+
+    def solve(self, state, times_s, solar, E, ir0=None) -> Window:
+        """Conduct every column over the window from ``state``.
+
+        Parameters
+        ----------
+        state : (nf, nz) [K] at ``times_s[0]``.
+        times_s : (n,) [s].
+        solar : (n, nf) sunlight rows [W m-2] (incident, or absorbed with ``solar_is_absorbed``).
+        E : (n, nf) emitted flux [W m-2] whose IR ``F E`` drives samples 1..n-1 (and sample 0 when
+            ``ir0`` is None).
+        ir0 : (nf,) the IR [W m-2] at sample 0, or None.
+        """
+        ir = ir_rows(self.F, E)
+        if ir0 is not None:
+            ir[0] = ir0
+        self.solver.set_state(state)
+        self.solver.reset_accumulators()
+        a = absorbed(solar, ir, self.albedo, self.emissivity, self.solar_is_absorbed)
+        T = self.solver.run_series(times_s, a, record=True)
+        return Window(T, ir, self.solver.state(), self.solver.acc.copy())
+
+
+def ir_rows(F, E: np.ndarray) -> np.ndarray:
+    """IR irradiance [W m-2] (n, nf) of emitted-flux rows E (n, nf): one product for all rows (zero without
+    an operator; clipped at 0 as :meth:`radiosity.CoupledStepper.ir`)."""
+    if F is None:
+        return np.zeros_like(E)
+    return np.maximum(np.asarray(F @ np.ascontiguousarray(E.T)).T, 0.0)
+
+
+def absorbed(solar, ir, albedo: float, emissivity: float, solar_is_absorbed: bool) -> np.ndarray:
+    """Absorbed flux [W m-2] of sunlight rows and IR rows (as :meth:`radiosity.CoupledStepper.absorbed`)."""
+    if solar_is_absorbed:
+        return solar + emissivity * ir
+    return (1.0 - albedo) * solar + emissivity * ir
+
+
+def relax(
+    columns, state, times_s, solar, ir0, emissivity: float, tol_K: float = DEFAULT_TOL_K, max_iter=MAX_ITERATIONS
+):
+    """The coupled pass over one window by waveform relaxation (module docstring).
+
+    Parameters
+    ----------
+    columns : backend (:class:`LocalColumns` or the distributed one).
+    state : (nf, nz) [K] at ``times_s[0]``.
+    times_s, solar : the window's (n,) times [s] and (n, nf) sunlight rows [W m-2].
+    ir0 : (nf,) IR [W m-2] at sample 0 (the one that ended the previous window), or None: ``F e(T0)``.
+    emissivity : [-]
+    tol_K : stop when no surface temperature changes by more than this between iterations [K].
+
+    Returns
+    -------
+    (Window, iterations, last change [K])
+
+    Raises
+    ------
+    SolverError
+        Not converged in ``max_iter`` iterations.
+    """
+    T0 = np.asarray(state)[:, 0]
+    E = np.broadcast_to(radiosity.emitted(T0, emissivity), (len(times_s), len(T0))).copy()
+    prev = None
+    change = np.inf
+    for it in range(1, int(max_iter) + 1):
+        w = columns.solve(state, times_s, solar, E, ir0)
+        if prev is not None:
+            change = float(np.max(np.abs(w.T - prev)))
+            if change <= tol_K:
+                return w, it, change
+        prev = w.T
+        E = radiosity.emitted(np.asarray(w.T, float), emissivity)
+    raise SolverError(
+        f"waveform relaxation did not converge in {max_iter} iterations (last change {change:.3g} K > {tol_K} K); "
+        "shorter windows converge faster"
+    )
+
+
+class SpinUp:
+    """The start of the record by waveform relaxation: the periodic state over the spin-up window, each pass
+    through it driven by the previous pass's emission (the lagged spin-up of :mod:`crater_thermal.simulate`,
+    with the first pass relaxed window by window instead of stepped), or one relaxed pass (fixed spin-up).
+
+    Parameters
+    ----------
+    columns : backend.
+    solver : the ColumnSolver of all facets on this machine: holds the state between passes and gives
+        ``thermal.periodic_state`` its Jacobian (the passes run in ``columns``).
+    rows : ``rows(k0, k1)`` -> sunlight rows k0..k1-1 of the spin-up window [W m-2].
+    store : segment store for the passes' temperature series (``wr_T0`` / ``wr_T1``) and ``spin_ir``.
+    times_s : (ns,) the spin-up window's times [s]; block : samples per block (memory).
+    emissivity : [-]; tol_K : relaxation tolerance of the first pass [K]; window : its window [samples].
+    """
+
+    def __init__(self, columns, solver, rows, store, times_s, block, emissivity, tol_K, window, save_spin):
+        self.columns, self.solver, self.rows, self.store = columns, solver, rows, store
+        self.t, self.block, self.eps, self.tol, self.window, self.save_spin = (
+            times_s,
+            int(block),
+            float(emissivity),
+            float(tol_K),
+            int(window),
+            save_spin,
+        )
+        self.n = len(times_s)
+        self.passes = 0
+        self.iterations: list[int] = []  # relaxation iterations per window of the first pass
+        self.ir_end = None
+        self.lag_in, self.lag_out = None, "wr_T0"
+
+    def coupled(self, on_step=None) -> None:
+        """One relaxed pass from the solver's state; its temperatures kept as the next pass's input."""
+        self.passes += 1
+        state = self.solver.state()
+        ir = None
+        acc = np.zeros_like(self.solver.acc)
+        for w0 in range(0, self.n - 1, self.window):
+            w1 = min(self.n - 1, w0 + self.window)
+            win, it, _ = relax(self.columns, state, self.t[w0 : w1 + 1], self.rows(w0, w1 + 1), ir, self.eps, self.tol)
+            self.iterations.append(it)
+            self._keep(w0, win.T, win.ir, last=w1 == self.n - 1)
+            state, ir, acc = win.end, win.ir[-1], acc + win.acc
+            if on_step is not None:
+                on_step(w1)
+        self._finish(state, acc)
+
+    def lagged(self, on_step=None) -> None:
+        """One pass from the solver's state driven by the previous pass's emission (the first pass is
+        :meth:`coupled`)."""
+        if self.lag_in is None:
+            self.coupled(on_step)
+            return
+        self.passes += 1
+        state = self.solver.state()
+        acc = np.zeros_like(self.solver.acc)
+        for b0 in range(0, self.n - 1, self.block):
+            b1 = min(self.n - 1, b0 + self.block)
+            E = radiosity.emitted(self.store.read(self.lag_in, b0, b1 + 1), self.eps)
+            win = self.columns.solve(state, self.t[b0 : b1 + 1], self.rows(b0, b1 + 1), E, None)
+            self._keep(b0, win.T, win.ir, last=b1 == self.n - 1)
+            state, acc = win.end, acc + win.acc
+            if on_step is not None:
+                on_step(b1)
+        self._finish(state, acc)
+
+    def _keep(self, k0, T, ir, last: bool) -> None:
+        """Rows k0.. of the pass (the window's last row belongs to the next window, except at the end)."""
+        n = len(T) if last else len(T) - 1
+        self.store.write_rows(self.lag_out, k0, np.asarray(T[:n]))
+        if self.save_spin:
+            self.store.write_rows("spin_ir", k0, np.asarray(ir[:n]))
+        if last:
+            self.ir_end = np.asarray(ir[-1]).copy()
+
+    def _finish(self, state, acc) -> None:
+        self.solver.set_state(state)
+        self.solver.acc += acc
+        self.lag_in, self.lag_out = self.lag_out, ("wr_T1" if self.lag_out == "wr_T0" else "wr_T0")
+
+    def periodic(self, tol_K: float, report=None) -> dict:
+        """The periodic state (``thermal.periodic_state`` over lagged passes); the solver is left in it."""
+        expected = 5
+
+        def phi(x):
+            self.solver.set_state(x)
+            done0 = self.passes * (self.n - 1)
+            total = max(expected, self.passes + 1) * (self.n - 1)
+            self.lagged(None if report is None else (lambda k: report(done0 + k, total)))
+            return self.solver.T.copy()
+
+        return thermal.periodic_state(self.solver, phi, tol_K=tol_K, anderson=False)
