@@ -168,6 +168,9 @@ def run(
     resume: bool = False,
     overwrite: bool = False,
     progress: Any = None,
+    scheduler: Optional[str] = None,
+    workers: Optional[int] = None,
+    chunk_facets: int = 4000,
 ) -> Dataset:
     """Run a case: sunlight, scattering, infrared exchange and conduction over the case's period.
 
@@ -184,6 +187,15 @@ def run(
     overwrite : bool
         Replace an existing ``out``.
     progress : bool or reporter, optional
+    scheduler : str, optional
+        Address of a dask.distributed scheduler (``tcp://host:8786``): the columns are conducted in
+        chunks by its workers, coupled by waveform relaxation (``[steps] ir_coupling = "relaxed"``
+        whatever the case says; :mod:`crater_thermal.cluster_run`). The scratch store beside ``out``
+        (``OUT.partial/``) must be readable by every worker at the same path.
+    workers : int, optional
+        Instead of ``scheduler``: a local dask cluster of this many one-thread processes.
+    chunk_facets : int
+        With ``scheduler`` or ``workers``: facets per chunk (one task per chunk and relaxation iteration).
 
     Returns
     -------
@@ -193,13 +205,24 @@ def run(
     """
     case = case if isinstance(case, config.Case) else config.load_case(case)
     rep = _reporter(progress)
+    columns = None
+    if scheduler is not None or workers is not None:
+        if scheduler is not None and workers is not None:
+            raise ConfigError("--scheduler and --workers: give one (a remote scheduler, or a local cluster)")
+        if scheduler is None and int(workers) < 1:
+            raise ConfigError(f"--workers {workers}: need at least 1 worker process")
+        if out is None:
+            raise ConfigError("a run on a dask cluster needs out: its scratch store beside it is what workers read")
+        from crater_thermal import cluster_run
+
+        columns = cluster_run.distributed_columns(scheduler, workers, chunk_facets)
     if out is None:
         if resume:
             raise ConfigError("resume needs out: the run's file and its checkpoint")
         with _scratch_folder() as d:
             path = runner.run_case(case, d / "run.nc", progress=rep)
             return _in_memory(path, io.open_run)
-    path = runner.run_case(case, out, resume=resume, overwrite=overwrite, progress=rep)
+    path = runner.run_case(case, out, resume=resume, overwrite=overwrite, progress=rep, columns=columns)
     return io.open_written(path)
 
 

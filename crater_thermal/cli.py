@@ -321,6 +321,18 @@ def run(
     resume: bool = typer.Option(False, "--resume", help="Continue from the checkpoint beside OUTPUT."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
+    scheduler: Optional[str] = typer.Option(
+        None,
+        "--scheduler",
+        help="dask scheduler address (tcp://host:8786): conduct the columns on its workers, coupled by waveform "
+        "relaxation; OUTPUT's folder must be shared with them (docs/cluster.md).",
+    ),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", help="Instead of --scheduler: a local dask cluster of N one-thread processes."
+    ),
+    chunk_facets: int = typer.Option(
+        4000, "--chunk-facets", help="With --scheduler/--workers: facets per task (chunk)."
+    ),
 ) -> None:
     """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""
     from crater_thermal import api, runner
@@ -328,11 +340,21 @@ def run(
     from crater_thermal.progress import reporter
 
     try:
-        api.run(case, output, resume=resume, overwrite=overwrite, progress=reporter(progress)).close()
+        api.run(
+            case,
+            output,
+            resume=resume,
+            overwrite=overwrite,
+            progress=reporter(progress),
+            scheduler=scheduler,
+            workers=workers,
+            chunk_facets=chunk_facets,
+        ).close()
     except Interrupted as exc:
         ckpt = Path(runner.checkpoint_path(output))
         if ckpt.exists():
-            exc.hint = f"checkpoint {ckpt} kept: continue with `crater-thermal run {case} -o {output} --resume`"
+            where = f" --scheduler {scheduler}" if scheduler else (f" --workers {workers}" if workers else "")
+            exc.hint = f"checkpoint {ckpt} kept: continue with `crater-thermal run {case} -o {output}{where} --resume`"
         raise
     typer.echo(f"wrote {output}")
 

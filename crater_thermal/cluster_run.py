@@ -19,7 +19,7 @@ end state. The client checks convergence, keeps the state, writes the rows into 
 checkpoints (``--resume`` works as for a local run), and at the end writes ``run.nc`` as a local run does.
 
 Tasks are pure functions of their inputs: a task whose worker dies is run again by the scheduler
-(``retries`` for errors it raises), and an iteration whose broadcast emission was lost is sent again.
+(``retries`` for errors it raises), and an iteration whose emission was lost with a worker is sent again.
 
 Equal to the single-process run with ``[steps] ir_coupling = "relaxed"`` within the relaxation tolerance
 (the chunks converge on the same fixed point; tested to 0.01 K); against the default extrapolated scheme
@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from crater_thermal import thermal, vfoperator, waveform
-from crater_thermal.errors import ConfigError
+from crater_thermal.errors import ConfigError, CraterThermalError
 
 #: Default facets per chunk (one task per chunk and iteration).
 CHUNK_FACETS = 4000
@@ -129,14 +129,18 @@ class DaskColumns:
                     "out of memory? see their logs); smaller --chunk-facets need less memory per worker; the "
                     "checkpoint beside the output keeps the finished part: run again with --resume"
                 ) from None
-            except Exception as exc:  # an input lost with a worker (cancelled or missing data): send again
-                if attempt == RESENDS or not _is_lost_data(exc):
+            except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
+                raise
+            except Exception:  # the window's emission lost with the worker that held it: send it again
+                if attempt == RESENDS:
                     raise
                 self.resent += 1
 
     def _round(self, state, times_s, solar, E, ir0) -> waveform.Window:
         client = self.client
-        E_f = client.scatter(np.ascontiguousarray(E, np.float64), broadcast=True, hash=False)
+        # one copy, on one worker; the others fetch it from there (a broadcast scatter waits on a worker
+        # that died mid-replication: measured, 30 s retries until the end)
+        E_f = client.scatter(np.ascontiguousarray(E, np.float64), hash=False)
         futures = [
             client.submit(
                 solve_chunk,
@@ -162,11 +166,6 @@ class DaskColumns:
             T[:, idx], ir[:, idx], end[idx], acc[idx] = t_c, ir_c, end_c, acc_c
         del futures, E_f
         return waveform.Window(T, ir, end, acc)
-
-
-def _is_lost_data(exc) -> bool:
-    name = type(exc).__name__
-    return name in ("CancelledError", "FutureCancelledError", "FutureLostError") or "lost" in str(exc).lower()
 
 
 def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_FACETS):

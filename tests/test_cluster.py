@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from dask_procs import free_port as _free_port
 
 from crater_thermal import api, cluster, io, runner, simulate, thermal
 from crater_thermal.errors import ConfigError, OutputExistsError
@@ -42,54 +42,6 @@ def case(tmp_path_factory):
     with io.open_replay(d / "local.nc") as ref:
         ref.load()
     return d, ref
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    """SIGTERM the process group of a process started in its own session, then SIGKILL."""
-    if proc.poll() is None:
-        try:
-            os.killpg(proc.pid, signal.SIGTERM)
-            proc.wait(timeout=10)
-        except (ProcessLookupError, subprocess.TimeoutExpired):
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            proc.wait(timeout=10)
-
-
-def _start_worker(address: str, log: Path) -> subprocess.Popen:
-    cmd = [str(BIN / "dask"), "worker", address, "--nworkers", "1", "--nthreads", "1"]
-    cmd += ["--host", "127.0.0.1", "--no-dashboard"]
-    with open(log, "wb") as fh:
-        return subprocess.Popen(cmd, env=ENV, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
-
-
-@pytest.fixture(scope="module")
-def dask_cli(tmp_path_factory):
-    """A scheduler and two workers started with dask's command line on 127.0.0.1 (killed at teardown)."""
-    d = tmp_path_factory.mktemp("dask")
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    procs = []
-    try:
-        with open(d / "scheduler.log", "wb") as fh:
-            cmd = [str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
-            procs.append(subprocess.Popen(cmd, env=ENV, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True))
-        workers = [_start_worker(address, d / f"worker{k}.log") for k in range(2)]
-        procs += workers
-        with distributed.Client(address, timeout=60) as client:
-            client.wait_for_workers(2, timeout=90)
-        yield address, workers
-    finally:
-        for p in reversed(procs):
-            _stop(p)
 
 
 def _cli(*args, **kw) -> subprocess.CompletedProcess:
