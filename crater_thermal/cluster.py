@@ -43,9 +43,14 @@ CHUNK_FACETS = 2000
 CHUNK_PROFILES = 8
 
 
-def connect(scheduler: str | None = None, workers: int | None = None):
+def connect(
+    scheduler: str | None = None,
+    workers: int | None = None,
+    purpose: str = "replays on a dask cluster (--scheduler, --workers)",
+):
     """A dask.distributed client: of the scheduler at ``scheduler`` (``tcp://host:8786``), or of a new
-    local cluster of ``workers`` processes with one thread each.
+    local cluster of ``workers`` processes with one thread each. ``purpose``: what needs it (plural),
+    for the error when dask.distributed is missing.
 
     Returns
     -------
@@ -61,11 +66,8 @@ def connect(scheduler: str | None = None, workers: int | None = None):
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise missing_extra(
-            "dask.distributed", "distributed", "replays on a dask cluster (--scheduler, --workers)"
-        ) from None
+        raise missing_extra("dask.distributed", "distributed", purpose) from None
     if scheduler:
-        purpose = "replays on a dask cluster (--scheduler, --workers)"
         return connect_scheduler(scheduler, purpose, CONNECT_TIMEOUT_S, "leave out --scheduler"), None
     cluster = LocalCluster(
         n_workers=int(workers),

@@ -70,7 +70,7 @@ def load_rows(folder: str, a: int, b: int):
     return None if folder is None else vfoperator.load_row_block(folder, a, b)
 
 
-def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict):
+def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K: float = 0.0):
     """Conduct one chunk's columns through a window (runs on a worker, one thread).
 
     Parameters
@@ -79,10 +79,13 @@ def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict):
     facets : (m,) its facet indices; E : (n, nf) emitted flux of every facet [W m-2];
     state : (m, nz) [K]; times_s : (n,) [s]; solar : (n, m) [W m-2]; ir0 : (m,) IR at sample 0 or None.
     options : the columns' profile, property set, emissivity, geothermal flux, sub-step, albedo.
+    prev, skip_K : this chunk's result of the previous iteration of the window (a
+        :class:`waveform.Window`, kept on the workers) and the change [K] below which a column keeps it
+        (:func:`waveform.active_columns`).
 
     Returns
     -------
-    (T (n, m), ir (n, m), end state (m, nz), accumulators (m, n_acc))
+    waveform.Window of the chunk's columns.
     """
     import numba
 
@@ -92,12 +95,9 @@ def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict):
         ir = np.zeros((len(times_s), len(facets))) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
         if ir0 is not None:
             ir[0] = ir0
-        solver = _solver(options, len(facets))
-        solver.set_state(state)
-        solver.reset_accumulators()
-        a = waveform.absorbed(solar, ir, options["albedo"], options["emissivity"], options["solar_is_absorbed"])
-        T = solver.run_series(times_s, a, record=True)
-        return T, ir, solver.T.copy(), solver.acc.copy()
+        eps = options["emissivity"]
+        a = waveform.absorbed(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
+        return waveform.conduct(_solver(options, len(facets)), state, times_s, a, ir, prev, skip_K, eps)
     finally:
         numba.set_num_threads(threads)
 
@@ -110,19 +110,25 @@ class DaskColumns:
         self._n = int(n_facets)
         self.rounds = 0
         self.resent = 0
+        self._last = None  # the chunks' result futures of the latest round (the next iteration's prev)
+        self._state = None  # the chunks' start states of the current window (futures)
         self.description = f"dask: {len(chunks)} chunks on {n_workers} worker(s) at start"
 
     @property
     def n_facets(self) -> int:
         return self._n
 
-    def solve(self, state, times_s, solar, E, ir0=None) -> waveform.Window:
+    def solve(self, state, times_s, solar, E, ir0=None, prev=None, skip_K: float = 0.0):
+        """As :meth:`waveform.LocalColumns.solve`; ``prev`` must be the result of this backend's latest call
+        (its chunks' parts stay on the workers and are used there)."""
         from distributed import KilledWorker
 
         self.rounds += 1
+        if prev is None:
+            self._last = self._state = None
         for attempt in range(RESENDS + 1):
             try:
-                return self._round(state, times_s, solar, E, ir0)
+                return self._round(state, times_s, solar, E, ir0, skip_K if prev is not None else 0.0)
             except KilledWorker as exc:
                 raise ConfigError(
                     f"dask gave up a task of the run: the workers that ran it died ({exc.args[0] if exc.args else ''}; "
@@ -131,41 +137,87 @@ class DaskColumns:
                 ) from None
             except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
                 raise
-            except Exception:  # the window's emission lost with the worker that held it: send it again
+            except Exception:  # an input lost with the worker that held it: send the iteration again, whole
                 if attempt == RESENDS:
                     raise
                 self.resent += 1
+                self._last = self._state = None
 
-    def _round(self, state, times_s, solar, E, ir0) -> waveform.Window:
+    def _round(self, state, times_s, solar, E, ir0, skip_K):
         client = self.client
+        if self._last is None or self._state is None:  # a new window: its start state, once per chunk
+            self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
         # one copy, on one worker; the others fetch it from there (a broadcast scatter waits on a worker
         # that died mid-replication: measured, 30 s retries until the end)
         E_f = client.scatter(np.ascontiguousarray(E, np.float64), hash=False)
+        last = self._last or [None] * len(self.chunks)
         futures = [
             client.submit(
                 solve_chunk,
                 self.row_futures[c],
                 idx,
                 E_f,
-                np.ascontiguousarray(state[idx]),
+                self._state[c],
                 times_s,
                 np.ascontiguousarray(solar[:, idx]),
                 None if ir0 is None else ir0[idx],
                 self.options,
+                last[c],
+                skip_K if last[c] is not None else 0.0,
                 pure=False,
                 retries=RETRIES,
             )
             for c, idx in enumerate(self.chunks)
         ]
-        parts = client.gather(futures)
-        n, nf = len(times_s), self._n
-        T, ir = np.empty((n, nf)), np.empty((n, nf))
-        end = np.empty((nf, parts[0][2].shape[1]))
-        acc = np.empty((nf, parts[0][3].shape[1]))
-        for idx, (t_c, ir_c, end_c, acc_c) in zip(self.chunks, parts):
-            T[:, idx], ir[:, idx], end[idx], acc[idx] = t_c, ir_c, end_c, acc_c
-        del futures, E_f
-        return waveform.Window(T, ir, end, acc)
+        # only the temperatures and the active counts come back each iteration (for the next emission and
+        # the convergence test); IR, end states and accumulators stay on the workers until asked for
+        parts = client.gather([client.submit(_surface, f, pure=False, retries=RETRIES) for f in futures])
+        self._last = futures
+        return _RemoteWindow(self, futures, parts, len(times_s))
+
+
+def _surface(w):
+    """A chunk window's surface temperatures [K] and conducted-column count (a small task)."""
+    return w.T, w.active
+
+
+class _RemoteWindow:
+    """A window whose chunks' results are on the workers: ``T`` and ``active`` here, ``ir``, ``end`` and
+    ``acc`` gathered on first use (see :class:`waveform.Window`)."""
+
+    def __init__(self, owner: DaskColumns, futures, parts, n: int):
+        self._owner, self._futures = owner, futures
+        nf = owner.n_facets
+        self.T = np.empty((n, nf))
+        self.active = 0
+        for idx, (t_c, act) in zip(owner.chunks, parts):
+            self.T[:, idx] = t_c
+            self.active += act if act >= 0 else len(idx)
+        self._full = None
+
+    def _fetch(self):
+        if self._full is None:
+            parts = self._owner.client.gather(self._futures)
+            nf, chunks = self._owner.n_facets, self._owner.chunks
+            ir = np.empty_like(self.T)
+            end = np.empty((nf, parts[0].end.shape[1]))
+            acc = np.empty((nf, parts[0].acc.shape[1]))
+            for idx, w in zip(chunks, parts):
+                ir[:, idx], end[idx], acc[idx] = w.ir, w.end, w.acc
+            self._full = (ir, end, acc)
+        return self._full
+
+    @property
+    def ir(self):
+        return self._fetch()[0]
+
+    @property
+    def end(self):
+        return self._fetch()[1]
+
+    @property
+    def acc(self):
+        return self._fetch()[2]
 
 
 def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_FACETS):
@@ -187,7 +239,7 @@ def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_
                 vfoperator.save_operator(fc.F, folder)
                 store.mark("operator")
             order = vfoperator.row_order(fc.F)
-        client, cl = cluster.connect(scheduler, workers)
+        client, cl = cluster.connect(scheduler, workers, "runs on a dask cluster (--scheduler, --workers)")
         try:
             n_workers = max(1, len(client.scheduler_info().get("workers", {})))
             size = min(int(chunk_facets), -(-nf // n_workers))  # at least one chunk per worker

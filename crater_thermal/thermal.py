@@ -642,6 +642,29 @@ class ColumnSolver:
         self._run(times, a, np.arange(len(cols), dtype=np.int64), False, self.time_s - duration_s, cols=cols)
         return self.T[cols, 0].copy()
 
+    def run_columns(self, columns, times_s, absorbed) -> np.ndarray:
+        """Run only the columns ``columns`` (int array) through forcing samples from their current state;
+        the other columns, and the clock, are left as they are.
+
+        Parameters
+        ----------
+        columns : (m,) column indices.
+        times_s : (nt,) increasing [s].
+        absorbed : (nt, m) absorbed flux [W m-2] of those columns.
+
+        Returns
+        -------
+        (nt, m) surface temperature [K] of those columns (first row: their current state).
+        """
+        cols = np.asarray(columns, np.int64)
+        times = np.ascontiguousarray(np.asarray(times_s, dtype=np.float64))
+        a = np.ascontiguousarray(np.asarray(absorbed, dtype=np.float64))
+        if a.shape != (times.size, cols.size):
+            raise SolverError(f"absorbed has shape {a.shape}; need (times, columns) = {(times.size, cols.size)}")
+        if cols.size == 0:
+            return np.empty((times.size, 0))
+        return self._run(times, a, np.arange(cols.size, dtype=np.int64), True, 0.0, cols=cols)
+
     def run_series(self, times_s, absorbed, record: bool = True, out=None):
         """Run through forcing samples from the current state (taken to be at ``times_s[0]``).
 
