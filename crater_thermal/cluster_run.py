@@ -11,7 +11,7 @@ its rows need, and the scheduler loads them again elsewhere if that worker is lo
 must be on a filesystem every worker reads at the same path.
 
 Then the time loop, window by window (the recorded period in windows of
-:data:`crater_thermal.waveform.DEFAULT_WINDOW` samples, the spin-up window in blocks): per relaxation
+:func:`crater_thermal.waveform.window_samples` samples, the spin-up window in blocks): per relaxation
 iteration the client sends the window's emitted flux (samples x facets, float64, one copy per worker) and
 each chunk's start state and sunlight; each task forms its rows' IR from the emission and its rows of the
 operator, conducts its columns through the window on one thread, and returns their temperatures, IR and
@@ -145,8 +145,9 @@ class DaskColumns:
 
     def _round(self, state, times_s, solar, E, ir0, skip_K):
         client = self.client
-        if self._last is None or self._state is None:  # a new window: its start state, once per chunk
+        if self._last is None or self._state is None:  # a new window: its start state and sunlight, once
             self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
+            self._solar = client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in self.chunks], hash=False)
         # one copy, on one worker; the others fetch it from there (a broadcast scatter waits on a worker
         # that died mid-replication: measured, 30 s retries until the end)
         E_f = client.scatter(np.ascontiguousarray(E, np.float64), hash=False)
@@ -159,7 +160,7 @@ class DaskColumns:
                 E_f,
                 self._state[c],
                 times_s,
-                np.ascontiguousarray(solar[:, idx]),
+                self._solar[c],
                 None if ir0 is None else ir0[idx],
                 self.options,
                 last[c],

@@ -409,7 +409,7 @@ def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, 
         block,
         eps,
         waveform.DEFAULT_TOL_K,
-        waveform.DEFAULT_WINDOW,
+        waveform.window_samples(block),
         save_spin,
     )
     years, tol_K = period.spinup_years, period.periodic_tol_K
@@ -440,10 +440,10 @@ def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, 
 
 def _record_relaxed(case, fc, cols, solver, store, block, k0, ir_k, checkpoints, spin_info, timer, progress) -> None:
     """The recorded period from sample ``k0`` by waveform relaxation, in windows of
-    :data:`waveform.DEFAULT_WINDOW` samples aligned on multiples of it (a resumed run cuts the same
+    :func:`waveform.window_samples` samples aligned on multiples of it (a resumed run cuts the same
     windows); rows into the store, a checkpoint at the first window end past every
     ``[output] checkpoint_interval_steps`` steps."""
-    nt, off, W = len(fc.times), fc.record_offset, waveform.DEFAULT_WINDOW
+    nt, off, W = len(fc.times), fc.record_offset, waveform.window_samples(block)
     rec_t = simulate.seconds_since(fc.times, fc.times[0])
     every = case.output.checkpoint_interval_steps
     eps = float(case.surface.emissivity)

@@ -47,9 +47,16 @@ MAX_ITERATIONS = 30
 #: temperatures by more than this fraction of the tolerance (:func:`active_columns`); the others keep
 #: their previous iterate (on crater terrain ~20 % of the columns take the later iterations).
 SKIP_FRACTION = 0.25
-#: Samples per window of the recorded period (4 days at 4 h): the iterations a window needs grow with
-#: its length, the exchanges per sample shrink (measured in ``docs/cluster.md``).
-DEFAULT_WINDOW = 24
+#: Samples per window (16 days at 4 h), at most; fewer when the memory budget's block of samples is
+#: shorter (:func:`window_samples`). The iterations a window needs grow with its length (5-7 at 24
+#: samples, 7-8 at 96 on crater terrain), but the later ones conduct few columns, and a distributed run
+#: exchanges once per iteration: measured in ``docs/cluster.md``.
+DEFAULT_WINDOW = 96
+
+
+def window_samples(block: int) -> int:
+    """Samples per relaxation window for a memory budget of ``block`` samples per (time, facet) block."""
+    return max(2, min(DEFAULT_WINDOW, int(block)))
 
 
 @dataclass

@@ -1,0 +1,163 @@
+"""Benchmark: a coupled run in one process vs on a local dask cluster (issue 22 item 2).
+
+The generator's crater of ``bench/scale.py`` (10 km, 5 km flat surround, 86 S) at ``--facets`` facets
+(default 30,000), a recorded period of ``--days`` (default a year) at 4 h after the periodic start over
+the year before it, three ways, one after the other in this process (each after an untimed warm-up):
+
+* ``stepper``: ``runner.run_case`` with the default coupled step (``ir_coupling = "extrapolated"``), the
+  single-process run as users run it;
+* ``relaxed``: the same case with ``ir_coupling = "relaxed"`` (waveform relaxation) in this process;
+* ``dask``: the relaxed run on a local cluster of ``--workers`` processes x 1 thread, made as
+  ``run --workers`` does (``cluster_run.distributed_columns``); its wall time counts the cluster's start
+  and close.
+
+Recorded per mode: wall seconds and the run's own time split, relaxation iterations per window (mean,
+max) of the spin-up's first pass and of the record, the load average sampled during it (the machine is
+shared), and the largest temperature differences between the modes (all samples, and night samples of
+the facets in permanent shadow). Efficiencies: ``relaxed / dask`` wall (the cost of distribution, same
+scheme; 1 = none) and ``stepper / dask`` (against the default single-process run).
+
+Usage: ``python bench/coupled_cluster.py [--facets 30000] [--days 365] [--workers 2]
+[--chunk-facets 4000] [--modes stepper relaxed dask] [--out bench/results/coupled_cluster.json]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+# bench/distributed.py would shadow the dask.distributed package: keep this folder off the path
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+
+from crater_thermal import cluster_run, config, io, runner, simulate  # noqa: E402
+
+
+def _scale_case_template() -> str:
+    spec = importlib.util.spec_from_file_location("bench_scale", REPO / "bench" / "scale.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.CASE
+
+
+class LoadSampler(threading.Thread):
+    """``os.getloadavg()[0]`` every ``every_s`` seconds while running."""
+
+    def __init__(self, every_s: float = 10.0):
+        super().__init__(daemon=True)
+        self.every_s, self.samples, self.stop = every_s, [], threading.Event()
+
+    def run(self):
+        while not self.stop.is_set():
+            self.samples.append(os.getloadavg()[0])
+            self.stop.wait(self.every_s)
+
+
+def write_case(tmp: Path, name: str, facets: int, days: float, scheme: str, spinup: str) -> Path:
+    end = str(np.datetime64("2019-01-01T00:00") + np.timedelta64(int(round(days * 86400)), "s"))
+    text = _scale_case_template().format(
+        facets=facets, diameter_km=10.0, surround_km=5.0, lat_deg=-86.0, chunk_mb=256, extra="", end=end, spinup=spinup
+    )
+    text = text.replace("flux_step_hours = 4.0", f'flux_step_hours = 4.0\nir_coupling = "{scheme}"')
+    path = tmp / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--facets", type=int, default=30_000)
+    ap.add_argument("--days", type=float, default=365.0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--chunk-facets", type=int, default=cluster_run.CHUNK_FACETS)
+    ap.add_argument("--modes", nargs="+", default=["stepper", "relaxed", "dask"])
+    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "coupled_cluster.json")
+    args = ap.parse_args()
+    spinup = 'spinup = "periodic"\nspinup_years = 1.0'
+    result = {
+        "facets_requested": args.facets,
+        "record_days": args.days,
+        "workers": args.workers,
+        "chunk_facets": args.chunk_facets,
+        "cpus": os.cpu_count(),
+        "modes": {},
+    }
+    temps = {}
+    with tempfile.TemporaryDirectory(prefix="coupled_cluster_") as tmp:
+        tmp = Path(tmp)
+        os.environ.setdefault("CRATER_THERMAL_CACHE", str(tmp / "cache"))
+        # untimed warm-up: imports, numba compilation, ephemeris tables, a local cluster's first start
+        warm = write_case(tmp, "warm", 300, 2.0, "relaxed", 'spinup = "fixed"\nspinup_days = 1.0')
+        runner.run_case(config.load_case(warm), tmp / "warm.nc", progress=False)
+        runner.run_case(
+            config.load_case(warm),
+            tmp / "warm_dask.nc",
+            progress=False,
+            columns=cluster_run.distributed_columns(workers=args.workers),
+        )
+        for mode in args.modes:
+            scheme = "extrapolated" if mode == "stepper" else "relaxed"
+            case = config.load_case(write_case(tmp, mode, args.facets, args.days, scheme, spinup))
+            columns = None
+            if mode == "dask":
+                columns = cluster_run.distributed_columns(workers=args.workers, chunk_facets=args.chunk_facets)
+            timer = simulate.Timer()
+            load = LoadSampler()
+            load.start()
+            t0 = time.perf_counter()
+            out = runner.run_case(case, tmp / f"{mode}.nc", progress=False, timer=timer, columns=columns)
+            wall = time.perf_counter() - t0
+            load.stop.set()
+            with io.open_run(out) as ds:
+                temps[mode] = ds["surface_temperature"].values.astype(float)
+                nf, nt = ds.sizes["facet"], ds.sizes["time"]
+                night = (ds["solar_direct"].values == 0.0).all(axis=0)  # facets never in direct sunlight
+                rel = ds.attrs.get("relaxation")
+                rel = json.loads(rel) if isinstance(rel, str) else rel
+                entry = {
+                    "wall_s": wall,
+                    "stages_s": dict(timer.split),
+                    "periodic_iterations": int(ds.attrs.get("spinup_iterations", -1)),
+                    "loadavg_mean": float(np.mean(load.samples)) if load.samples else None,
+                    "loadavg_max": float(np.max(load.samples)) if load.samples else None,
+                }
+                if rel:
+                    for key in ("spinup_iterations_per_window", "record_iterations_per_window"):
+                        its = rel.get(key) or [0]
+                        entry[key.replace("_per_window", "")] = {"mean": float(np.mean(its)), "max": int(max(its))}
+                    entry["columns"] = rel["columns"]
+            result["facets"], result["samples"] = nf, nt
+            result["modes"][mode] = entry
+            print(mode, json.dumps(entry), flush=True)
+            (tmp / f"{mode}.nc").unlink()
+    diffs = {}
+    for a in temps:
+        for b in temps:
+            if a < b:
+                d = np.abs(temps[a] - temps[b])
+                diffs[f"{a}-{b}"] = {"max_K": float(d.max()), "shadow_max_K": float(d[:, night].max())}
+    result["max_differences"] = diffs
+    m = result["modes"]
+    if "dask" in m and "relaxed" in m:
+        result["efficiency_relaxed_over_dask"] = m["relaxed"]["wall_s"] / m["dask"]["wall_s"]
+    if "dask" in m and "stepper" in m:
+        result["efficiency_stepper_over_dask"] = m["stepper"]["wall_s"] / m["dask"]["wall_s"]
+    if "relaxed" in m and "stepper" in m:
+        result["relaxed_over_stepper_wall"] = m["relaxed"]["wall_s"] / m["stepper"]["wall_s"]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
