@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,19 @@ CHUNK_FACETS = 4000
 RETRIES = 3
 #: Times an iteration is sent again after its inputs were lost with a worker.
 RESENDS = 3
+#: Seconds to wait for a worker (a restarted one, a new one) before a run with none left stops [s];
+#: the environment variable ``CRATER_THERMAL_WORKER_WAIT_S`` sets another.
+WORKER_WAIT_S = 30.0
+
+
+def worker_wait_s() -> float:
+    """How long a run with no worker left waits for one [s] (``CRATER_THERMAL_WORKER_WAIT_S``, default
+    :data:`WORKER_WAIT_S`)."""
+    try:
+        return max(0.0, float(os.environ.get("CRATER_THERMAL_WORKER_WAIT_S", WORKER_WAIT_S)))
+    except ValueError:
+        return WORKER_WAIT_S
+
 
 _SOLVERS: dict = {}  # per worker process: a column solver per (options, columns), reused across tasks
 
@@ -137,11 +151,23 @@ class DaskColumns:
                 ) from None
             except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
                 raise
-            except Exception:  # an input lost with the worker that held it: send the iteration again, whole
-                if attempt == RESENDS:
-                    raise
+            except Exception as exc:  # an input lost with the worker that held it: send the iteration again
+                reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+                if attempt == RESENDS or not self._workers_left():
+                    raise ConfigError(
+                        f"the dask cluster failed the run ({reason}); are any workers left? (see their logs) "
+                        "the checkpoint beside the output keeps the finished part: run again with --resume"
+                    ) from None
                 self.resent += 1
                 self._last = self._state = None
+
+    def _workers_left(self) -> bool:
+        """True when the cluster has a worker, or one joins within :func:`worker_wait_s`."""
+        try:
+            self.client.wait_for_workers(1, timeout=worker_wait_s())
+            return True
+        except Exception:  # dask's TimeoutError
+            return False
 
     def _round(self, state, times_s, solar, E, ir0, skip_K):
         client = self.client

@@ -309,3 +309,37 @@ def test_accumulators_do_not_depend_on_call_boundaries(case):
         solvers[1].run_series(t[k0:k1], a[k0:k1], record=False)
     assert np.array_equal(solvers[0].state(), solvers[1].state())
     assert np.array_equal(solvers[0].acc, solvers[1].acc)
+
+
+def test_worker_deaths_beyond_dask_allowance_are_one_line(case, tmp_path):
+    """A task whose workers keep dying (dask's KilledWorker: here a scheduler that allows no failure, and
+    the only worker SIGKILLed while it runs a chunk) stops the replay with one line naming the cause and
+    --resume, exit 2; the finished chunks are kept for the resume."""
+    import dask_procs
+
+    d, _ = case
+    port = dask_procs.free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**dask_procs.ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
+    cmd = [str(dask_procs.BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
+    with open(tmp_path / "scheduler.log", "wb") as fh:
+        sched = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+    worker = dask_procs.start_worker(address, tmp_path / "worker.log")
+    out = tmp_path / "replay.nc"
+    proc = None
+    try:
+        with distributed.Client(address, timeout=60) as client:
+            client.wait_for_workers(1, timeout=90)
+        proc = _popen_cli("replay", d / "run.nc", "--density-grid", GRID, "-o", out, "--scheduler", address, *CHUNKS)
+        _wait_for_chunks(cluster.chunk_folder(out), proc)
+        os.killpg(worker.pid, signal.SIGKILL)  # mid-chunk: the worker always has the next chunk running
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        for p in (worker, sched):
+            dask_procs.stop(p)
+    lines = stderr.strip().splitlines()
+    assert proc.returncode == 2, stderr
+    assert len(lines) == 1 and lines[0].startswith("error: dask gave up") and "--resume" in lines[0], stderr
+    assert not out.exists() and any(cluster.chunk_folder(out).glob("chunk_*.npz"))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -214,3 +215,49 @@ def test_killed_worker_mid_run_still_equals_single_process(local_run, dask_cli, 
     assert running, "the run finished before the worker was killed: the test proves nothing"
     assert proc.returncode == 0, stderr
     _assert_close_to_local(out, ref)
+
+
+def test_worker_deaths_beyond_dask_allowance_keep_the_checkpoint(local_run, tmp_path):
+    """dask's KilledWorker (a scheduler that allows no failure, its only worker SIGKILLed mid-record):
+    one line naming the cause and --resume, exit 2, no output, the checkpoint kept."""
+    import subprocess
+
+    import dask_procs
+
+    _, path, _ = local_run
+    port = dask_procs.free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**dask_procs.ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
+    cmd = [str(dask_procs.BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
+    with open(tmp_path / "scheduler.log", "wb") as fh:
+        sched = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+    worker = dask_procs.start_worker(address, tmp_path / "worker.log")
+    out = tmp_path / "run.nc"
+    ckpt = Path(runner.checkpoint_path(out))
+    proc = None
+    try:
+        with distributed.Client(address, timeout=60) as client:
+            client.wait_for_workers(1, timeout=90)
+        cmd = [sys.executable, "-m", "crater_thermal", "run", str(path), "-o", str(out), "--scheduler", address]
+        # no worker comes back here: wait 2 s for one, not the default 30 s
+        env = {**dask_procs.ENV, "CRATER_THERMAL_WORKER_WAIT_S": "2"}
+        proc = subprocess.Popen(cmd + ["--chunk-facets", "100"], env=env, stderr=subprocess.PIPE, text=True)
+        t0 = time.monotonic()
+        while not ckpt.exists():
+            assert proc.poll() is None, f"the run ended before the record began: {proc.communicate()}"
+            assert time.monotonic() - t0 < 180
+            time.sleep(0.01)
+        os.killpg(worker.pid, signal.SIGKILL)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        for p in (worker, sched):
+            dask_procs.stop(p)
+    lines = stderr.strip().splitlines()
+    assert proc.returncode == 2, stderr
+    # dask's KilledWorker, or (when the death shows first at the next scatter) no worker left after
+    # cluster_run.WORKER_WAIT_S: either way one line that says what to do
+    assert len(lines) == 1 and "--resume" in lines[0], stderr
+    assert lines[0].startswith(("error: dask gave up", "error: the dask cluster failed the run")), stderr
+    assert not out.exists() and ckpt.exists()
