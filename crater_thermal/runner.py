@@ -161,6 +161,12 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
     """The steps of a run, in order: checkpoint, geometry and Sun, sunlight, start of the record, record, write."""
     ckpt_path = Path(checkpoint_path(out_path))
     ckpt = _read_checkpoint(case, out_path, ckpt_path, resume, overwrite)
+    coupling = "relaxed" if (case.steps.ir_coupling == "relaxed" or columns is not None) else case.steps.ir_coupling
+    if ckpt is not None and str(ckpt.get("coupling", coupling)) != coupling:
+        raise ConfigError(
+            f"checkpoint {ckpt_path} was written by a run with the {ckpt['coupling']} IR coupling, this one "
+            f"uses {coupling} (a run on a dask cluster is relaxed): resume it as it was started"
+        )
     nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
     timer = timer or simulate.Timer()
     mesh, tracer, F = simulate.case_geometry(case, timer, progress)
@@ -183,7 +189,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
         _sunlight_into_store(case, fc, tracer, store, block, timer, progress)
     del tracer
     solver, stepper = _coupled_solver(case, nominal, fc, incidence)
-    checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer)
+    checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer, coupling)
     with contextlib.ExitStack() as stack:
         cols = None
         if case.steps.ir_coupling == "relaxed" or columns is not None:
@@ -286,8 +292,8 @@ class _Checkpoints:
     """Writes the run's checkpoint: the solver's state at record sample ``k``, the IR extrapolation's history
     (so that a resumed run steps exactly as the uninterrupted one) and the start's diagnostics."""
 
-    def __init__(self, path: Path, fingerprint: str, block: int, solver, stepper, timer):
-        self.path, self.fingerprint, self.block = path, fingerprint, block
+    def __init__(self, path: Path, fingerprint: str, block: int, solver, stepper, timer, coupling: str):
+        self.path, self.fingerprint, self.block, self.coupling = path, fingerprint, block, coupling
         self.solver, self.stepper, self.timer = solver, stepper, timer
 
     def save(self, k: int, info: dict) -> None:
@@ -298,6 +304,7 @@ class _Checkpoints:
                 self.path,
                 fingerprint=np.array(self.fingerprint),
                 phase=np.array("record"),
+                coupling=np.array(self.coupling),
                 k=np.array(k),
                 block=np.array(self.block),
                 state=self.solver.state(),

@@ -9,6 +9,7 @@ started with dask's own command line on 127.0.0.1)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -172,6 +173,36 @@ def test_killed_client_resumes_from_its_checkpoint(local_run, dask_cli, tmp_path
     n_windows = -(-(ref.sizes["time"] - 1) // W)
     assert len(rel["record_iterations_per_window"]) == n_windows - k // W < n_windows
     assert not ckpt.exists()
+
+
+def test_resume_with_another_coupling_is_refused(tmp_path):
+    """A run started on a cluster (relaxed, whatever the case says) and resumed without one (the case's
+    extrapolated scheme) is refused: the record would mix two couplings under one attribute. The cluster
+    is stood in for by a backend of this process through the same ``columns`` hook."""
+    path = _case_file(tmp_path, "mix", every=24)
+    path.write_text(path.read_text().replace('ir_coupling = "relaxed"', 'ir_coupling = "extrapolated"'))
+    case = config.load_case(path)
+    out = tmp_path / "run.nc"
+    ckpt = Path(runner.checkpoint_path(out))
+
+    @contextlib.contextmanager
+    def here(case, fc, store):
+        solver = thermal.ColumnSolver([case.surface.nominal_profile] * fc.mesh.n_facets, emissivity=0.98)
+        yield waveform.LocalColumns(solver, fc.F, 0.12, 0.98)
+
+    class Stop(Exception):
+        pass
+
+    def stop_once_recording(done, total):
+        if ckpt.exists():
+            raise Stop
+
+    with pytest.raises(Stop):
+        runner.run_case(case, out, progress=lambda name: contextlib.nullcontext(stop_once_recording), columns=here)
+    assert ckpt.exists() and not out.exists()
+    with pytest.raises(ConfigError, match="relaxed IR coupling"):
+        runner.run_case(case, out, resume=True, progress=False)
+    assert ckpt.exists()  # refused, not damaged
 
 
 def test_local_cluster_run_through_the_api(local_run, tmp_path):
