@@ -8,6 +8,8 @@ import signal
 import socket
 import subprocess
 import sys
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,3 +42,34 @@ def start_worker(address: str, log: Path) -> subprocess.Popen:
     cmd += ["--host", "127.0.0.1", "--no-dashboard"]
     with open(log, "wb") as fh:
         return subprocess.Popen(cmd, env=ENV, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+@contextmanager
+def fragile_cluster(folder: Path):
+    """A scheduler that allows no failure of a task's worker (dask's ``allowed-failures`` 0) and one
+    worker, on 127.0.0.1; yields ``(address, worker process)``; both stopped at the end."""
+    import distributed
+
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
+    cmd = [str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
+    with open(folder / "scheduler.log", "wb") as fh:
+        sched = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+    worker = start_worker(address, folder / "worker.log")
+    try:
+        with distributed.Client(address, timeout=60) as client:
+            client.wait_for_workers(1, timeout=90)
+        yield address, worker
+    finally:
+        for p in (worker, sched):
+            stop(p)
+
+
+def wait_for(ready, proc: subprocess.Popen, what: str, timeout: float = 180.0) -> None:
+    """Wait until ``ready()`` while ``proc`` runs (assertion errors naming ``what`` otherwise)."""
+    t0 = time.monotonic()
+    while not ready():
+        assert proc.poll() is None, f"the command ended before {what}: {proc.communicate()}"
+        assert time.monotonic() - t0 < timeout, f"{what}: not in {timeout} s"
+        time.sleep(0.01)

@@ -318,27 +318,18 @@ def test_worker_deaths_beyond_dask_allowance_are_one_line(case, tmp_path):
     import dask_procs
 
     d, _ = case
-    port = dask_procs.free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = {**dask_procs.ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
-    cmd = [str(dask_procs.BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
-    with open(tmp_path / "scheduler.log", "wb") as fh:
-        sched = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
-    worker = dask_procs.start_worker(address, tmp_path / "worker.log")
     out = tmp_path / "replay.nc"
     proc = None
     try:
-        with distributed.Client(address, timeout=60) as client:
-            client.wait_for_workers(1, timeout=90)
-        proc = _popen_cli("replay", d / "run.nc", "--density-grid", GRID, "-o", out, "--scheduler", address, *CHUNKS)
-        _wait_for_chunks(cluster.chunk_folder(out), proc)
-        os.killpg(worker.pid, signal.SIGKILL)  # mid-chunk: the worker always has the next chunk running
-        _, stderr = proc.communicate(timeout=120)
+        with dask_procs.fragile_cluster(tmp_path) as (address, worker):
+            args = ("replay", d / "run.nc", "--density-grid", GRID, "-o", out, "--scheduler", address, *CHUNKS)
+            proc = _popen_cli(*args)
+            _wait_for_chunks(cluster.chunk_folder(out), proc)
+            os.killpg(worker.pid, signal.SIGKILL)  # mid-chunk: the worker always has the next chunk running
+            _, stderr = proc.communicate(timeout=120)
     finally:
         if proc is not None and proc.poll() is None:
             proc.kill()
-        for p in (worker, sched):
-            dask_procs.stop(p)
     lines = stderr.strip().splitlines()
     assert proc.returncode == 2, stderr
     assert len(lines) == 1 and lines[0].startswith("error: dask gave up") and "--resume" in lines[0], stderr

@@ -13,7 +13,6 @@ import contextlib
 import os
 import signal
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from crater_thermal.errors import ConfigError
 
 distributed = pytest.importorskip("distributed")
 
+import dask_procs  # noqa: E402
 from test_cluster import _cli, _popen_cli  # noqa: E402
 
 # the relaxation's stopping rule: no surface temperature changes by more than 1e-3 K between iterations
@@ -154,11 +154,7 @@ def test_killed_client_resumes_from_its_checkpoint(local_run, dask_cli, tmp_path
     ckpt = Path(runner.checkpoint_path(out))
     proc = _popen_cli("run", path, "-o", out, "--scheduler", address, "--chunk-facets", "100")
     try:
-        t0 = time.monotonic()
-        while not (ckpt.exists() and int(np.load(ckpt)["k"]) > 0):
-            assert proc.poll() is None, f"the run ended before its first record checkpoint: {proc.communicate()}"
-            assert time.monotonic() - t0 < 180
-            time.sleep(0.02)
+        dask_procs.wait_for(lambda: ckpt.exists() and int(np.load(ckpt)["k"]) > 0, proc, "a record checkpoint")
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     finally:
@@ -232,11 +228,7 @@ def test_killed_worker_mid_run_still_equals_single_process(local_run, dask_cli, 
     ckpt = Path(runner.checkpoint_path(out))
     proc = _popen_cli("run", path, "-o", out, "--scheduler", address, "--chunk-facets", "100")
     try:
-        t0 = time.monotonic()
-        while not ckpt.exists():  # the start of the record is checkpointed: the spin-up is done
-            assert proc.poll() is None, f"the run ended before the record began: {proc.communicate()}"
-            assert time.monotonic() - t0 < 180
-            time.sleep(0.01)
+        dask_procs.wait_for(ckpt.exists, proc, "the record began")  # its start is checkpointed after the spin-up
         os.killpg(workers[0].pid, signal.SIGKILL)
         running = proc.poll() is None
         stdout, stderr = proc.communicate(timeout=240)
@@ -253,38 +245,22 @@ def test_worker_deaths_beyond_dask_allowance_keep_the_checkpoint(local_run, tmp_
     one line naming the cause and --resume, exit 2, no output, the checkpoint kept."""
     import subprocess
 
-    import dask_procs
-
     _, path, _ = local_run
-    port = dask_procs.free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = {**dask_procs.ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
-    cmd = [str(dask_procs.BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
-    with open(tmp_path / "scheduler.log", "wb") as fh:
-        sched = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
-    worker = dask_procs.start_worker(address, tmp_path / "worker.log")
     out = tmp_path / "run.nc"
     ckpt = Path(runner.checkpoint_path(out))
     proc = None
     try:
-        with distributed.Client(address, timeout=60) as client:
-            client.wait_for_workers(1, timeout=90)
-        cmd = [sys.executable, "-m", "crater_thermal", "run", str(path), "-o", str(out), "--scheduler", address]
-        # no worker comes back here: wait 2 s for one, not the default 30 s
-        env = {**dask_procs.ENV, "CRATER_THERMAL_WORKER_WAIT_S": "2"}
-        proc = subprocess.Popen(cmd + ["--chunk-facets", "100"], env=env, stderr=subprocess.PIPE, text=True)
-        t0 = time.monotonic()
-        while not ckpt.exists():
-            assert proc.poll() is None, f"the run ended before the record began: {proc.communicate()}"
-            assert time.monotonic() - t0 < 180
-            time.sleep(0.01)
-        os.killpg(worker.pid, signal.SIGKILL)
-        _, stderr = proc.communicate(timeout=120)
+        with dask_procs.fragile_cluster(tmp_path) as (address, worker):
+            cmd = [sys.executable, "-m", "crater_thermal", "run", str(path), "-o", str(out), "--scheduler", address]
+            # no worker comes back here: wait 2 s for one, not the default 30 s
+            env = {**dask_procs.ENV, "CRATER_THERMAL_WORKER_WAIT_S": "2"}
+            proc = subprocess.Popen(cmd + ["--chunk-facets", "100"], env=env, stderr=subprocess.PIPE, text=True)
+            dask_procs.wait_for(ckpt.exists, proc, "the record began")
+            os.killpg(worker.pid, signal.SIGKILL)
+            _, stderr = proc.communicate(timeout=120)
     finally:
         if proc is not None and proc.poll() is None:
             proc.kill()
-        for p in (worker, sched):
-            dask_procs.stop(p)
     lines = stderr.strip().splitlines()
     assert proc.returncode == 2, stderr
     # dask's KilledWorker, or (when the death shows first at the next scatter) no worker left after
