@@ -12,6 +12,8 @@ The two differ by 0.28 K = 0.18%, inside 0.2%; they coincide for eps = 1. We tes
 solution against 154.38 K (the exact answer for this model).
 """
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -37,6 +39,7 @@ def test_analytic_values():
     )
 
 
+@functools.cache  # deterministic: the exact 3,200-facet bowl is solved once for the two tests that use it
 def _shadow_errors(n_facets, view_factors="exact", solver="auto"):
     """(max, rms) relative error of the deep-shadow temperatures; ``view_factors`` "exact" (the sparse
     matrix) or "compressed" (vfoperator), ``solver`` as :func:`crater_thermal.radiosity.resolve_solver`."""

@@ -39,12 +39,28 @@ def files(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def report_dir(files):
+def made_report(files):
+    """The module's report (3-D snapshots on), drawn once, and the progress calls it made: ``rp.bar`` is replaced
+    by a recorder while it is drawn, so that the progress test counts the steps of this report instead of
+    drawing another (the steps do not depend on the snapshots: only profiles, figures and the summary count)."""
     d, _, _ = files
     out = d / "rep"
-    path = rp.make_report(d / "run.nc", d / "replay.nc", out, progress=False)
+    calls = []
+
+    @contextlib.contextmanager
+    def bar(description, flag=None):
+        yield lambda done, total: calls.append((done, total))
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(rp, "bar", bar)
+        path = rp.make_report(d / "run.nc", d / "replay.nc", out, progress=True)
     assert path == out / "report.html"
-    return out
+    return out, calls
+
+
+@pytest.fixture(scope="module")
+def report_dir(made_report):
+    return made_report[0]
 
 
 def _strict_json(path):
@@ -212,27 +228,43 @@ def test_cli_report_takes_a_sweep_folder_and_a_user_band(files, tmp_path):
     assert bad.returncode == 2 and "sweep" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
-def test_cli_report_quiet_when_not_a_terminal(files, tmp_path):
-    d, _, _ = files
-    out = cli("report", d / "run.nc", d / "replay.nc", "-o", tmp_path / "r", "--no-snapshots")
-    assert out.returncode == 0, out.stderr
-    # no progress bar on a pipe: at most plain progress lines (one per 30 s of a stage)
-    assert all(line.startswith("progress: ") for line in out.stderr.splitlines()), out.stderr
-    assert (tmp_path / "r" / "report.html").is_file()
+#: Diviner footprint [m2]
+DIVINER_FOOTPRINT_M2 = 240.0 * 480.0
 
 
-def test_cli_report_states_the_patch_and_the_observing_mode(files, tmp_path):
-    """Issue 25: a patch area and footprint area give k; Diviner is observed in passes, the camera stares;
-    summary.json's observation block and each detection row say which, and in what unit."""
+@pytest.fixture(scope="module")
+def cli_patch_report(files, tmp_path_factory):
+    """One ``crater-thermal report`` run through a pipe (stdout and stderr captured: not a terminal), with a
+    patch area, a footprint area, two instruments and passes; its folder and CompletedProcess. Shared by the
+    quiet-output test and the observing-mode test (the progress output depends only on stderr not being a
+    terminal, not on the observation options)."""
     d, _, _ = files
-    a = 240.0 * 480.0  # Diviner footprint [m2]
+    out_dir = tmp_path_factory.mktemp("cli_report") / "r"
+    a = DIVINER_FOOTPRINT_M2
     out = cli(
-        "report", d / "run.nc", d / "replay.nc", "-o", tmp_path / "r", "--no-snapshots",
+        "report", d / "run.nc", d / "replay.nc", "-o", out_dir, "--no-snapshots",
         "--instrument", "diviner_ch9", "--instrument", "microbolometer",
         "--patch-area-m2", 3.5 * a, "--footprint-area-m2", a, "--reference-footprints", "3", "--passes", "40",
     )  # fmt: skip
+    return out_dir, out
+
+
+def test_cli_report_quiet_when_not_a_terminal(cli_patch_report):
+    r_dir, out = cli_patch_report
     assert out.returncode == 0, out.stderr
-    s = _strict_json(tmp_path / "r" / "summary.json")
+    # no progress bar on a pipe: at most plain progress lines (one per 30 s of a stage)
+    assert all(line.startswith("progress: ") for line in out.stderr.splitlines()), out.stderr
+    assert (r_dir / "report.html").is_file()
+
+
+def test_cli_report_states_the_patch_and_the_observing_mode(files, cli_patch_report, tmp_path):
+    """Issue 25: a patch area and footprint area give k; Diviner is observed in passes, the camera stares;
+    summary.json's observation block and each detection row say which, and in what unit."""
+    d, _, _ = files
+    r_dir, out = cli_patch_report
+    a = DIVINER_FOOTPRINT_M2
+    assert out.returncode == 0, out.stderr
+    s = _strict_json(r_dir / "summary.json")
     o = s["observation"]
     assert (o["candidate_footprints"], o["reference_footprints"], o["passes"], o["mode"]) == (3, 3, 40, "auto")
     assert o["patch_area_m2"] == pytest.approx(3.5 * a) and o["footprint_area_m2"] == pytest.approx(a)
@@ -246,7 +278,7 @@ def test_cli_report_states_the_patch_and_the_observing_mode(files, tmp_path):
     grid = np.asarray(s["detection_dwell_grid_s"]["diviner_ch9"]) / 0.128  # whole passes
     np.testing.assert_allclose(grid, np.round(grid), atol=1e-9)
     assert s["detection"]["microbolometer"]["floor"]["exposure_unit"] == "s"
-    page = (tmp_path / "r" / "report.html").read_text()
+    page = (r_dir / "report.html").read_text()
     assert "Candidate patch of 3 footprint(s)" in page and "passes for P_D" in page
     bad = cli("report", d / "run.nc", d / "replay.nc", "-o", tmp_path / "r2", "--patch-area-m2", "1e5")
     assert bad.returncode != 0 and "footprint_area_m2" in bad.stderr
@@ -313,16 +345,9 @@ def test_report_without_pyvista_skips_snapshots_with_a_note(files, tmp_path, mon
     assert err.startswith("note: 3-D snapshots skipped") and err.count("\n") == 1
 
 
-def test_report_progress_callback_counts_every_step(files, tmp_path, monkeypatch):
-    _, run, rep = files
-    calls = []
-
-    @contextlib.contextmanager
-    def bar(description, flag=None):
-        yield lambda done, total: calls.append((done, total))
-
-    monkeypatch.setattr(rp, "bar", bar)
-    rp.make_report(run, rep, tmp_path / "r", progress=True, snapshots=False)
+def test_report_progress_callback_counts_every_step(files, made_report):
+    _, _, rep = files
+    _, calls = made_report  # the progress calls of the module's report (progress=True, a recording bar)
     n_profiles = len(rep["profile"]) - 1  # every profile but the nominal one
     total = n_profiles + len(rp.FIGURES) + 1
     assert calls == [(k, total) for k in range(1, total + 1)]
