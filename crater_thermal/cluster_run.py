@@ -126,6 +126,8 @@ class DaskColumns:
         self.resent = 0
         self._last = None  # the chunks' result futures of the latest round (the next iteration's prev)
         self._state = None  # the chunks' start states of the current window (futures)
+        # lagged spin-up passes kept on the workers: sunlight per block, the latest pass's windows
+        self._spin = self._pass = self._surfaces = self._chunks_f = None
         self.description = f"dask: {len(chunks)} chunks on {n_workers} worker(s) at start"
 
     @property
@@ -160,6 +162,111 @@ class DaskColumns:
                     ) from None
                 self.resent += 1
                 self._last = self._state = None
+
+    def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
+        """:meth:`_lagged_pass`, with dask's failures turned into one-line errors, or into
+        :class:`waveform.PassLost` when data of the pass went with a worker (the caller runs the pass again
+        through the command)."""
+        from distributed import KilledWorker
+
+        try:
+            return self._lagged_pass(state, times_s, rows, block, previous, on_step)
+        except KilledWorker as exc:
+            raise ConfigError(
+                f"dask gave up a task of the run: the workers that ran it died ({exc.args[0] if exc.args else ''}; "
+                "out of memory? see their logs); smaller --chunk-facets need less memory per worker"
+            ) from None
+        except (CraterThermalError, MemoryError):
+            raise
+        except Exception as exc:
+            self.end_spinup()
+            if not self._workers_left():
+                reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+                raise ConfigError(
+                    f"the dask cluster failed the run ({reason}); are any workers left? (see their logs)"
+                ) from None
+            raise waveform.PassLost(str(exc)) from None
+
+    def _lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
+        """One lagged pass of the periodic start (:meth:`waveform.SpinUp.lagged`) kept on the workers: the
+        whole pass is submitted at once (each chunk's block starts from its block before), each task
+        builds the emission from the previous pass's temperatures, worker to worker, and only the end
+        states, accumulators and last IR come back. ``previous(k0, k1)``: the previous pass's temperature
+        rows [K] from the command's store, used when no pass has run on the workers yet.
+
+        Returns (end state (nf, nz) [K], accumulators (nf, n_acc), IR at the last sample (nf,) [W m-2]).
+        """
+        client, chunks, nf = self.client, self.chunks, self._n
+        n = len(times_s)
+        blocks = [(b0, min(n - 1, b0 + block)) for b0 in range(0, n - 1, block)]
+        if self._spin is None:  # the spin-up window's sunlight and the chunking, sent once for all passes
+            self._chunks_f = client.scatter(_Facets(chunks), hash=False)
+            self._spin = {
+                b0: client.scatter([np.ascontiguousarray(rows(b0, b1 + 1)[:, idx]) for idx in chunks], hash=False)
+                for b0, b1 in blocks
+            }
+        start = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
+        new, surfaces = {}, {}
+        for b0, b1 in blocks:
+            if self._surfaces is None:
+                source = [client.scatter(np.ascontiguousarray(previous(b0, b1 + 1)), hash=False)] * len(chunks)
+            else:
+                source = [self._surfaces[b0]] * len(chunks)
+            futs = [
+                client.submit(
+                    lagged_chunk,
+                    self.row_futures[c],
+                    self._chunks_f,
+                    c,
+                    source[c],
+                    start[c],
+                    times_s[b0 : b1 + 1],
+                    self._spin[b0][c],
+                    self.options,
+                    pure=False,
+                    retries=RETRIES,
+                )
+                for c in range(len(chunks))
+            ]
+            new[b0], start = futs, futs
+            surfaces[b0] = [client.submit(_surface, f, pure=False) for f in futs]
+        summaries = [
+            client.submit(_pass_summary, *[new[b0][c] for b0, _ in blocks], pure=False) for c in range(len(chunks))
+        ]
+        end = acc = None
+        ir_end = np.empty(nf)
+        for idx, (e, a, last_ir) in zip(chunks, client.gather(summaries)):
+            if end is None:
+                end, acc = np.empty((nf, e.shape[1])), np.empty((nf, a.shape[1]))
+            end[idx], acc[idx], ir_end[idx] = e, a, last_ir
+        self._pass, self._surfaces = new, surfaces
+        if on_step is not None:
+            on_step(n - 1)
+        return end, acc, ir_end
+
+    def pass_ir(self, k0: int, k1: int):
+        """IR rows [W m-2] ``k0..k1-1`` of the latest lagged pass, gathered from the workers (each block
+        owns its rows but the last, which is the next block's first, except at the end)."""
+        out = []
+        last = max(self._pass)
+        for b0 in sorted(self._pass):
+            futs = self._pass[b0]
+            lo = max(k0, b0)
+            if lo >= k1:
+                break
+            parts = self.client.gather([self.client.submit(_ir_part, f, pure=False) for f in futs])
+            m = len(parts[0]) if b0 == last else len(parts[0]) - 1
+            hi = min(k1, b0 + m)
+            if lo < hi:
+                rows = np.empty((len(parts[0]), self._n))
+                for idx, p in zip(self.chunks, parts):
+                    rows[:, idx] = p
+                out.append(rows[lo - b0 : hi - b0])
+        return np.concatenate(out)
+
+    def end_spinup(self) -> None:
+        """Release the spin-up's data on the workers."""
+        self._pass = self._surfaces = self._spin = self._chunks_f = None
 
     def _workers_left(self) -> bool:
         """True when the cluster has a worker, or one joins within :func:`worker_wait_s`."""
@@ -206,6 +313,53 @@ class DaskColumns:
 def _surface(w):
     """A chunk window's surface temperatures [K] and conducted-column count (a small task)."""
     return w.T, w.active
+
+
+def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: dict):
+    """One chunk through one block of a lagged spin-up pass (runs on a worker, one thread): driven by the IR
+    of the previous pass's temperatures of every facet over the block, from ``start`` (a state array, or
+    the chunk's window of the block before in this pass).
+
+    ``source``: the previous pass's surface temperatures [K] over the block, as one (n, nf) array or as
+    every chunk's ``(T, active)`` part (``chunks`` gives their facets).
+    """
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        chunks = chunks.idx
+        if isinstance(source, np.ndarray):
+            T = source
+        else:
+            T = np.empty((len(times_s), sum(len(idx) for idx in chunks)))
+            for idx, (t_part, _) in zip(chunks, source):
+                T[:, idx] = t_part
+        eps = options["emissivity"]
+        E = waveform.radiosity.emitted(T, eps)
+        n = len(chunks[c])
+        ir = np.zeros((len(times_s), n)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
+        a = waveform.absorbed(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
+        state = start.end if isinstance(start, waveform.Window) else start
+        return waveform.conduct(_solver(options, n), state, times_s, a, ir, None, 0.0, eps)
+    finally:
+        numba.set_num_threads(threads)
+
+
+class _Facets:
+    """The chunks' facet indices, as one object (dask would scatter a list element by element)."""
+
+    def __init__(self, idx):
+        self.idx = idx
+
+
+def _pass_summary(*windows):
+    """A chunk's pass: (end state [K], summed accumulators, IR [W m-2] at the last sample)."""
+    return windows[-1].end, sum(w.acc for w in windows), windows[-1].ir[-1]
+
+
+def _ir_part(w):
+    return w.ir
 
 
 class _RemoteWindow:

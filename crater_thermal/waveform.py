@@ -41,6 +41,9 @@ from crater_thermal.errors import SolverError
 #: Default convergence tolerance of a window [K]: the largest change of any surface temperature between
 #: two iterations (the remaining error is a fraction of it, see the module docstring).
 DEFAULT_TOL_K = 1e-3
+#: Tolerance [K] of the relaxed first pass that seeds a periodic start's lagged passes (their fixed point
+#: does not depend on the seed; a closer seed saves passes, a looser one iterations).
+SEED_TOL_K = 0.05
 #: Most iterations per window before the run stops with an error.
 MAX_ITERATIONS = 30
 #: After the first iteration of a window, a column is conducted again only when its new IR can move its
@@ -57,6 +60,10 @@ DEFAULT_WINDOW = 96
 def window_samples(block: int) -> int:
     """Samples per relaxation window for a memory budget of ``block`` samples per (time, facet) block."""
     return max(2, min(DEFAULT_WINDOW, int(block)))
+
+
+class PassLost(Exception):
+    """A backend lost data of a lagged pass (a worker died): the pass is to be run again another way."""
 
 
 @dataclass
@@ -240,6 +247,8 @@ class SpinUp:
         self.iterations: list[int] = []  # relaxation iterations per window of the first pass
         self.ir_end = None
         self.lag_in, self.lag_out = None, "wr_T0"
+        self.remote_pass = False  # the latest pass ran on the backend and its series stayed there
+        self.remote_lost = False  # a backend pass lost data once: later passes go through the store
 
     def coupled(self, on_step=None) -> None:
         """One relaxed pass from the solver's state; its temperatures kept as the next pass's input."""
@@ -264,6 +273,25 @@ class SpinUp:
             self.coupled(on_step)
             return
         self.passes += 1
+        if hasattr(self.columns, "lagged_pass") and not self.remote_lost:  # the pass on the workers
+            try:
+                end, acc, self.ir_end = self.columns.lagged_pass(
+                    self.solver.state(),
+                    self.t,
+                    self.rows,
+                    self.block,
+                    lambda a, b: self.store.read(self.lag_in, a, b),
+                    on_step,
+                )
+            except PassLost:  # the previous pass's series went with a worker: a relaxed pass instead
+                self.passes -= 1
+                self.remote_lost, self.remote_pass = True, False
+                self.coupled(on_step)
+                return
+            self.remote_pass = True
+            self.solver.set_state(end)
+            self.solver.acc += acc
+            return
         state = self.solver.state()
         acc = np.zeros_like(self.solver.acc)
         for b0 in range(0, self.n - 1, self.block):
@@ -301,4 +329,11 @@ class SpinUp:
             self.lagged(None if report is None else (lambda k: report(done0 + k, total)))
             return self.solver.T.copy()
 
-        return thermal.periodic_state(self.solver, phi, tol_K=tol_K, anderson=False)
+        info = thermal.periodic_state(self.solver, phi, tol_K=tol_K, anderson=False)
+        if self.remote_pass:
+            if self.save_spin:  # the IR the last pass ran with, from the backend
+                for b0 in range(0, self.n, self.block):
+                    b1 = min(self.n, b0 + self.block)
+                    self.store.write_rows("spin_ir", b0, self.columns.pass_ir(b0, b1))
+            self.columns.end_spinup()
+        return info
