@@ -22,6 +22,7 @@ dask is imported only here, inside the functions that need it; a local replay ne
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -91,6 +92,20 @@ def chunk_path(folder, fb: int, pb: int) -> Path:
     return Path(folder) / f"chunk_f{fb:05d}_p{pb:04d}.npz"
 
 
+@contextlib.contextmanager
+def one_numba_thread():
+    """Run the numba kernels on one thread inside the block (a dask task: the worker's threads are the
+    parallelism, as dask sets one BLAS/OpenMP thread per worker thread); the count is restored after."""
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(threads)
+
+
 def solve_chunk(flux_path: str, profiles: list, f0: int, f1: int, options: dict):
     """Replay facets ``f0:f1`` of the flux store at ``flux_path`` against ``profiles``. Runs on a worker.
 
@@ -102,16 +117,12 @@ def solve_chunk(flux_path: str, profiles: list, f0: int, f1: int, options: dict)
     T : (len(profiles), n_times, f1 - f0) float32 surface temperatures [K]
     info : dict (start, periodic iterations and residuals [K] of the chunk's batches)
     """
-    import numba
-
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    ds = io.read_flux_dataset(flux_path, load=False)
-    try:
-        return simulate.replay_fluxes(ds.isel(facet=slice(f0, f1)), profiles, progress=None, **options)
-    finally:
-        ds.close()
-        numba.set_num_threads(threads)
+    with one_numba_thread():
+        ds = io.read_flux_dataset(flux_path, load=False)
+        try:
+            return simulate.replay_fluxes(ds.isel(facet=slice(f0, f1)), profiles, progress=None, **options)
+        finally:
+            ds.close()
 
 
 def _fingerprint(flux_path, profiles, options, facet_block, profile_block) -> str:

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_thermal import thermal, vfoperator, waveform
+from crater_thermal import cluster, radiosity, runner, vfoperator, waveform
 from crater_thermal.errors import ConfigError, CraterThermalError
 
 #: Default facets per chunk (one task per chunk and iteration).
@@ -69,13 +69,7 @@ def _solver(options: dict, n: int):
     s = _SOLVERS.get(key)
     if s is None:
         _SOLVERS.clear()  # one chunk size at a time: the last chunk may be shorter
-        s = _SOLVERS[key] = thermal.ColumnSolver(
-            [options["profile"]] * n,
-            property_set=options["property_set"],
-            emissivity=options["emissivity"],
-            geothermal_flux=options["geothermal_flux"],
-            **({"dt_max": options["dt_max"]} if options.get("dt_max") else {}),
-        )
+        s = _SOLVERS[key] = runner.column_solver(options["profile"], n, options)
     return s
 
 
@@ -101,19 +95,38 @@ def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict, prev
     -------
     waveform.Window of the chunk's columns.
     """
-    import numba
+    with cluster.one_numba_thread():
+        return _chunk_window(rows, E, len(facets), ir0, state, times_s, solar, options, prev, skip_K)
 
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        ir = np.zeros((len(times_s), len(facets))) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
-        if ir0 is not None:
-            ir[0] = ir0
-        eps = options["emissivity"]
-        a = waveform.absorbed(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
-        return waveform.conduct(_solver(options, len(facets)), state, times_s, a, ir, prev, skip_K, eps)
-    finally:
-        numba.set_num_threads(threads)
+
+def _chunk_window(rows, E, m: int, ir0, state, times_s, solar, options: dict, prev=None, skip_K: float = 0.0):
+    """A chunk of ``m`` columns through a window, driven by the IR its operator rows form from the emitted
+    flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given); the
+    :class:`waveform.Window` of the chunk."""
+    ir = np.zeros((len(times_s), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
+    if ir0 is not None:
+        ir[0] = ir0
+    eps = options["emissivity"]
+    a = radiosity.absorbed_flux(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
+    return waveform.conduct(_solver(options, m), state, times_s, a, ir, prev, skip_K, eps)
+
+
+#: What a run's errors on the cluster add once its record has begun (there is a checkpoint to resume from).
+_RESUME = "; the checkpoint beside the output keeps the finished part: run again with --resume"
+
+
+def _gave_up(exc, hint: str = "") -> ConfigError:
+    """The one-line error for dask's ``KilledWorker`` (a task whose workers kept dying)."""
+    return ConfigError(
+        f"dask gave up a task of the run: the workers that ran it died ({exc.args[0] if exc.args else ''}; "
+        f"out of memory? see their logs); smaller --chunk-facets need less memory per worker{hint}"
+    )
+
+
+def _failed(exc, hint: str = "") -> ConfigError:
+    """The one-line error for a cluster that lost the run's data and has no worker left."""
+    reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+    return ConfigError(f"the dask cluster failed the run ({reason}); are any workers left? (see their logs){hint}")
 
 
 class DaskColumns:
@@ -122,8 +135,6 @@ class DaskColumns:
     def __init__(self, client, chunks, row_futures, options, n_facets: int, n_workers: int):
         self.client, self.chunks, self.row_futures, self.options = client, chunks, row_futures, options
         self._n = int(n_facets)
-        self.rounds = 0
-        self.resent = 0
         self._last = None  # the chunks' result futures of the latest round (the next iteration's prev)
         self._state = None  # the chunks' start states of the current window (futures)
         # lagged spin-up passes kept on the workers: sunlight per block, the latest pass's windows
@@ -139,28 +150,18 @@ class DaskColumns:
         (its chunks' parts stay on the workers and are used there)."""
         from distributed import KilledWorker
 
-        self.rounds += 1
         if prev is None:
             self._last = self._state = None
         for attempt in range(RESENDS + 1):
             try:
                 return self._round(state, times_s, solar, E, ir0, skip_K if prev is not None else 0.0)
             except KilledWorker as exc:
-                raise ConfigError(
-                    f"dask gave up a task of the run: the workers that ran it died ({exc.args[0] if exc.args else ''}; "
-                    "out of memory? see their logs); smaller --chunk-facets need less memory per worker; the "
-                    "checkpoint beside the output keeps the finished part: run again with --resume"
-                ) from None
+                raise _gave_up(exc, _RESUME) from None
             except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
                 raise
             except Exception as exc:  # an input lost with the worker that held it: send the iteration again
-                reason = " ".join(str(exc).split())[:160] or type(exc).__name__
                 if attempt == RESENDS or not self._workers_left():
-                    raise ConfigError(
-                        f"the dask cluster failed the run ({reason}); are any workers left? (see their logs) "
-                        "the checkpoint beside the output keeps the finished part: run again with --resume"
-                    ) from None
-                self.resent += 1
+                    raise _failed(exc, _RESUME) from None
                 self._last = self._state = None
 
     def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
@@ -172,19 +173,13 @@ class DaskColumns:
         try:
             return self._lagged_pass(state, times_s, rows, block, previous, on_step)
         except KilledWorker as exc:
-            raise ConfigError(
-                f"dask gave up a task of the run: the workers that ran it died ({exc.args[0] if exc.args else ''}; "
-                "out of memory? see their logs); smaller --chunk-facets need less memory per worker"
-            ) from None
+            raise _gave_up(exc) from None
         except (CraterThermalError, MemoryError):
             raise
         except Exception as exc:
             self.end_spinup()
             if not self._workers_left():
-                reason = " ".join(str(exc).split())[:160] or type(exc).__name__
-                raise ConfigError(
-                    f"the dask cluster failed the run ({reason}); are any workers left? (see their logs)"
-                ) from None
+                raise _failed(exc) from None
             raise waveform.PassLost(str(exc)) from None
 
     def _lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
@@ -278,7 +273,7 @@ class DaskColumns:
 
     def _round(self, state, times_s, solar, E, ir0, skip_K):
         client = self.client
-        if self._last is None or self._state is None:  # a new window: its start state and sunlight, once
+        if self._state is None:  # a new window (or a resent one): its start state and sunlight, once
             self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
             self._solar = client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in self.chunks], hash=False)
         # one copy, on one worker; the others fetch it from there (a broadcast scatter waits on a worker
@@ -323,27 +318,17 @@ def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: d
     ``source``: the previous pass's surface temperatures [K] over the block, as one (n, nf) array or as
     every chunk's ``(T, active)`` part (``chunks`` gives their facets).
     """
-    import numba
-
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
-        chunks = chunks.idx
-        if isinstance(source, np.ndarray):
-            T = source
-        else:
-            T = np.empty((len(times_s), sum(len(idx) for idx in chunks)))
-            for idx, (t_part, _) in zip(chunks, source):
-                T[:, idx] = t_part
-        eps = options["emissivity"]
-        E = waveform.radiosity.emitted(T, eps)
-        n = len(chunks[c])
-        ir = np.zeros((len(times_s), n)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
-        a = waveform.absorbed(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
-        state = start.end if isinstance(start, waveform.Window) else start
-        return waveform.conduct(_solver(options, n), state, times_s, a, ir, None, 0.0, eps)
-    finally:
-        numba.set_num_threads(threads)
+    chunks = chunks.idx
+    if isinstance(source, np.ndarray):
+        T = source
+    else:
+        T = np.empty((len(times_s), sum(len(idx) for idx in chunks)))
+        for idx, (t_part, _) in zip(chunks, source):
+            T[:, idx] = t_part
+    state = start.end if isinstance(start, waveform.Window) else start
+    E = radiosity.emitted(T, options["emissivity"])
+    with cluster.one_numba_thread():
+        return _chunk_window(rows, E, len(chunks[c]), None, state, times_s, solar, options)
 
 
 class _Facets:
@@ -409,8 +394,6 @@ def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_
 
     @contextlib.contextmanager
     def factory(case, fc, store):
-        from crater_thermal import cluster
-
         nf = fc.mesh.n_facets
         folder = None
         order = np.arange(nf, dtype=np.int64)
@@ -432,10 +415,7 @@ def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_
             ]
             options = {
                 "profile": case.surface.nominal_profile,
-                "property_set": case.surface.property_set,
-                "emissivity": float(case.surface.emissivity),
-                "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
-                "dt_max": float(case.steps.conduction_step_s) if case.steps.conduction_step_s else None,
+                **runner.column_settings(case),
                 "albedo": float(case.surface.albedo),
                 "solar_is_absorbed": case.surface.albedo_model != "constant",
             }

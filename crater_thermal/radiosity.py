@@ -541,6 +541,23 @@ def emitted(T: np.ndarray, emissivity: float) -> np.ndarray:
     return emissivity * SIGMA * T**4
 
 
+def absorbed_flux(solar, ir, albedo: float, emissivity: float, solar_is_absorbed: bool = False) -> np.ndarray:
+    """Absorbed flux [W m-2] of sunlight [W m-2] (incident, or already absorbed when ``solar_is_absorbed``:
+    an incidence-dependent albedo) and incident IR [W m-2]: ``(1 - albedo) solar + eps ir``."""
+    if solar_is_absorbed:
+        return solar + emissivity * ir
+    return (1.0 - albedo) * solar + emissivity * ir
+
+
+def ir_of_emission(F, E_rows: np.ndarray) -> np.ndarray:
+    """IR irradiance [W m-2] (n, nf) from emitted-flux rows ``E_rows`` (n, nf) [W m-2]: one product with
+    ``F`` for all rows, clipped at 0 (a compressed operator may leave round-off of either sign where
+    nothing is seen); zero without an operator."""
+    if F is None:
+        return np.zeros_like(E_rows)
+    return np.maximum(np.asarray(F @ np.ascontiguousarray(np.asarray(E_rows, float).T)).T, 0.0)
+
+
 #: The extrapolated IR scheme's acceptance test: a column whose absorbed IR at the end of the step differs
 #: from that of the new temperatures by more than max(IR_DEFECT_W_M2, IR_DEFECT_REL x its absorbed flux)
 #: takes the step again driven by the new temperatures' IR (CoupledStepper).
@@ -602,16 +619,11 @@ class CoupledStepper:
 
     def ir_rows(self, T_rows: np.ndarray) -> np.ndarray:
         """IR irradiance [W m-2] (n, nf) of surface temperatures (n, nf): one product for all rows."""
-        if self.F is None:
-            return np.zeros_like(T_rows)
-        E = emitted(np.ascontiguousarray(np.asarray(T_rows, float).T), self.emissivity)
-        return np.maximum(np.asarray(self.F @ E).T, 0.0)
+        return ir_of_emission(self.F, emitted(np.asarray(T_rows, float), self.emissivity))
 
     def absorbed(self, solar: np.ndarray, ir: np.ndarray) -> np.ndarray:
         """Absorbed flux [W m-2] of sunlight rows (incident, or absorbed when ``solar_is_absorbed``) and IR."""
-        if self.solar_is_absorbed:
-            return solar + self.emissivity * ir
-        return (1.0 - self.albedo) * solar + self.emissivity * ir
+        return absorbed_flux(solar, ir, self.albedo, self.emissivity, self.solar_is_absorbed)
 
     # -- the extrapolation history (explicit, so that checkpoints can carry it)
     def reset_history(self) -> None:

@@ -192,10 +192,10 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
     checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer, coupling)
     with contextlib.ExitStack() as stack:
         cols = None
-        if case.steps.ir_coupling == "relaxed" or columns is not None:
+        if coupling == "relaxed":
             if columns is None:
                 cols = waveform.LocalColumns(
-                    _coupled_solver(case, nominal, fc, incidence)[0],
+                    column_solver(nominal, fc.mesh.n_facets, column_settings(case)),
                     fc.F,
                     float(case.surface.albedo),
                     float(case.surface.emissivity),
@@ -266,16 +266,33 @@ def _sunlight_into_store(case, fc, tracer, store, block: int, timer, progress) -
     store.mark("sunlight")
 
 
-def _coupled_solver(case, nominal, fc, incidence: bool):
-    """The columns (one per facet, the nominal profile) and the coupled stepper of a case."""
-    kw = {"dt_max": float(case.steps.conduction_step_s)} if case.steps.conduction_step_s else {}
-    solver = thermal.ColumnSolver(
-        [nominal] * fc.mesh.n_facets,
-        property_set=case.surface.property_set,
-        emissivity=float(case.surface.emissivity),
-        geothermal_flux=case.surface.geothermal_flux_W_m2,
+def column_settings(case) -> dict:
+    """The solver settings of a case's columns as plain values (what a cluster's workers are sent):
+    ``property_set``, ``emissivity`` [-], ``geothermal_flux`` [W m-2], ``dt_max`` [s] or None."""
+    dt = case.steps.conduction_step_s
+    return {
+        "property_set": case.surface.property_set,
+        "emissivity": float(case.surface.emissivity),
+        "geothermal_flux": float(case.surface.geothermal_flux_W_m2),
+        "dt_max": float(dt) if dt else None,
+    }
+
+
+def column_solver(profile, n: int, settings: dict) -> thermal.ColumnSolver:
+    """``n`` columns of one profile (a Profile or its label) with :func:`column_settings`."""
+    kw = {"dt_max": settings["dt_max"]} if settings.get("dt_max") else {}
+    return thermal.ColumnSolver(
+        [profile] * n,
+        property_set=settings["property_set"],
+        emissivity=settings["emissivity"],
+        geothermal_flux=settings["geothermal_flux"],
         **kw,
     )
+
+
+def _coupled_solver(case, nominal, fc, incidence: bool):
+    """The columns (one per facet, the nominal profile) and the coupled stepper of a case."""
+    solver = column_solver(nominal, fc.mesh.n_facets, column_settings(case))
     stepper = radiosity.CoupledStepper(
         solver,
         fc.F,

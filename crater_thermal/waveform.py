@@ -120,10 +120,10 @@ class LocalColumns:
             whose IR changed so little since ``prev`` that their temperatures cannot move by more than
             ``skip_K`` (:func:`active_columns`) keep ``prev``'s results instead of being conducted again.
         """
-        ir = ir_rows(self.F, E)
+        ir = radiosity.ir_of_emission(self.F, E)
         if ir0 is not None:
             ir[0] = ir0
-        a = absorbed(solar, ir, self.albedo, self.emissivity, self.solar_is_absorbed)
+        a = radiosity.absorbed_flux(solar, ir, self.albedo, self.emissivity, self.solar_is_absorbed)
         return conduct(self.solver, state, times_s, a, ir, prev, skip_K, self.emissivity)
 
 
@@ -155,24 +155,7 @@ def conduct(solver, state, times_s, a, ir, prev: Window | None, skip_K: float, e
         T[:, act] = solver.run_columns(act, times_s, a[:, act])
         end[act] = solver.T[act]
         acc[act] = solver.acc[act]
-    w = Window(T, ir, end, acc)
-    w.active = int(act.size)
-    return w
-
-
-def ir_rows(F, E: np.ndarray) -> np.ndarray:
-    """IR irradiance [W m-2] (n, nf) of emitted-flux rows E (n, nf): one product for all rows (zero without
-    an operator; clipped at 0 as :meth:`radiosity.CoupledStepper.ir`)."""
-    if F is None:
-        return np.zeros_like(E)
-    return np.maximum(np.asarray(F @ np.ascontiguousarray(E.T)).T, 0.0)
-
-
-def absorbed(solar, ir, albedo: float, emissivity: float, solar_is_absorbed: bool) -> np.ndarray:
-    """Absorbed flux [W m-2] of sunlight rows and IR rows (as :meth:`radiosity.CoupledStepper.absorbed`)."""
-    if solar_is_absorbed:
-        return solar + emissivity * ir
-    return (1.0 - albedo) * solar + emissivity * ir
+    return Window(T, ir, end, acc, int(act.size))
 
 
 def relax(
