@@ -73,3 +73,18 @@ def wait_for(ready, proc: subprocess.Popen, what: str, timeout: float = 180.0) -
         assert proc.poll() is None, f"the command ended before {what}: {proc.communicate()}"
         assert time.monotonic() - t0 < timeout, f"{what}: not in {timeout} s"
         time.sleep(0.01)
+
+
+def kill_worker_expect_one_line_error(proc: subprocess.Popen, worker: subprocess.Popen, starts) -> str:
+    """SIGKILL ``worker`` (and its nanny) while the command ``proc`` runs; the command must end with exit
+    2 and one stderr line that starts with one of ``starts`` and names ``--resume``. Returns that line."""
+    try:
+        os.killpg(worker.pid, signal.SIGKILL)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    lines = stderr.strip().splitlines()
+    assert proc.returncode == 2, stderr
+    assert len(lines) == 1 and lines[0].startswith(tuple(starts)) and "--resume" in lines[0], stderr
+    return lines[0]
