@@ -769,6 +769,7 @@ def periodic_state(
     chunk: int = 4096,
     anderson: bool = True,
     per_column: bool = False,
+    skip: Callable | None = None,
 ) -> dict:
     """Find the periodic steady state x = period_map(x) and leave the solver in it.
 
@@ -798,6 +799,14 @@ def periodic_state(
         iterate (default False). Only valid when ``period_map`` is column-separable (a replay: no
         coupling between columns); it makes each column's result independent of which other
         columns share its batch (a distributed replay in chunks equals a local one bit for bit).
+    skip : callable, optional
+        ``skip(converged) -> skipped`` (bool arrays (ncol,)): called after each period map that did not
+        end the iteration with the columns that met both criteria (residual and step <= ``tol_K``);
+        returns the columns the next period map will not run (it must leave their state as given).
+        Their previous map's result, accumulators, residual and step are kept and their start state is
+        not moved; a column not named again is run and iterated as before. For coupled maps whose
+        caller can bound how far a column's forcing has moved since it was last run (the lagged
+        spin-up: ``simulate``). Default: every column is run every time.
 
     Returns
     -------
@@ -818,9 +827,14 @@ def periodic_state(
     converged = False
     y = x
     frozen = np.zeros(solver.ncol, bool)
+    skipped = np.zeros(solver.ncol, bool)  # columns the current map does not run (``skip``)
+    y_last = acc_last = None
     for it in range(1, max_iter + 1):
         solver.reset_accumulators()
         y = np.asarray(period_map(x), dtype=float)
+        if skipped.any():  # their last map's result and energies stand
+            y[skipped] = y_last[skipped]
+            solver.acc[skipped] = acc_last[skipped]
         r = y - x
         res = np.max(np.abs(r), axis=1)
         history.append(float(res.max()))
@@ -828,24 +842,25 @@ def periodic_state(
             break
         tsum = solver.acc[:, _k.ACC_TIME]
         nst = solver.acc[:, _k.ACC_NSTEPS]
-        if np.all(tsum > 0) and np.all(nst > 0):
-            dt = tsum / nst
-            h = solver.acc[:, _k.ACC_HDT] / tsum
+        run = np.flatnonzero(~skipped)
+        if np.all(tsum[run] > 0) and np.all(nst[run] > 0):
+            dt = np.where(nst > 0, tsum / np.maximum(nst, 1), 1.0)
+            h = np.where(tsum > 0, solver.acc[:, _k.ACC_HDT] / np.where(tsum > 0, tsum, 1.0), 0.0)
             Tm = 0.5 * (x + y)
-            dx = np.empty_like(r)
+            dx = np.zeros_like(r)
             # one BLAS thread: LAPACK's threads on thousands of tiny (nz x nz) problems cost 30x the
             # work on a busy 2-core machine (measured: 17 s instead of 0.5 s for 1000 columns)
             with threadpool_limits(1, user_api="blas"):
-                for c0 in range(0, solver.ncol, chunk):
-                    cols = np.arange(c0, min(solver.ncol, c0 + chunk))
+                for c0 in range(0, len(run), chunk):
+                    cols = run[c0 : c0 + chunk]
                     sc, Q, lam = solver.linear_modes(Tm, h[cols], dt[cols], cols)
                     g = solver.step_gain(lam) ** nst[cols, None]
                     w = np.einsum("nij,ni->nj", Q, sc * r[cols])
                     w /= np.maximum(1.0 - g, 1e-8)
                     dx[cols] = np.einsum("nij,nj->ni", Q, w) / sc
         else:
-            dx = r
-        step = np.max(np.abs(dx), axis=1)
+            dx = np.where(skipped[:, None], 0.0, r)
+        step = np.where(skipped, step, np.max(np.abs(dx), axis=1))
         step_hist.append(float(step.max()))
         # converged: the period map moves the state by <= tol_K and the predicted distance to
         # the fixed point (the quasi-Newton step) is <= tol_K too (a small residual alone can
@@ -870,7 +885,13 @@ def periodic_state(
             x_new = x_new - gam[:, None] * ((x - x_old) + df)
         prev = (x, dx)
         x_new = np.maximum(x_new, 2.0)
-        x = np.where(frozen[:, None], x, x_new) if per_column else x_new
+        if skip is not None:  # the columns the next map skips keep their start state
+            y_last, acc_last = y, solver.acc.copy()
+            skipped = np.asarray(skip((res <= tol_K) & (step <= tol_K)), bool)
+            frozen_now = skipped | frozen if per_column else skipped
+            x = np.where(frozen_now[:, None], x, x_new)
+        else:
+            x = np.where(frozen[:, None], x, x_new) if per_column else x_new
     solver.set_state(y)
     solver.time_s = t_start
     return {

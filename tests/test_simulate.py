@@ -401,3 +401,20 @@ def test_extrapolated_ir_matches_implicit_reference(ir_scheme_runs):
     assert err["extrapolated"].max() <= err["predictor"].max()
     assert err["extrapolated"].mean() <= err["predictor"].mean()
     assert 0.0 < r["extrapolated_redone"] < 0.5  # the acceptance test does take some columns again
+
+
+def test_lagged_spinup_skips_converged_columns_without_moving_the_result(tmp_path, monkeypatch):
+    """Issue 24: the lagged spin-up stops running columns that have converged while the IR they receive
+    stays put (within what could move them by tol/4). Against the same spin-up running every column in
+    every window: both starts lie within their tolerance (1e-3 K, plus tol/4 for a skipped column) of
+    the same fixed point, so the records agree to 3e-3 K; and some window ran fewer columns."""
+    path = small_case(tmp_path, name="skip", facets=400, end="2019-01-16", extra_period='spinup_ir = "lagged"')
+    case = config.load_case(path)
+    skip = io.open_run(runner.run_case(case, tmp_path / "skip.nc", progress=False))
+    monkeypatch.setattr(simulate._SpinUpWindow, "skip", lambda self, converged: np.zeros_like(converged))
+    every = io.open_run(runner.run_case(case, tmp_path / "every.nc", progress=False))
+    runs = [int(n) for n in skip.attrs["start_method"].split("columns run per window: ")[1].rstrip(")").split(", ")]
+    assert runs[0] == 400 and min(runs) < 400, runs
+    assert "400, 400" in every.attrs["start_method"] and min(runs) < 400
+    dT = skip["surface_temperature"].values - every["surface_temperature"].values
+    assert np.abs(dT).max() <= 3e-3
