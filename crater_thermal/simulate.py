@@ -697,14 +697,14 @@ class _SpinUpWindow:
 
     def _held_ir_block(self, b0: int, b1: int, ir: np.ndarray):
         """The first pass over samples b0..b1 - 1: each facet's IR held for :data:`FIRST_PASS_HOLD_S` from
-        ``ir`` [W m-2], then that of the temperatures reached (one product for the held samples).
-        Returns (input IR rows, surface temperature rows, their IR rows, the IR at the block's end)."""
+        ``ir`` [W m-2], then that of the temperatures reached (a one-vector product per hold; products
+        of a few right-hand sides cost as much as those of a block, measured).
+        Returns (input IR rows, surface temperature rows, the IR at the block's end)."""
         fc, ns, t = self.fc, self.n, self.t
         e = min(ns, b1 + 1)
         sol = fc.rows(fc.drive, b0, e)
         ir_in = np.empty((b1 - b0, len(ir)))
         T_out = np.empty((b1 - b0, len(ir)))
-        ir_out = np.empty((b1 - b0, len(ir)))
         k = b0
         while k < b1:
             k1 = k + 1  # the samples within the hold time of sample k
@@ -713,12 +713,10 @@ class _SpinUpWindow:
             k2 = min(ns, k1 + 1)
             ir_in[k - b0 : k1 - b0] = ir
             T = self.solver.run_series(t[k:k2], self.stepper.absorbed(sol[k - b0 : k2 - b0], ir[None, :]), record=True)
-            rows = self.stepper.ir_rows(T)
             T_out[k - b0 : k1 - b0] = T[: k1 - k]
-            ir_out[k - b0 : k1 - b0] = rows[: k1 - k]
-            ir = rows[-1]
+            ir = self.stepper.ir(T[-1])
             k = k1
-        return ir_in, T_out, ir_out, ir
+        return ir_in, T_out, ir
 
     def lagged(self, report, expected: int) -> None:
         """One lagged pass (the first one with each facet's IR held a day at a time, recording the IR
@@ -738,7 +736,7 @@ class _SpinUpWindow:
             b1 = min(ns, b0 + block)
             e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
             if first:
-                ir, T, rows, ir_held = self._held_ir_block(b0, b1, ir_held)
+                ir, T, ir_held = self._held_ir_block(b0, b1, ir_held)
                 fc.store.write(self.lag_in, b0, ir)
             else:
                 ir = fc.store.read(self.lag_in, b0, e)
@@ -750,7 +748,7 @@ class _SpinUpWindow:
                     T = self.solver.run_series(t[b0:e], self.stepper.absorbed(sol, ir), record=True)
                 del sol
                 T = T[: b1 - b0]
-                rows = self.stepper.ir_rows(T)
+            rows = self.stepper.ir_rows(T)
             fc.store.write(self.lag_out, b0, rows)
             fc.store.write("lag_T", b0, T.astype(np.float32))
             np.maximum(moved, np.max(np.abs(rows - ir[: b1 - b0]), axis=0), out=moved)
