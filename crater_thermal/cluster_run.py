@@ -34,11 +34,12 @@ import contextlib
 import hashlib
 import json
 import os
+import uuid
 from pathlib import Path
 
 import numpy as np
 
-from crater_thermal import cluster, radiosity, runner, vfoperator, waveform
+from crater_thermal import cluster, geometry, radiosity, raytrace, runner, vfoperator, waveform
 from crater_thermal.errors import ConfigError, CraterThermalError
 
 #: Default facets per chunk (one task per chunk and iteration).
@@ -103,6 +104,7 @@ def _chunk_window(rows, E, m: int, ir0, state, times_s, solar, options: dict, pr
     """A chunk of ``m`` columns through a window, driven by the IR its operator rows form from the emitted
     flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given); the
     :class:`waveform.Window` of the chunk."""
+    _PLANS.clear()  # the operator's rows are built: its plan is no longer needed on this worker
     ir = np.zeros((len(times_s), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
     if ir0 is not None:
         ir[0] = ir0
@@ -160,7 +162,7 @@ class DaskColumns:
             except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
                 raise
             except Exception as exc:  # an input lost with the worker that held it: send the iteration again
-                if attempt == RESENDS or not self._workers_left():
+                if attempt == RESENDS or not _workers_left(self.client):
                     raise _failed(exc, _RESUME) from None
                 self._last = self._state = None
 
@@ -178,7 +180,7 @@ class DaskColumns:
             raise
         except Exception as exc:
             self.end_spinup()
-            if not self._workers_left():
+            if not _workers_left(self.client):
                 raise _failed(exc) from None
             raise waveform.PassLost(str(exc)) from None
 
@@ -262,14 +264,6 @@ class DaskColumns:
     def end_spinup(self) -> None:
         """Release the spin-up's data on the workers."""
         self._pass = self._surfaces = self._spin = self._chunks_f = None
-
-    def _workers_left(self) -> bool:
-        """True when the cluster has a worker, or one joins within :func:`worker_wait_s`."""
-        try:
-            self.client.wait_for_workers(1, timeout=worker_wait_s())
-            return True
-        except Exception:  # dask's TimeoutError
-            return False
 
     def _round(self, state, times_s, solar, E, ir0, skip_K):
         client = self.client
@@ -386,6 +380,220 @@ class _RemoteWindow:
         return self._fetch()[2]
 
 
+def build_rows(mesh_folder: str, a: int, b: int, settings: dict):
+    """A chunk's rows ``a:b`` (cluster order) of the compressed operator, built on a worker from the mesh
+    saved in ``mesh_folder`` without the rest of the operator (:meth:`vfoperator.CompressedPlan.row_block`),
+    unscaled. A dask task: pure, so the scheduler builds it again elsewhere when its worker is lost."""
+    with cluster.one_numba_thread():
+        return _plan(mesh_folder, settings).row_block(a, b, n_threads=1)
+
+
+_PLANS: dict = {}  # per worker process: the compressed plan of the latest mesh, while its rows are built
+
+
+def _plan(mesh_folder: str, settings: dict):
+    """The worker's :class:`vfoperator.CompressedPlan` of the saved mesh (built once for all the chunks it
+    builds; released by the first window it conducts, :func:`_chunk_window`)."""
+    key = (mesh_folder, json.dumps(settings, sort_keys=True))
+    plan = _PLANS.get(key)
+    if plan is None:
+        _PLANS.clear()
+        folder = Path(mesh_folder)
+        mesh = geometry.Mesh(np.load(folder / "vertices.npy"), np.load(folder / "faces.npy"))
+        tracer = raytrace.RayTracer(mesh, n_threads=1)
+        plan = _PLANS[key] = vfoperator.CompressedPlan(
+            mesh, tracer, settings["tolerance"], tolerance_mode=settings["tolerance_mode"]
+        )
+    return plan
+
+
+def _summary(block):
+    """A chunk's facets (its rows, cluster order) and their row sums [-] unscaled (a small task)."""
+    return block.facets, block.row_sums()
+
+
+def _scale_of(*summaries):
+    """The rescaling of every row [-] (cluster order) from all chunks' row sums, or None (one task)."""
+    return vfoperator.rowsum_scale(np.concatenate([s for _, s in summaries]))[0]
+
+
+def _scaled(block, scale):
+    """A chunk's rows with the operator's rescaling (the arrays shared, not copied)."""
+    return block.with_scale(scale)
+
+
+def _apply_rows(block, X):
+    """``(F @ X)`` on a chunk's rows (a product of :class:`ClusterOperator`)."""
+    with cluster.one_numba_thread():
+        return block.apply(X)
+
+
+def _workers_left(client) -> bool:
+    """True when the cluster has a worker, or one joins within :func:`worker_wait_s`."""
+    try:
+        client.wait_for_workers(1, timeout=worker_wait_s())
+        return True
+    except Exception:  # dask's TimeoutError
+        return False
+
+
+class ClusterOperator(vfoperator.ViewFactorOperator):
+    """The view-factor operator of a run whose rows are held by the workers (the chunks' row blocks):
+    what the command's process uses for the products it needs (scattered sunlight, the start's IR)
+    without the operator. ``F @ X``: ``X`` is sent once (to one worker; the others fetch it from there),
+    each chunk's task returns its rows, assembled here. ``F^T y = A F (y / A)`` (``A`` the facet areas,
+    reciprocity: ``diag(A) F`` is symmetric).
+
+    Parameters
+    ----------
+    client : the dask client; rows : the chunks' row-block futures; bounds : their row ranges ``(a, b)``
+    in ``order`` (the cluster order, facet indices); areas : (n,) facet areas [m2]; rowsums : (n,) the
+    unscaled row sums [-] (facet order); held : bytes of the row blocks on the workers [B].
+    """
+
+    kind = "compressed"
+
+    def __init__(self, client, rows, bounds, order, areas, rowsums, held: int):
+        n = len(order)
+        self.shape = (n, n)
+        self.client, self.rows, self.bounds = client, rows, bounds
+        self.order = np.asarray(order, np.int64)
+        self.areas = np.asarray(areas, np.float64)
+        self.rowsum_excess = vfoperator.rowsum_scale(rowsums)[1]
+        self._zero = not np.any(rowsums)
+        #: bytes of the row blocks on the workers (all chunks) [B]
+        self.held_bytes = int(held)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by this process [B] (the facet order and areas; the rows are on the workers)."""
+        return int(self.order.nbytes + self.areas.nbytes)
+
+    @property
+    def is_zero(self) -> bool:
+        return self._zero
+
+    def matvec(self, x):
+        x = self._check(x)
+        return self._products(x.reshape(x.shape[0], -1)).reshape(x.shape)
+
+    def rmatvec(self, y):
+        y = self._check(y)
+        a = self.areas[:, None]
+        return (self._products(y.reshape(y.shape[0], -1) / a) * a).reshape(y.shape)
+
+    def _products(self, X):
+        from distributed import KilledWorker
+
+        client = self.client
+        for attempt in range(RESENDS + 1):
+            try:
+                X_f = client.scatter(np.ascontiguousarray(X, np.float64), hash=False)
+                parts = client.gather(
+                    [client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows]
+                )
+                out = np.empty_like(X, dtype=np.float64)
+                for (a, b), part in zip(self.bounds, parts):
+                    out[self.order[a:b]] = part
+                return out
+            except KilledWorker as exc:
+                raise _gave_up(exc) from None
+            except (CraterThermalError, MemoryError):
+                raise
+            except Exception as exc:  # the operand lost with the worker that held it: send it again
+                if attempt == RESENDS or not _workers_left(client):
+                    raise _failed(exc) from None
+
+
+class _Session:
+    """A run's dask cluster from the view factors to the end of the record (what
+    :func:`distributed_columns` yields to :func:`crater_thermal.runner.run_case`): the operator's row
+    blocks are built on the workers (:meth:`view_factors`), then conducted with (:meth:`columns`)."""
+
+    def __init__(self, client, case, mesh, store, chunk_facets: int):
+        self.client, self.case, self.store = client, case, store
+        nf = self.nf = mesh.n_facets
+        self.n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+        size = min(int(chunk_facets), -(-nf // self.n_workers))  # at least one chunk per worker
+        self.bounds = [(a, min(nf, a + size)) for a in range(0, nf, size)]
+        self.order = np.arange(nf, dtype=np.int64)
+        self.rows = [None] * len(self.bounds)
+        self.tag = f"{hashlib.sha256(f'{store.folder}:{nf}:{size}'.encode()).hexdigest()[:8]}-{uuid.uuid4().hex[:8]}"
+
+    def view_factors(self, mesh, tracer, method: str, tolerance: float, cache_dir=None, progress=None):
+        """The run's operator (as :func:`vfoperator.view_factor_operator`, same arguments). Compressed:
+        built on the workers, each chunk's rows by the worker that holds them, and a
+        :class:`ClusterOperator` of them back; this process never holds the whole operator. Exact (small
+        by construction): built here (cached as a local run does), saved into the scratch store and
+        loaded by the workers row block by row block."""
+        if method == "compressed":
+            return self._build_on_workers(mesh, tolerance, progress)
+        F = vfoperator.view_factor_operator(
+            mesh, tracer, method=method, tolerance=tolerance, cache_dir=cache_dir, progress=progress
+        )
+        folder = Path(self.store.folder).resolve() / "operator"
+        if not self.store.marked("operator"):
+            vfoperator.save_operator(F, folder)
+            self.store.mark("operator")
+        self.order = vfoperator.row_order(F)
+        self.rows = [
+            self.client.submit(load_rows, str(folder), a, b, key=f"ct-rows-{self.tag}-{a}") for a, b in self.bounds
+        ]
+        return F
+
+    def _build_on_workers(self, mesh, tolerance: float, progress=None):
+        from distributed import KilledWorker, as_completed
+
+        client, bounds, tag = self.client, self.bounds, self.tag
+        folder = Path(self.store.folder).resolve() / "mesh"
+        if not self.store.marked("mesh"):
+            folder.mkdir(parents=True, exist_ok=True)
+            np.save(folder / "vertices.npy", mesh.vertices)
+            np.save(folder / "faces.npy", mesh.faces)
+            self.store.mark("mesh")
+        settings = {"tolerance": float(tolerance), "tolerance_mode": "block"}
+        try:
+            raw = [
+                client.submit(build_rows, str(folder), a, b, settings, key=f"ct-build-{tag}-{a}", retries=RETRIES)
+                for a, b in bounds
+            ]
+            # the client keeps the row sums and the scale (n floats): a lost block is built again from
+            # them and the mesh, never from all the other blocks
+            self._sums = [client.submit(_summary, r, key=f"ct-rowsum-{tag}-{a}") for r, (a, _) in zip(raw, bounds)]
+            self._scale = client.submit(_scale_of, *self._sums, key=f"ct-scale-{tag}")
+            self.rows = [client.submit(_scaled, r, self._scale, key=f"ct-rows-{tag}-{a}") for r, (a, _) in zip(raw, bounds)]
+            del raw
+            for done, _ in enumerate(as_completed(self._sums), 1):
+                if progress is not None:
+                    progress(done, len(bounds))
+            summaries = client.gather(self._sums)
+            held = sum(client.gather([client.submit(_nbytes, r, pure=False) for r in self.rows]))
+        except KilledWorker as exc:
+            raise _gave_up(exc) from None
+        # the cluster order (the chunks' facets) and the row sums, n numbers each
+        self.order = np.concatenate([f for f, _ in summaries])
+        rowsums = np.empty(self.nf)
+        rowsums[self.order] = np.concatenate([s for _, s in summaries])
+        return ClusterOperator(client, self.rows, bounds, self.order, mesh.areas, rowsums, held)
+
+    def columns(self, fc):
+        """The waveform-relaxation backend (:class:`DaskColumns`) of the run's chunks."""
+        case = self.case
+        options = {
+            "profile": case.surface.nominal_profile,
+            **runner.column_settings(case),
+            "albedo": float(case.surface.albedo),
+            "solar_is_absorbed": case.surface.albedo_model != "constant",
+        }
+        rows = self.rows if fc.F is not None else [None] * len(self.bounds)
+        chunks = [self.order[a:b] for a, b in self.bounds]
+        return DaskColumns(self.client, chunks, rows, options, self.nf, self.n_workers)
+
+
+def _nbytes(block) -> int:
+    return block.nbytes
+
+
 def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_FACETS):
     """The ``columns`` factory of :func:`crater_thermal.runner.run_case` for a dask cluster: the scheduler at
     ``scheduler`` (``tcp://host:8786``) or a local cluster of ``workers`` one-thread processes."""
@@ -393,33 +601,10 @@ def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_
         raise ConfigError(f"--chunk-facets {chunk_facets}: chunks need at least 1 facet")
 
     @contextlib.contextmanager
-    def factory(case, fc, store):
-        nf = fc.mesh.n_facets
-        folder = None
-        order = np.arange(nf, dtype=np.int64)
-        if fc.F is not None:
-            folder = Path(store.folder) / "operator"
-            if not store.marked("operator"):
-                vfoperator.save_operator(fc.F, folder)
-                store.mark("operator")
-            order = vfoperator.row_order(fc.F)
+    def factory(case, mesh, store):
         client, cl = cluster.connect(scheduler, workers, "runs on a dask cluster (--scheduler, --workers)")
         try:
-            n_workers = max(1, len(client.scheduler_info().get("workers", {})))
-            size = min(int(chunk_facets), -(-nf // n_workers))  # at least one chunk per worker
-            bounds = [(a, min(nf, a + size)) for a in range(0, nf, size)]
-            tag = hashlib.sha256(f"{folder}:{nf}:{size}".encode()).hexdigest()[:12]
-            rows = [
-                client.submit(load_rows, None if folder is None else str(folder), a, b, key=f"ct-rows-{tag}-{a}")
-                for a, b in bounds
-            ]
-            options = {
-                "profile": case.surface.nominal_profile,
-                **runner.column_settings(case),
-                "albedo": float(case.surface.albedo),
-                "solar_is_absorbed": case.surface.albedo_model != "constant",
-            }
-            yield DaskColumns(client, [order[a:b] for a, b in bounds], rows, options, nf, n_workers)
+            yield _Session(client, case, mesh, store, chunk_facets)
         finally:
             client.close()
             if cl is not None:

@@ -181,10 +181,14 @@ def test_resume_with_another_coupling_is_refused(tmp_path):
     out = tmp_path / "run.nc"
     ckpt = Path(runner.checkpoint_path(out))
 
+    class Here:
+        def columns(self, fc):
+            solver = thermal.ColumnSolver([case.surface.nominal_profile] * fc.mesh.n_facets, emissivity=0.98)
+            return waveform.LocalColumns(solver, fc.F, 0.12, 0.98)
+
     @contextlib.contextmanager
-    def here(case, fc, store):
-        solver = thermal.ColumnSolver([case.surface.nominal_profile] * fc.mesh.n_facets, emissivity=0.98)
-        yield waveform.LocalColumns(solver, fc.F, 0.12, 0.98)
+    def here(case, mesh, store):
+        yield Here()
 
     class Stop(Exception):
         pass
