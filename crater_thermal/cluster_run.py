@@ -1,14 +1,28 @@
 """A coupled run on a dask.distributed cluster: the facet columns spread over workers, coupled through the
 radiation operator by waveform relaxation (:mod:`crater_thermal.waveform`).
 
-The command's process (the client) does what needs the whole scene once: the mesh, the view-factor
-operator, the Sun and the sunlight (direct and scattered), into the run's scratch store ``OUT.partial/``
-as a local run does. It writes the operator there (``OUT.partial/operator/``, one ``.npy`` file per
-array) and cuts the facets into chunks of contiguous rows of the operator's own order (clusters of the
-compressed operator). Each chunk's rows of the operator are loaded once by a worker, from that folder, as
-a dask task (:func:`crater_thermal.vfoperator.load_row_block`): the worker holds only the stored entries
-its rows need, and the scheduler loads them again elsewhere if that worker is lost. So the scratch store
-must be on a filesystem every worker reads at the same path.
+The facets are cut into chunks of contiguous rows of the operator's own order (the compressed
+operator's cluster order: spatial neighbours together), at most ``--chunk-facets`` each and at least one
+per worker. The cluster is connected once the mesh is made (:func:`distributed_columns` yields a
+session to :func:`crater_thermal.runner.run_case`) and the view-factor operator is built by the workers
+that hold its rows:
+
+* **compressed operator**: the mesh is saved into the run's scratch store (``OUT.partial/mesh/``) and
+  each chunk's rows are built by a worker from it, as a dask task (:func:`build_rows`,
+  :meth:`crater_thermal.vfoperator.CompressedPlan.row_block`: the same tree and partition as the whole
+  operator, deterministic from the mesh, and only the blocks that meet the chunk's rows; a block that
+  meets two chunks is built by both). The rescale that keeps row sums <= 1 needs every row's sum: each
+  chunk's row sums (n floats in all) go to one task that makes the scale vector, and each chunk's rows
+  take it (:func:`_scaled`). The client keeps the row sums' and the scale's futures, so a lost worker's
+  rows are built again elsewhere from the mesh. The client holds no part of the operator: its products
+  (the scattered sunlight, the start's IR) go through a :class:`ClusterOperator` that sends the operand
+  once and gathers each chunk's rows of the product;
+* **exact matrix** (small by construction: below ``vfoperator.AUTO_COMPRESSED_MIN_FACETS`` facets, or
+  asked for): built by the client as a local run builds it, written into ``OUT.partial/operator/`` and
+  loaded row block by row block by the workers (:func:`crater_thermal.vfoperator.load_row_block`).
+
+Either way each worker holds only its chunks' rows, and the scratch store must be on a filesystem every
+worker reads at the same path. The sunlight (direct and scattered) goes into the store as in a local run.
 
 Then the time loop, window by window (the recorded period in windows of
 :func:`crater_thermal.waveform.window_samples` samples, the spin-up window in blocks): per relaxation
@@ -19,14 +33,14 @@ end state. The client checks convergence, keeps the state, writes the rows into 
 checkpoints (``--resume`` works as for a local run), and at the end writes ``run.nc`` as a local run does.
 
 Tasks are pure functions of their inputs: a task whose worker dies is run again by the scheduler
-(``retries`` for errors it raises), and an iteration whose emission was lost with a worker is sent again.
+(``retries`` for errors it raises), and an iteration (or a product) whose operand was lost with a worker
+is sent again.
 
 Equal to the single-process run with ``[steps] ir_coupling = "relaxed"`` within the relaxation tolerance
 (the chunks converge on the same fixed point; tested to 0.01 K); against the default extrapolated scheme
 the difference is that scheme's coupling error (``docs/model.md``).
 
-dask is imported only inside :func:`distributed_columns`'s context.
-"""
+dask is imported only inside :func:`distributed_columns`'s context."""
 
 from __future__ import annotations
 
@@ -34,6 +48,7 @@ import contextlib
 import hashlib
 import json
 import os
+import time
 import uuid
 from pathlib import Path
 
@@ -63,6 +78,7 @@ def worker_wait_s() -> float:
 
 
 _SOLVERS: dict = {}  # per worker process: a column solver per (options, columns), reused across tasks
+_PLANS: dict = {}  # per worker process: the compressed plan of the latest mesh, while its rows are built
 
 
 def _solver(options: dict, n: int):
@@ -385,10 +401,12 @@ def build_rows(mesh_folder: str, a: int, b: int, settings: dict):
     saved in ``mesh_folder`` without the rest of the operator (:meth:`vfoperator.CompressedPlan.row_block`),
     unscaled. A dask task: pure, so the scheduler builds it again elsewhere when its worker is lost."""
     with cluster.one_numba_thread():
-        return _plan(mesh_folder, settings).row_block(a, b, n_threads=1)
-
-
-_PLANS: dict = {}  # per worker process: the compressed plan of the latest mesh, while its rows are built
+        c0 = time.process_time()
+        plan = _plan(mesh_folder, settings)
+        plan_s = time.process_time() - c0
+        block = plan.row_block(a, b, n_threads=1)
+    block.stats["plan_cpu_s"] = plan_s  # the plan's CPU seconds when this task made it (else ~0)
+    return block
 
 
 def _plan(mesh_folder: str, settings: dict):
@@ -559,9 +577,10 @@ class _Session:
             ]
             # the client keeps the row sums and the scale (n floats): a lost block is built again from
             # them and the mesh, never from all the other blocks
-            self._sums = [client.submit(_summary, r, key=f"ct-rowsum-{tag}-{a}") for r, (a, _) in zip(raw, bounds)]
+            starts = [a for a, _ in bounds]
+            self._sums = [client.submit(_summary, r, key=f"ct-rowsum-{tag}-{a}") for r, a in zip(raw, starts)]
             self._scale = client.submit(_scale_of, *self._sums, key=f"ct-scale-{tag}")
-            self.rows = [client.submit(_scaled, r, self._scale, key=f"ct-rows-{tag}-{a}") for r, (a, _) in zip(raw, bounds)]
+            self.rows = [client.submit(_scaled, r, self._scale, key=f"ct-rows-{tag}-{a}") for r, a in zip(raw, starts)]
             del raw
             for done, _ in enumerate(as_completed(self._sums), 1):
                 if progress is not None:

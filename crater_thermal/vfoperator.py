@@ -956,12 +956,13 @@ class CompressedPlan:
         row sum with :meth:`RowBlock.with_scale` (:func:`rowsum_scale` of all blocks' :meth:`RowBlock.row_sums`).
 
         Equal to :func:`load_row_block` of :func:`compressed_view_factors` (same settings) on these rows
-        to round-off: the same units built the same way.  ``stats`` of the block: units, rays, seconds.
+        to round-off: the same units built the same way.  ``stats`` of the block: units, rays, near pairs,
+        seconds (wall, and CPU of this process).
         """
         n = self.n_facets
         if not (0 <= a < b <= n):
             raise ConfigError(f"row block {a}:{b} outside the operator's {n} rows")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         units = self.units(a, b)
         lowrank, coo, rays, near_pairs = self.build(units, n_threads)
         # near part: rows a..b-1 of S + S^T, S the entries above the diagonal (float32 as stored)
@@ -1002,6 +1003,7 @@ class CompressedPlan:
         )
         block.stats = {"units": len(units), "rays": int(rays), "near_pairs": int(near_pairs)}
         block.stats["build_s"] = time.perf_counter() - t0
+        block.stats["build_cpu_s"] = time.process_time() - c0  # this process's threads, all of them
         return block
 
 
