@@ -606,7 +606,10 @@ class _Session:
         }
         rows = self.rows if fc.F is not None else [None] * len(self.bounds)
         chunks = [self.order[a:b] for a, b in self.bounds]
-        return DaskColumns(self.client, chunks, rows, options, self.nf, self.n_workers)
+        cols = DaskColumns(self.client, chunks, rows, options, self.nf, self.n_workers)
+        if isinstance(fc.F, ClusterOperator):
+            cols.description += f"; operator rows built by the workers ({fc.F.held_bytes / 1e6:.1f} MB in all)"
+        return cols
 
 
 def _nbytes(block) -> int:

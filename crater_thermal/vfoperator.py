@@ -37,6 +37,13 @@ with :data:`ROWSUM_RAYS` cosine-weighted rays per facet), so blocks of tiny graz
 budget: low rank, their smallest sparse entries dropped, or dropped whole.  Not the default: measured
 against the exact matrix in ``docs/performance.md`` (memory, F x error, night temperatures).
 
+Row blocks (a distributed run's workers, :mod:`crater_thermal.cluster_run`): some rows of the operator
+held alone (:class:`RowBlock`), loaded from a saved operator (:func:`save_operator`,
+:func:`load_row_block`) or built from the mesh without the rest (:class:`CompressedPlan`: the tree, the
+partition and the work units, deterministic from the mesh; :meth:`CompressedPlan.row_block` builds the
+blocks that meet the rows, so a block meeting two row ranges is built for both); the rescale below then
+needs every row's sum (:func:`rowsum_scale`, :meth:`RowBlock.with_scale`).
+
 Error control: every far block satisfies ``||M - M~||_F <= tol ||M||_F`` and near blocks are exact, so
 ``||G - G~||_F <= tol ||G||_F``; products with the smooth, positive fields the model uses (emitted IR,
 scattered sunlight) come out far more accurate than this bound (measured in

@@ -152,6 +152,7 @@ def test_dask_cli_cluster_run_equals_single_process(local_run, dask_cli, tmp_pat
     assert r.returncode == 0, r.stderr
     rel = _assert_close_to_local(out, ref)
     assert rel["columns"].startswith("dask: 3 chunks on 2 worker(s)")
+    assert "operator rows built by the workers" in rel["columns"]
     assert not Path(str(out) + ".partial").exists()
 
 
