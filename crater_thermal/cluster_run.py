@@ -412,12 +412,17 @@ def build_rows(mesh_folder: str, a: int, b: int, settings: dict):
 def _plan(mesh_folder: str, settings: dict):
     """The worker's :class:`vfoperator.CompressedPlan` of the saved mesh (built once for all the chunks it
     builds; released by the first window it conducts, :func:`_chunk_window`)."""
-    key = (mesh_folder, json.dumps(settings, sort_keys=True))
+    key = (mesh_folder, json.dumps(settings, sort_keys=True))  # the settings name the mesh's hash
     plan = _PLANS.get(key)
     if plan is None:
         _PLANS.clear()
         folder = Path(mesh_folder)
         mesh = geometry.Mesh(np.load(folder / "vertices.npy"), np.load(folder / "faces.npy"))
+        if mesh.hash != settings["mesh_hash"]:
+            raise ConfigError(
+                f"the mesh in {folder} is not the run's (hash {mesh.hash}, expected {settings['mesh_hash']}): "
+                "was the run's scratch folder changed by another run? Run again with --overwrite"
+            )
         tracer = raytrace.RayTracer(mesh, n_threads=1)
         plan = _PLANS[key] = vfoperator.CompressedPlan(
             mesh, tracer, settings["tolerance"], tolerance_mode=settings["tolerance_mode"]
@@ -564,12 +569,12 @@ class _Session:
 
         client, bounds, tag = self.client, self.bounds, self.tag
         folder = Path(self.store.folder).resolve() / "mesh"
-        if not self.store.marked("mesh"):
+        if not self.store.marked("mesh"):  # written once: a resumed run's mesh is the same (the case's fingerprint)
             folder.mkdir(parents=True, exist_ok=True)
             np.save(folder / "vertices.npy", mesh.vertices)
             np.save(folder / "faces.npy", mesh.faces)
             self.store.mark("mesh")
-        settings = {"tolerance": float(tolerance), "tolerance_mode": "block"}
+        settings = {"tolerance": float(tolerance), "tolerance_mode": "block", "mesh_hash": mesh.hash}
         try:
             raw = [
                 client.submit(build_rows, str(folder), a, b, settings, key=f"ct-build-{tag}-{a}", retries=RETRIES)

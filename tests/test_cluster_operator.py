@@ -64,3 +64,22 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
                 _close(F @ X, whole @ X)
             rebuilt = [t["key"] for t in stream.data if str(t["key"]).startswith("ct-build-")]
             assert rebuilt, "no row block was built again: the test proves nothing"
+
+
+def test_rows_of_another_mesh_are_refused(tmp_path):
+    """A worker builds rows only from the run's own mesh: mesh files that another run left or changed in
+    the scratch folder (another hash than the run's) stop the task with one line, and a plan cached on the
+    worker for another mesh at the same path is not reused."""
+    from crater_thermal.errors import ConfigError
+
+    a, b = geometry.sphere_mesh(200), geometry.sphere_mesh(202)
+    folder = tmp_path / "mesh"
+    folder.mkdir()
+    settings = {"tolerance": vfoperator.DEFAULT_TOLERANCE, "tolerance_mode": "block"}
+    for mesh in (a, b):  # the same folder, a new mesh: built from the new one, not the cached plan
+        np.save(folder / "vertices.npy", mesh.vertices)
+        np.save(folder / "faces.npy", mesh.faces)
+        block = cluster_run.build_rows(str(folder), 0, mesh.n_facets, {**settings, "mesh_hash": mesh.hash})
+        assert block.n == mesh.n_facets
+    with pytest.raises(ConfigError, match="is not the run's"):
+        cluster_run.build_rows(str(folder), 0, 10, {**settings, "mesh_hash": a.hash})
