@@ -11,6 +11,9 @@ Python process (so that its peak resident memory is its own):
   built their rows;
 * ``workers``: each worker builds its own chunks' rows from the mesh (``cluster_run``'s session,
   ``CompressedPlan.row_block``), the client holds a ``ClusterOperator`` (facet order and areas);
+* ``run_local``, ``run_dask`` (not by default): a short coupled run of the crater (``--run-days``
+  recorded after a fixed 2-day spin-up, the relaxed scheme, the compressed operator) in one process and
+  on the local cluster: wall time and stages, the client's peak RSS, the largest temperature difference;
 * ``single``: the whole build on one thread in one process (the reference of the duplicated work), the
   plan's (tree, partition) time, paid once per worker, and every chunk's rows built alone one after the
   other in that process (the duplicated work measured without the cluster's noise).
@@ -22,15 +25,18 @@ building alone (blocks meeting two chunks' rows are built by both): rays and blo
 over chunks against the single-process build.
 
 Usage: ``python bench/operator_workers.py [--facets 20000] [--workers 2] [--chunk-facets 4000]
-[--samples 96] [--out bench/results/operator_workers.json]``.
+[--samples 96] [--modes single client workers run_local run_dask] [--run-days 10]
+[--out bench/results/operator_workers.json]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -180,7 +186,61 @@ def mode_single(args) -> dict:
     }
 
 
-MODES = {"client": mode_client, "workers": mode_workers, "single": mode_single}
+def _run_case(args, tmp: Path) -> Path:
+    """A short coupled run of the crater (``--run-days`` recorded after a fixed spin-up of 2 days, the
+    relaxed scheme, the compressed operator), its case file in ``tmp``."""
+    spec = importlib.util.spec_from_file_location("bench_scale", REPO / "bench" / "scale.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    end = str(np.datetime64("2019-01-01T00:00") + np.timedelta64(int(round(args.run_days * 86400)), "s"))
+    text = mod.CASE.format(
+        facets=args.facets,
+        diameter_km=10.0,
+        surround_km=5.0,
+        lat_deg=-86.0,
+        chunk_mb=256,
+        extra='[radiation]\nview_factors = "compressed"',
+        end=end,
+        spinup='spinup = "fixed"\nspinup_days = 2.0',
+    )
+    text = text.replace("flux_step_hours = 4.0", 'flux_step_hours = 4.0\nir_coupling = "relaxed"')
+    path = tmp / "case.toml"
+    path.write_text(text)
+    return path
+
+
+def _run(args, workers) -> dict:
+    from crater_thermal import config, runner, simulate
+
+    out = Path(args.run_dir) / ("dask.nc" if workers else "local.nc")
+    case = config.load_case(_run_case(args, Path(args.run_dir)))
+    timer = simulate.Timer()
+    columns = cluster_run.distributed_columns(workers=args.workers, chunk_facets=args.chunk_facets) if workers else None
+    t0 = time.perf_counter()
+    runner.run_case(case, out, progress=False, timer=timer, columns=columns, overwrite=True)
+    return {
+        "wall_s": time.perf_counter() - t0,
+        "stages_s": dict(timer.split),
+        "client_peak_rss_B": _maxrss(),
+        "out": str(out),
+    }
+
+
+def mode_run_local(args) -> dict:
+    return _run(args, False)
+
+
+def mode_run_dask(args) -> dict:
+    return _run(args, True)
+
+
+MODES = {
+    "client": mode_client,
+    "workers": mode_workers,
+    "single": mode_single,
+    "run_local": mode_run_local,
+    "run_dask": mode_run_dask,
+}
 
 
 def main() -> None:
@@ -190,6 +250,8 @@ def main() -> None:
     ap.add_argument("--chunk-facets", type=int, default=4000)
     ap.add_argument("--samples", type=int, default=96)
     ap.add_argument("--modes", nargs="+", default=["single", "client", "workers"], choices=list(MODES))
+    ap.add_argument("--run-days", type=float, default=10.0)
+    ap.add_argument("--run-dir", help=argparse.SUPPRESS)
     ap.add_argument("--mode", choices=list(MODES), help=argparse.SUPPRESS)  # one mode, in this process
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "operator_workers.json")
     args = ap.parse_args()
@@ -204,9 +266,11 @@ def main() -> None:
         "cpus": os.cpu_count(),
         "modes": {},
     }
+    run_dir = tempfile.mkdtemp(prefix="operator_workers_")
     for mode in args.modes:
         cmd = [sys.executable, __file__, "--mode", mode, "--facets", str(args.facets), "--workers", str(args.workers)]
         cmd += ["--chunk-facets", str(args.chunk_facets), "--samples", str(args.samples)]
+        cmd += ["--run-days", str(args.run_days), "--run-dir", run_dir]
         t0 = time.perf_counter()
         out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
         result["modes"][mode] = {**json.loads(out.strip().splitlines()[-1]), "process_wall_s": time.perf_counter() - t0}
@@ -228,6 +292,16 @@ def main() -> None:
         result["build_wall_workers_over_single"] = w["build_wall_s"] / s["build_s_one_thread"]
     if {"client", "workers"} <= m.keys():
         result["build_wall_workers_over_client"] = m["workers"]["build_wall_s"] / m["client"]["build_wall_s"]
+    if {"run_local", "run_dask"} <= m.keys():
+        from crater_thermal import io
+
+        with io.open_run(m["run_local"]["out"]) as a, io.open_run(m["run_dask"]["out"]) as b:
+            d = np.abs(a["surface_temperature"].values.astype(float) - b["surface_temperature"].values)
+        result["run_max_abs_dT_K"] = float(d.max())
+        result["run_client_peak_rss_dask_over_local"] = (
+            m["run_dask"]["client_peak_rss_B"] / m["run_local"]["client_peak_rss_B"]
+        )
+    shutil.rmtree(run_dir, ignore_errors=True)
     result["loadavg_after"] = os.getloadavg()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
