@@ -324,8 +324,9 @@ def run(
     scheduler: Optional[str] = typer.Option(
         None,
         "--scheduler",
-        help="dask scheduler address (tcp://host:8786): conduct the columns on its workers, coupled by waveform "
-        "relaxation; OUTPUT's folder must be shared with them (docs/cluster.md).",
+        help="dask scheduler address (tcp://host:8786): conduct the columns on its workers (each builds its rows "
+        "of the view factors), coupled by waveform relaxation; OUTPUT's folder must be shared with them "
+        "(docs/cluster.md).",
     ),
     workers: Optional[int] = typer.Option(
         None, "--workers", help="Instead of --scheduler: a local dask cluster of N one-thread processes."

@@ -1,14 +1,28 @@
 """A coupled run on a dask.distributed cluster: the facet columns spread over workers, coupled through the
 radiation operator by waveform relaxation (:mod:`crater_thermal.waveform`).
 
-The command's process (the client) does what needs the whole scene once: the mesh, the view-factor
-operator, the Sun and the sunlight (direct and scattered), into the run's scratch store ``OUT.partial/``
-as a local run does. It writes the operator there (``OUT.partial/operator/``, one ``.npy`` file per
-array) and cuts the facets into chunks of contiguous rows of the operator's own order (clusters of the
-compressed operator). Each chunk's rows of the operator are loaded once by a worker, from that folder, as
-a dask task (:func:`crater_thermal.vfoperator.load_row_block`): the worker holds only the stored entries
-its rows need, and the scheduler loads them again elsewhere if that worker is lost. So the scratch store
-must be on a filesystem every worker reads at the same path.
+The facets are cut into chunks of contiguous rows of the operator's own order (the compressed
+operator's cluster order: spatial neighbours together), at most ``--chunk-facets`` each and at least one
+per worker. The cluster is connected once the mesh is made (:func:`distributed_columns` yields a
+session to :func:`crater_thermal.runner.run_case`) and the view-factor operator is built by the workers
+that hold its rows:
+
+* **compressed operator**: the mesh is saved into the run's scratch store (``OUT.partial/mesh/``) and
+  each chunk's rows are built by a worker from it, as a dask task (:func:`build_rows`,
+  :meth:`crater_thermal.vfoperator.CompressedPlan.row_block`: the same tree and partition as the whole
+  operator, deterministic from the mesh, and only the blocks that meet the chunk's rows; a block that
+  meets two chunks is built by both). The rescale that keeps row sums <= 1 needs every row's sum: each
+  chunk's row sums (n floats in all) go to one task that makes the scale vector, and each chunk's rows
+  take it (:func:`_scaled`). The client keeps the row sums' and the scale's futures, so a lost worker's
+  rows are built again elsewhere from the mesh. The client holds no part of the operator: its products
+  (the scattered sunlight, the start's IR) go through a :class:`ClusterOperator` that sends the operand
+  once and gathers each chunk's rows of the product;
+* **exact matrix** (small by construction: below ``vfoperator.AUTO_COMPRESSED_MIN_FACETS`` facets, or
+  asked for): built by the client as a local run builds it, written into ``OUT.partial/operator/`` and
+  loaded row block by row block by the workers (:func:`crater_thermal.vfoperator.load_row_block`).
+
+Either way each worker holds only its chunks' rows, and the scratch store must be on a filesystem every
+worker reads at the same path. The sunlight (direct and scattered) goes into the store as in a local run.
 
 Then the time loop, window by window (the recorded period in windows of
 :func:`crater_thermal.waveform.window_samples` samples, the spin-up window in blocks): per relaxation
@@ -19,14 +33,14 @@ end state. The client checks convergence, keeps the state, writes the rows into 
 checkpoints (``--resume`` works as for a local run), and at the end writes ``run.nc`` as a local run does.
 
 Tasks are pure functions of their inputs: a task whose worker dies is run again by the scheduler
-(``retries`` for errors it raises), and an iteration whose emission was lost with a worker is sent again.
+(``retries`` for errors it raises), and an iteration (or a product) whose operand was lost with a worker
+is sent again.
 
 Equal to the single-process run with ``[steps] ir_coupling = "relaxed"`` within the relaxation tolerance
 (the chunks converge on the same fixed point; tested to 0.01 K); against the default extrapolated scheme
 the difference is that scheme's coupling error (``docs/model.md``).
 
-dask is imported only inside :func:`distributed_columns`'s context.
-"""
+dask is imported only inside :func:`distributed_columns`'s context."""
 
 from __future__ import annotations
 
@@ -34,11 +48,13 @@ import contextlib
 import hashlib
 import json
 import os
+import time
+import uuid
 from pathlib import Path
 
 import numpy as np
 
-from crater_thermal import cluster, radiosity, runner, vfoperator, waveform
+from crater_thermal import cluster, geometry, radiosity, raytrace, runner, vfoperator, waveform
 from crater_thermal.errors import ConfigError, CraterThermalError
 
 #: Default facets per chunk (one task per chunk and iteration).
@@ -62,6 +78,7 @@ def worker_wait_s() -> float:
 
 
 _SOLVERS: dict = {}  # per worker process: a column solver per (options, columns), reused across tasks
+_PLANS: dict = {}  # per worker process: the compressed plan of the latest mesh, while its rows are built
 
 
 def _solver(options: dict, n: int):
@@ -103,6 +120,7 @@ def _chunk_window(rows, E, m: int, ir0, state, times_s, solar, options: dict, pr
     """A chunk of ``m`` columns through a window, driven by the IR its operator rows form from the emitted
     flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given); the
     :class:`waveform.Window` of the chunk."""
+    _PLANS.clear()  # the operator's rows are built: its plan is no longer needed on this worker
     ir = np.zeros((len(times_s), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
     if ir0 is not None:
         ir[0] = ir0
@@ -160,7 +178,7 @@ class DaskColumns:
             except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
                 raise
             except Exception as exc:  # an input lost with the worker that held it: send the iteration again
-                if attempt == RESENDS or not self._workers_left():
+                if attempt == RESENDS or not _workers_left(self.client):
                     raise _failed(exc, _RESUME) from None
                 self._last = self._state = None
 
@@ -178,7 +196,7 @@ class DaskColumns:
             raise
         except Exception as exc:
             self.end_spinup()
-            if not self._workers_left():
+            if not _workers_left(self.client):
                 raise _failed(exc) from None
             raise waveform.PassLost(str(exc)) from None
 
@@ -262,14 +280,6 @@ class DaskColumns:
     def end_spinup(self) -> None:
         """Release the spin-up's data on the workers."""
         self._pass = self._surfaces = self._spin = self._chunks_f = None
-
-    def _workers_left(self) -> bool:
-        """True when the cluster has a worker, or one joins within :func:`worker_wait_s`."""
-        try:
-            self.client.wait_for_workers(1, timeout=worker_wait_s())
-            return True
-        except Exception:  # dask's TimeoutError
-            return False
 
     def _round(self, state, times_s, solar, E, ir0, skip_K):
         client = self.client
@@ -386,6 +396,231 @@ class _RemoteWindow:
         return self._fetch()[2]
 
 
+def build_rows(mesh_folder: str, a: int, b: int, settings: dict):
+    """A chunk's rows ``a:b`` (cluster order) of the compressed operator, built on a worker from the mesh
+    saved in ``mesh_folder`` without the rest of the operator (:meth:`vfoperator.CompressedPlan.row_block`),
+    unscaled. A dask task: pure, so the scheduler builds it again elsewhere when its worker is lost."""
+    with cluster.one_numba_thread():
+        c0 = time.process_time()
+        plan = _plan(mesh_folder, settings)
+        plan_s = time.process_time() - c0
+        block = plan.row_block(a, b, n_threads=1)
+    block.stats["plan_cpu_s"] = plan_s  # the plan's CPU seconds when this task made it (else ~0)
+    return block
+
+
+def _plan(mesh_folder: str, settings: dict):
+    """The worker's :class:`vfoperator.CompressedPlan` of the saved mesh (built once for all the chunks it
+    builds; released by the first window it conducts, :func:`_chunk_window`)."""
+    key = (mesh_folder, json.dumps(settings, sort_keys=True))  # the settings name the mesh's hash
+    plan = _PLANS.get(key)
+    if plan is None:
+        _PLANS.clear()
+        folder = Path(mesh_folder)
+        mesh = geometry.Mesh(np.load(folder / "vertices.npy"), np.load(folder / "faces.npy"))
+        if mesh.hash != settings["mesh_hash"]:
+            raise ConfigError(
+                f"the mesh in {folder} is not the run's (hash {mesh.hash}, expected {settings['mesh_hash']}): "
+                "was the run's scratch folder changed by another run? Run again with --overwrite"
+            )
+        tracer = raytrace.RayTracer(mesh, n_threads=1)
+        plan = _PLANS[key] = vfoperator.CompressedPlan(
+            mesh, tracer, settings["tolerance"], tolerance_mode=settings["tolerance_mode"]
+        )
+    return plan
+
+
+def _summary(block):
+    """A chunk's facets (its rows, cluster order) and their row sums [-] unscaled (a small task)."""
+    return block.facets, block.row_sums()
+
+
+def _scale_of(*summaries):
+    """The rescaling of every row [-] (cluster order) from all chunks' row sums, or None (one task)."""
+    return vfoperator.rowsum_scale(np.concatenate([s for _, s in summaries]))[0]
+
+
+def _scaled(block, scale):
+    """A chunk's rows with the operator's rescaling (the arrays shared, not copied)."""
+    return block.with_scale(scale)
+
+
+def _apply_rows(block, X):
+    """``(F @ X)`` on a chunk's rows (a product of :class:`ClusterOperator`)."""
+    with cluster.one_numba_thread():
+        return block.apply(X)
+
+
+def _workers_left(client) -> bool:
+    """True when the cluster has a worker, or one joins within :func:`worker_wait_s`."""
+    try:
+        client.wait_for_workers(1, timeout=worker_wait_s())
+        return True
+    except Exception:  # dask's TimeoutError
+        return False
+
+
+class ClusterOperator(vfoperator.ViewFactorOperator):
+    """The view-factor operator of a run whose rows are held by the workers (the chunks' row blocks):
+    what the command's process uses for the products it needs (scattered sunlight, the start's IR)
+    without the operator. ``F @ X``: ``X`` is sent once (to one worker; the others fetch it from there),
+    each chunk's task returns its rows, assembled here. ``F^T y = A F (y / A)`` (``A`` the facet areas,
+    reciprocity: ``diag(A) F`` is symmetric).
+
+    Parameters
+    ----------
+    client : the dask client; rows : the chunks' row-block futures; bounds : their row ranges ``(a, b)``
+    in ``order`` (the cluster order, facet indices); areas : (n,) facet areas [m2]; rowsums : (n,) the
+    unscaled row sums [-] (facet order); held : bytes of the row blocks on the workers [B].
+    """
+
+    kind = "compressed"
+
+    def __init__(self, client, rows, bounds, order, areas, rowsums, held: int):
+        n = len(order)
+        self.shape = (n, n)
+        self.client, self.rows, self.bounds = client, rows, bounds
+        self.order = np.asarray(order, np.int64)
+        self.areas = np.asarray(areas, np.float64)
+        self.rowsum_excess = vfoperator.rowsum_scale(rowsums)[1]
+        self._zero = not np.any(rowsums)
+        #: bytes of the row blocks on the workers (all chunks) [B]
+        self.held_bytes = int(held)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by this process [B] (the facet order and areas; the rows are on the workers)."""
+        return int(self.order.nbytes + self.areas.nbytes)
+
+    @property
+    def is_zero(self) -> bool:
+        return self._zero
+
+    def matvec(self, x):
+        x = self._check(x)
+        return self._products(x.reshape(x.shape[0], -1)).reshape(x.shape)
+
+    def rmatvec(self, y):
+        y = self._check(y)
+        a = self.areas[:, None]
+        return (self._products(y.reshape(y.shape[0], -1) / a) * a).reshape(y.shape)
+
+    def _products(self, X):
+        from distributed import KilledWorker
+
+        client = self.client
+        for attempt in range(RESENDS + 1):
+            try:
+                X_f = client.scatter(np.ascontiguousarray(X, np.float64), hash=False)
+                parts = client.gather(
+                    [client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows]
+                )
+                out = np.empty_like(X, dtype=np.float64)
+                for (a, b), part in zip(self.bounds, parts):
+                    out[self.order[a:b]] = part
+                return out
+            except KilledWorker as exc:
+                raise _gave_up(exc) from None
+            except (CraterThermalError, MemoryError):
+                raise
+            except Exception as exc:  # the operand lost with the worker that held it: send it again
+                if attempt == RESENDS or not _workers_left(client):
+                    raise _failed(exc) from None
+
+
+class _Session:
+    """A run's dask cluster from the view factors to the end of the record (what
+    :func:`distributed_columns` yields to :func:`crater_thermal.runner.run_case`): the operator's row
+    blocks are built on the workers (:meth:`view_factors`), then conducted with (:meth:`columns`)."""
+
+    def __init__(self, client, case, mesh, store, chunk_facets: int):
+        self.client, self.case, self.store = client, case, store
+        nf = self.nf = mesh.n_facets
+        self.n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+        size = min(int(chunk_facets), -(-nf // self.n_workers))  # at least one chunk per worker
+        self.bounds = [(a, min(nf, a + size)) for a in range(0, nf, size)]
+        self.order = np.arange(nf, dtype=np.int64)
+        self.rows = [None] * len(self.bounds)
+        self.tag = f"{hashlib.sha256(f'{store.folder}:{nf}:{size}'.encode()).hexdigest()[:8]}-{uuid.uuid4().hex[:8]}"
+
+    def view_factors(self, mesh, tracer, method: str, tolerance: float, cache_dir=None, progress=None):
+        """The run's operator (as :func:`vfoperator.view_factor_operator`, same arguments). Compressed:
+        built on the workers, each chunk's rows by the worker that holds them, and a
+        :class:`ClusterOperator` of them back; this process never holds the whole operator. Exact (small
+        by construction): built here (cached as a local run does), saved into the scratch store and
+        loaded by the workers row block by row block."""
+        if method == "compressed":
+            return self._build_on_workers(mesh, tolerance, progress)
+        F = vfoperator.view_factor_operator(
+            mesh, tracer, method=method, tolerance=tolerance, cache_dir=cache_dir, progress=progress
+        )
+        folder = Path(self.store.folder).resolve() / "operator"
+        if not self.store.marked("operator"):
+            vfoperator.save_operator(F, folder)
+            self.store.mark("operator")
+        self.order = vfoperator.row_order(F)
+        self.rows = [
+            self.client.submit(load_rows, str(folder), a, b, key=f"ct-rows-{self.tag}-{a}") for a, b in self.bounds
+        ]
+        return F
+
+    def _build_on_workers(self, mesh, tolerance: float, progress=None):
+        from distributed import KilledWorker, as_completed
+
+        client, bounds, tag = self.client, self.bounds, self.tag
+        folder = Path(self.store.folder).resolve() / "mesh"
+        if not self.store.marked("mesh"):  # written once: a resumed run's mesh is the same (the case's fingerprint)
+            folder.mkdir(parents=True, exist_ok=True)
+            np.save(folder / "vertices.npy", mesh.vertices)
+            np.save(folder / "faces.npy", mesh.faces)
+            self.store.mark("mesh")
+        settings = {"tolerance": float(tolerance), "tolerance_mode": "block", "mesh_hash": mesh.hash}
+        try:
+            raw = [
+                client.submit(build_rows, str(folder), a, b, settings, key=f"ct-build-{tag}-{a}", retries=RETRIES)
+                for a, b in bounds
+            ]
+            # the client keeps the row sums and the scale (n floats): a lost block is built again from
+            # them and the mesh, never from all the other blocks
+            starts = [a for a, _ in bounds]
+            self._sums = [client.submit(_summary, r, key=f"ct-rowsum-{tag}-{a}") for r, a in zip(raw, starts)]
+            self._scale = client.submit(_scale_of, *self._sums, key=f"ct-scale-{tag}")
+            self.rows = [client.submit(_scaled, r, self._scale, key=f"ct-rows-{tag}-{a}") for r, a in zip(raw, starts)]
+            del raw
+            for done, _ in enumerate(as_completed(self._sums), 1):
+                if progress is not None:
+                    progress(done, len(bounds))
+            summaries = client.gather(self._sums)
+            held = sum(client.gather([client.submit(_nbytes, r, pure=False) for r in self.rows]))
+        except KilledWorker as exc:
+            raise _gave_up(exc) from None
+        # the cluster order (the chunks' facets) and the row sums, n numbers each
+        self.order = np.concatenate([f for f, _ in summaries])
+        rowsums = np.empty(self.nf)
+        rowsums[self.order] = np.concatenate([s for _, s in summaries])
+        return ClusterOperator(client, self.rows, bounds, self.order, mesh.areas, rowsums, held)
+
+    def columns(self, fc):
+        """The waveform-relaxation backend (:class:`DaskColumns`) of the run's chunks."""
+        case = self.case
+        options = {
+            "profile": case.surface.nominal_profile,
+            **runner.column_settings(case),
+            "albedo": float(case.surface.albedo),
+            "solar_is_absorbed": case.surface.albedo_model != "constant",
+        }
+        rows = self.rows if fc.F is not None else [None] * len(self.bounds)
+        chunks = [self.order[a:b] for a, b in self.bounds]
+        cols = DaskColumns(self.client, chunks, rows, options, self.nf, self.n_workers)
+        if isinstance(fc.F, ClusterOperator):
+            cols.description += f"; operator rows built by the workers ({fc.F.held_bytes / 1e6:.1f} MB in all)"
+        return cols
+
+
+def _nbytes(block) -> int:
+    return block.nbytes
+
+
 def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_FACETS):
     """The ``columns`` factory of :func:`crater_thermal.runner.run_case` for a dask cluster: the scheduler at
     ``scheduler`` (``tcp://host:8786``) or a local cluster of ``workers`` one-thread processes."""
@@ -393,33 +628,10 @@ def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_
         raise ConfigError(f"--chunk-facets {chunk_facets}: chunks need at least 1 facet")
 
     @contextlib.contextmanager
-    def factory(case, fc, store):
-        nf = fc.mesh.n_facets
-        folder = None
-        order = np.arange(nf, dtype=np.int64)
-        if fc.F is not None:
-            folder = Path(store.folder) / "operator"
-            if not store.marked("operator"):
-                vfoperator.save_operator(fc.F, folder)
-                store.mark("operator")
-            order = vfoperator.row_order(fc.F)
+    def factory(case, mesh, store):
         client, cl = cluster.connect(scheduler, workers, "runs on a dask cluster (--scheduler, --workers)")
         try:
-            n_workers = max(1, len(client.scheduler_info().get("workers", {})))
-            size = min(int(chunk_facets), -(-nf // n_workers))  # at least one chunk per worker
-            bounds = [(a, min(nf, a + size)) for a in range(0, nf, size)]
-            tag = hashlib.sha256(f"{folder}:{nf}:{size}".encode()).hexdigest()[:12]
-            rows = [
-                client.submit(load_rows, None if folder is None else str(folder), a, b, key=f"ct-rows-{tag}-{a}")
-                for a, b in bounds
-            ]
-            options = {
-                "profile": case.surface.nominal_profile,
-                **runner.column_settings(case),
-                "albedo": float(case.surface.albedo),
-                "solar_is_absorbed": case.surface.albedo_model != "constant",
-            }
-            yield DaskColumns(client, [order[a:b] for a, b in bounds], rows, options, nf, n_workers)
+            yield _Session(client, case, mesh, store, chunk_facets)
         finally:
             client.close()
             if cl is not None:

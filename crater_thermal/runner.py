@@ -135,8 +135,11 @@ def run_case(
 
     ``columns``: where the columns are conducted with ``[steps] ir_coupling = "relaxed"`` (waveform
     relaxation, :mod:`crater_thermal.waveform`): None for this process, or a factory
-    ``columns(case, fc, store)`` -> context manager yielding a backend (the dask cluster of
-    :mod:`crater_thermal.cluster_run`, which forces the relaxed scheme).
+    ``columns(case, mesh, store)`` -> context manager yielding a session, open from the view factors to
+    the end of the record, with ``session.columns(fc)`` -> the backend and, optionally,
+    ``session.view_factors(...)`` that builds the operator (arguments of
+    :func:`crater_thermal.vfoperator.view_factor_operator`); the dask cluster of
+    :mod:`crater_thermal.cluster_run` (which forces the relaxed scheme) builds it on its workers.
     """
     out_path = Path(out_path)
     io.refuse_input_as_output(out_path, case_inputs(case))
@@ -169,7 +172,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
         )
     nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
     timer = timer or simulate.Timer()
-    mesh, tracer, F = simulate.case_geometry(case, timer, progress)
+    mesh, tracer = simulate.case_scene(case, timer)
     spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
     block = simulate.block_rows(mesh.n_facets, simulate.chunk_bytes(case))
     if ckpt is not None and int(ckpt.get("block", -1)) != block:
@@ -182,18 +185,22 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
         store.remove()
         store = io.SegmentStore(_scratch_path(out_path), block)
     incidence = case.surface.albedo_model != "constant"
-    fc = simulate.Forcing(
-        mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
-    )
-    if not store.marked("sunlight"):
-        _sunlight_into_store(case, fc, tracer, store, block, timer, progress)
-    del tracer
-    solver, stepper = _coupled_solver(case, nominal, fc, incidence)
-    checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer, coupling)
     with contextlib.ExitStack() as stack:
+        # a cluster's session is open from the operator (its workers build their rows) to the record's end
+        session = None if columns is None else stack.enter_context(columns(case, mesh, store))
+        build = getattr(session, "view_factors", None)
+        F = simulate.case_operator(case, mesh, tracer, timer, progress, build=build)
+        fc = simulate.Forcing(
+            mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
+        )
+        if not store.marked("sunlight"):
+            _sunlight_into_store(case, fc, tracer, store, block, timer, progress)
+        del tracer
+        solver, stepper = _coupled_solver(case, nominal, fc, incidence)
+        checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer, coupling)
         cols = None
         if coupling == "relaxed":
-            if columns is None:
+            if session is None:
                 cols = waveform.LocalColumns(
                     column_solver(nominal, fc.mesh.n_facets, column_settings(case)),
                     fc.F,
@@ -202,7 +209,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
                     incidence,
                 )
             else:
-                cols = stack.enter_context(columns(case, fc, store))
+                cols = session.columns(fc)
         spin_info, k0, ir_k = _start_of_record(
             case, fc, solver, stepper, store, block, ckpt, checkpoints, timer, progress, cols
         )

@@ -390,21 +390,36 @@ def view_factor_settings(case) -> tuple[str, float]:
 
 def case_geometry(case, timer: Timer, progress=None):
     """Mesh, ray tracer and radiation operator (None for flat ground or no visible pairs)."""
+    mesh, tracer = case_scene(case, timer)
+    return mesh, tracer, case_operator(case, mesh, tracer, timer, progress)
+
+
+def case_scene(case, timer: Timer):
+    """A case's mesh and its ray tracer."""
     with timer("geometry"):
         mesh = case_mesh(case)
         tracer = raytrace.RayTracer(mesh)
+    return mesh, tracer
+
+
+def case_operator(case, mesh, tracer, timer: Timer, progress=None, build=None):
+    """A case's view-factor operator (``[radiation]``), None for flat ground or no visible pairs.
+
+    ``build``: what builds it instead of :func:`vfoperator.view_factor_operator` (same arguments), e.g.
+    a dask cluster's workers, each its own rows (:mod:`crater_thermal.cluster_run`).
+    """
     with timer("viewfactors"):
         F = None
         if case.crater.kind != "flat":
             method, tol = view_factor_settings(case)
             kind = vfoperator.resolve_method(method, mesh.n_facets)
             with stage(progress, f"view factors ({mesh.n_facets} facets, {kind})") as report:
-                F = vfoperator.view_factor_operator(
+                F = (build or vfoperator.view_factor_operator)(
                     mesh, tracer, method=kind, tolerance=tol, cache_dir=_view_factor_cache_dir(), progress=report
                 )
             if F.is_zero:
                 F = None
-    return mesh, tracer, F
+    return F
 
 
 def case_sun(case, timer: Timer):

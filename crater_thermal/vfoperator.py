@@ -37,6 +37,13 @@ with :data:`ROWSUM_RAYS` cosine-weighted rays per facet), so blocks of tiny graz
 budget: low rank, their smallest sparse entries dropped, or dropped whole.  Not the default: measured
 against the exact matrix in ``docs/performance.md`` (memory, F x error, night temperatures).
 
+Row blocks (a distributed run's workers, :mod:`crater_thermal.cluster_run`): some rows of the operator
+held alone (:class:`RowBlock`), loaded from a saved operator (:func:`save_operator`,
+:func:`load_row_block`) or built from the mesh without the rest (:class:`CompressedPlan`: the tree, the
+partition and the work units, deterministic from the mesh; :meth:`CompressedPlan.row_block` builds the
+blocks that meet the rows, so a block meeting two row ranges is built for both); the rescale below then
+needs every row's sum (:func:`rowsum_scale`, :meth:`RowBlock.with_scale`).
+
 Error control: every far block satisfies ``||M - M~||_F <= tol ||M||_F`` and near blocks are exact, so
 ``||G - G~||_F <= tol ||G||_F``; products with the smooth, positive fields the model uses (emitted IR,
 scattered sunlight) come out far more accurate than this bound (measured in
@@ -744,67 +751,10 @@ def compressed_view_factors(
     -------
     CompressedViewFactors
     """
-    from crater_thermal import viewfactors as vf
-
-    if not isinstance(mesh, Mesh):
-        raise MeshError(f"compressed_view_factors needs a geometry.Mesh, got {type(mesh).__name__}")
-    tolerance = float(tolerance)
-    if not (0.0 < tolerance <= 0.1):
-        raise ConfigError(f"view-factor tolerance = {tolerance!r} is outside (0, 0.1]")
-    if tolerance_mode not in TOLERANCE_MODES:
-        raise ConfigError(f"tolerance_mode = {tolerance_mode!r}; allowed: {', '.join(TOLERANCE_MODES)}")
-    if tracer is None:
-        from crater_thermal.raytrace import RayTracer
-
-        tracer = RayTracer(mesh)
-    elif tracer.mesh.hash != mesh.hash:
-        raise MeshError("tracer was built for a different mesh")
     t_start = time.perf_counter()
+    plan = CompressedPlan(mesh, tracer, tolerance, leaf_size, admissibility, max_block_entries, tolerance_mode)
     nf = mesh.n_facets
-    tree = _Tree(np.asarray(mesh.centroids), np.asarray(mesh.facet_size), int(leaf_size))
-    far, near = _partition(tree, float(vf.NEAR_DISTANCE_FACTOR), float(admissibility), int(max_block_entries))
-    builder = _Builder(mesh, tracer, tree, tolerance, tolerance_mode)
-    t_rowsum = 0.0
-    if tolerance_mode == "row":
-        t0 = time.perf_counter()
-        builder.set_row_sums(builder.estimate_row_sums())
-        t_rowsum = time.perf_counter() - t0
-    # work units: far blocks one by one (largest first), near blocks batched
-    far.sort(key=lambda st: -tree.size(st[0]) * tree.size(st[1]))
-    units = [("far", st) for st in far]
-    batch, acc = [], 0
-    for blk in near:
-        batch.append(blk)
-        acc += tree.size(blk[0]) * tree.size(blk[1])
-        if acc >= NEAR_BATCH_PAIRS:
-            units.append(("near", batch))
-            batch, acc = [], 0
-    if batch:
-        units.append(("near", batch))
-
-    def work(u):
-        kind, arg = u
-        return builder.far_block(*arg) if kind == "far" else builder.near_blocks(arg)
-
-    n_threads = max(1, int(n_threads or tracer.n_threads))
-    lowrank, coo = [], []
-    rays = 0
-    near_pairs = 0
-    done = 0
-    pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
-    try:
-        results = pool.map(work, units) if pool is not None else map(work, units)
-        for lr, cc, nr, npairs in results:
-            lowrank += lr
-            coo += cc
-            rays += nr
-            near_pairs += npairs
-            done += 1
-            if progress is not None:
-                progress(done, len(units))
-    finally:
-        if pool is not None:
-            pool.shutdown()
+    lowrank, coo, rays, near_pairs = plan.build(plan.units(), n_threads, progress)
     # sparse part: upper triangle (i < j by construction), CSR, float32 values
     if coo:
         ii = np.concatenate([c[0] for c in coo])
@@ -822,6 +772,63 @@ def compressed_view_factors(
     n_sparse = int(S.nnz)
     del S, ii, jj, gg
     # low-rank part, packed
+    packed = _pack_lowrank(lowrank)
+    del lowrank
+    rank, U, V = packed[4], packed[7], packed[8]
+    nb = len(rank)
+    builder = plan.builder
+    stats = {
+        "facets": nf,
+        "tolerance": plan.tolerance,
+        "leaf_size": int(leaf_size),
+        "admissibility": float(admissibility),
+        "far_blocks": len(plan.far),
+        "near_blocks": len(plan.near),
+        "lowrank_blocks": nb,
+        "mean_rank": float(rank.mean()) if nb else 0.0,
+        "max_rank": int(rank.max()) if nb else 0,
+        "lowrank_numbers": int(U.size + V.size),
+        "sparse_pairs": n_sparse,
+        "near_pairs": int(near_pairs),
+        "rays": int(rays),
+        "tolerance_mode": tolerance_mode,
+        "dropped_blocks": int(builder.dropped_blocks),
+        "dropped_pairs": int(builder.dropped_pairs),
+        "rowsum_estimate_s": plan.rowsum_estimate_s,
+    }
+    op = CompressedViewFactors(plan.tree.perm, np.asarray(mesh.areas), sparse, packed, None, plan.tolerance, stats)
+    scale, excess = rowsum_scale(op.row_sums()[plan.tree.perm])
+    if scale is not None:
+        op.scale = scale
+        op.rowsum_excess = excess
+    op.stats["build_s"] = time.perf_counter() - t_start
+    op.stats["nbytes"] = op.nbytes
+    return op
+
+
+def rowsum_scale(rowsums: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """The rescaling that keeps every row sum <= 1 (module docstring: ``G -> D G D``).
+
+    Parameters
+    ----------
+    rowsums : (n,) float [-]
+        Row sums of the unscaled operator, in any order.
+
+    Returns
+    -------
+    (d, excess) : ``d_i = min(1, 1 / rowsum_i)`` in the same order (None when no row sum exceeds 1),
+        and the largest ``rowsum - 1`` (0 when none exceeds 1).
+    """
+    rs = np.asarray(rowsums, np.float64)
+    excess = float(rs.max() - 1.0) if len(rs) else 0.0
+    if excess <= 0.0:
+        return None, 0.0
+    return np.minimum(1.0, 1.0 / np.maximum(rs, 1e-300)), excess
+
+
+def _pack_lowrank(lowrank: list) -> tuple:
+    """Low-rank blocks ``[(r0, c0, U (m, r) float32, V (n, r) float32)]`` packed into the arrays of
+    :class:`CompressedViewFactors` ``(r0, r1, c0, c1, rank, uoff, voff, U, V)``."""
     nb = len(lowrank)
     r0 = np.array([b[0] for b in lowrank], np.int64)
     c0 = np.array([b[1] for b in lowrank], np.int64)
@@ -834,37 +841,177 @@ def compressed_view_factors(
     voff = np.concatenate([[0], np.cumsum(vsz)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
     U = np.concatenate([b[2].ravel() for b in lowrank]) if nb else np.empty(0, np.float32)
     V = np.concatenate([b[3].ravel() for b in lowrank]) if nb else np.empty(0, np.float32)
-    del lowrank
-    stats = {
-        "facets": nf,
-        "tolerance": tolerance,
-        "leaf_size": int(leaf_size),
-        "admissibility": float(admissibility),
-        "far_blocks": len(far),
-        "near_blocks": len(near),
-        "lowrank_blocks": nb,
-        "mean_rank": float(rank.mean()) if nb else 0.0,
-        "max_rank": int(rank.max()) if nb else 0,
-        "lowrank_numbers": int(U.size + V.size),
-        "sparse_pairs": n_sparse,
-        "near_pairs": int(near_pairs),
-        "rays": int(rays),
-        "tolerance_mode": tolerance_mode,
-        "dropped_blocks": int(builder.dropped_blocks),
-        "dropped_pairs": int(builder.dropped_pairs),
-        "rowsum_estimate_s": t_rowsum,
-    }
-    op = CompressedViewFactors(
-        tree.perm, np.asarray(mesh.areas), sparse, (r0, r1, c0, c1, rank, uoff, voff, U, V), None, tolerance, stats
-    )
-    rs = op.row_sums()
-    excess = float(rs.max() - 1.0) if nf else 0.0
-    if excess > 0.0:
-        op.scale = np.minimum(1.0, 1.0 / np.maximum(rs, 1e-300))[tree.perm]
-        op.rowsum_excess = excess
-    op.stats["build_s"] = time.perf_counter() - t_start
-    op.stats["nbytes"] = op.nbytes
-    return op
+    return r0, r1, c0, c1, rank, uoff, voff, U, V
+
+
+class CompressedPlan:
+    """What every build of one compressed operator starts from, deterministic from the mesh and the
+    settings: the cluster tree, the block partition, the block builder and its work units.
+
+    :func:`compressed_view_factors` builds every unit; :meth:`row_block` only those that some rows need
+    (a distributed run's worker builds its own rows: :func:`crater_thermal.cluster_run`).  Parameters as
+    :func:`compressed_view_factors`.
+    """
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        tracer=None,
+        tolerance: float = DEFAULT_TOLERANCE,
+        leaf_size: int = LEAF_SIZE,
+        admissibility: float = ADMISSIBILITY,
+        max_block_entries: int = MAX_BLOCK_ENTRIES,
+        tolerance_mode: str = "block",
+    ):
+        from crater_thermal import viewfactors as vf
+
+        if not isinstance(mesh, Mesh):
+            raise MeshError(f"compressed_view_factors needs a geometry.Mesh, got {type(mesh).__name__}")
+        tolerance = float(tolerance)
+        if not (0.0 < tolerance <= 0.1):
+            raise ConfigError(f"view-factor tolerance = {tolerance!r} is outside (0, 0.1]")
+        if tolerance_mode not in TOLERANCE_MODES:
+            raise ConfigError(f"tolerance_mode = {tolerance_mode!r}; allowed: {', '.join(TOLERANCE_MODES)}")
+        if tracer is None:
+            from crater_thermal.raytrace import RayTracer
+
+            tracer = RayTracer(mesh)
+        elif tracer.mesh.hash != mesh.hash:
+            raise MeshError("tracer was built for a different mesh")
+        self.mesh, self.tracer, self.tolerance, self.tolerance_mode = mesh, tracer, tolerance, tolerance_mode
+        self.tree = _Tree(np.asarray(mesh.centroids), np.asarray(mesh.facet_size), int(leaf_size))
+        self.far, self.near = _partition(
+            self.tree, float(vf.NEAR_DISTANCE_FACTOR), float(admissibility), int(max_block_entries)
+        )
+        # far blocks are built largest first (the thread pool's tail is then short)
+        self.far.sort(key=lambda st: -self.tree.size(st[0]) * self.tree.size(st[1]))
+        self.builder = _Builder(mesh, tracer, self.tree, tolerance, tolerance_mode)
+        self.rowsum_estimate_s = 0.0
+        if tolerance_mode == "row":
+            t0 = time.perf_counter()
+            self.builder.set_row_sums(self.builder.estimate_row_sums())
+            self.rowsum_estimate_s = time.perf_counter() - t0
+
+    @property
+    def n_facets(self) -> int:
+        return int(self.mesh.n_facets)
+
+    def units(self, a: int = 0, b: int | None = None) -> list:
+        """The work units (far blocks one by one, near blocks batched) of the blocks whose rows or
+        columns meet rows ``a .. b-1`` (positions in the cluster order; default all): those that the
+        rows' products need, a block above the diagonal serving its rows and, transposed, its columns."""
+        tree = self.tree
+        b = self.n_facets if b is None else int(b)
+        lo, hi = tree.lo, tree.hi
+
+        def meets(s) -> bool:
+            return bool(lo[s] < b and hi[s] > a)
+
+        whole = a <= 0 and b >= self.n_facets
+        far = self.far if whole else [st for st in self.far if meets(st[0]) or meets(st[1])]
+        near = self.near if whole else [blk for blk in self.near if meets(blk[0]) or meets(blk[1])]
+        units = [("far", st) for st in far]
+        batch, acc = [], 0
+        for blk in near:
+            batch.append(blk)
+            acc += tree.size(blk[0]) * tree.size(blk[1])
+            if acc >= NEAR_BATCH_PAIRS:
+                units.append(("near", batch))
+                batch, acc = [], 0
+        if batch:
+            units.append(("near", batch))
+        return units
+
+    def build(self, units: list, n_threads: int | None = None, progress: Callable | None = None):
+        """Compute work units on ``n_threads`` threads (default: the tracer's).
+
+        Returns
+        -------
+        (lowrank, coo, rays, near_pairs) : the low-rank blocks ``[(r0, c0, U, V)]`` (cluster order),
+            the sparse entries ``[(i, j, g)]`` above the diagonal [m2], rays traced, near pairs kept.
+        """
+        builder = self.builder
+
+        def work(u):
+            kind, arg = u
+            return builder.far_block(*arg) if kind == "far" else builder.near_blocks(arg)
+
+        n_threads = max(1, int(n_threads or self.tracer.n_threads))
+        lowrank, coo = [], []
+        rays = near_pairs = done = 0
+        pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
+        try:
+            results = pool.map(work, units) if pool is not None else map(work, units)
+            for lr, cc, nr, npairs in results:
+                lowrank += lr
+                coo += cc
+                rays += nr
+                near_pairs += npairs
+                done += 1
+                if progress is not None:
+                    progress(done, len(units))
+        finally:
+            if pool is not None:
+                pool.shutdown()
+        return lowrank, coo, rays, near_pairs
+
+    def row_block(self, a: int, b: int, n_threads: int | None = None) -> "RowBlock":
+        """Rows ``a .. b-1`` (cluster order, :func:`row_order`) of the operator built alone, without the
+        rest of it: the units of :meth:`units` (a block meeting other rows too is built here as well as
+        there), kept as :func:`load_row_block` keeps them from the whole operator (its near rows and,
+        transposed, columns; the low-rank blocks meeting them), **unscaled**: give it the scale of every
+        row sum with :meth:`RowBlock.with_scale` (:func:`rowsum_scale` of all blocks' :meth:`RowBlock.row_sums`).
+
+        Equal to :func:`load_row_block` of :func:`compressed_view_factors` (same settings) on these rows
+        to round-off: the same units built the same way.  ``stats`` of the block: units, rays, near pairs,
+        seconds (wall, and CPU of this process).
+        """
+        n = self.n_facets
+        if not (0 <= a < b <= n):
+            raise ConfigError(f"row block {a}:{b} outside the operator's {n} rows")
+        t0, c0 = time.perf_counter(), time.process_time()
+        units = self.units(a, b)
+        lowrank, coo, rays, near_pairs = self.build(units, n_threads)
+        # near part: rows a..b-1 of S + S^T, S the entries above the diagonal (float32 as stored)
+        rows_, cols_, vals_ = [], [], []
+        for i, j, g in coo:
+            g = g.astype(np.float32).astype(np.float64)
+            up = (i >= a) & (i < b)
+            down = (j >= a) & (j < b)
+            rows_ += [i[up] - a, j[down] - a]
+            cols_ += [j[up], i[down]]
+            vals_ += [g[up], g[down]]
+        del coo
+        if rows_:
+            near = sp.csr_matrix(
+                (np.concatenate(vals_), (np.concatenate(rows_), np.concatenate(cols_))), shape=(b - a, n)
+            )
+        else:
+            near = sp.csr_matrix((b - a, n))
+        del rows_, cols_, vals_
+        # far part: the low-rank blocks that meet the rows or, transposed, the columns (a far block
+        # split into children may leave some that meet neither)
+        keep = [
+            blk
+            for blk in lowrank
+            if (blk[0] < b and blk[0] + blk[2].shape[0] > a) or (blk[1] < b and blk[1] + blk[3].shape[0] > a)
+        ]
+        del lowrank
+        perm = self.tree.perm
+        block = RowBlock(
+            n,
+            perm[a:b].copy(),
+            near,
+            a=a,
+            b=b,
+            areas=np.ascontiguousarray(np.asarray(self.mesh.areas)[perm[a:b]], np.float64),
+            perm=np.ascontiguousarray(perm, np.int64),
+            lowrank=_pack_lowrank(keep),
+        )
+        block.stats = {"units": len(units), "rays": int(rays), "near_pairs": int(near_pairs)}
+        block.stats["build_s"] = time.perf_counter() - t0
+        block.stats["build_cpu_s"] = time.process_time() - c0  # this process's threads, all of them
+        return block
 
 
 # --------------------------------------------------------------------------------------------- entry point
@@ -1054,7 +1201,8 @@ class RowBlock:
     """Some rows of a view-factor operator, held alone (a distributed run's worker holds those of its
     facets): ``block.apply(X)`` is ``(F @ X)[block.facets]`` for X (n, k) over all facets, [unit of X].
 
-    Built by :func:`load_row_block`. For a compressed operator the product applies the low-rank blocks
+    Built by :func:`load_row_block` (from a saved operator) or :meth:`CompressedPlan.row_block` (from
+    the mesh, without the whole operator). For a compressed operator the product applies the low-rank blocks
     that meet the rows (both halves of each, as the whole operator does; the half outside is discarded),
     so ``apply`` equals the whole operator's product on these rows to round-off.
     """
@@ -1062,6 +1210,20 @@ class RowBlock:
     def __init__(self, n, facets, near, a=None, b=None, areas=None, perm=None, scale=None, lowrank=None):
         self.n, self.facets, self.near = int(n), np.asarray(facets, np.int64), near
         self.a, self.b, self.areas, self.perm, self.scale, self.lowrank = a, b, areas, perm, scale, lowrank
+        self.stats: dict = {}
+
+    def with_scale(self, scale) -> "RowBlock":
+        """These rows of the operator rescaled by ``scale`` ((n,) [-] in cluster order, the
+        :func:`rowsum_scale` of every row's sum; None: unscaled), sharing the stored arrays."""
+        if self.perm is None and scale is not None:
+            raise ConfigError("an exact matrix's row block takes no scale")  # pragma: no cover - internal
+        out = RowBlock(self.n, self.facets, self.near, self.a, self.b, self.areas, self.perm, scale, self.lowrank)
+        out.stats = dict(self.stats)
+        return out
+
+    def row_sums(self) -> np.ndarray:
+        """(rows,) float [-]: ``sum_j F_ij`` of the block's rows (:attr:`facets`)."""
+        return self.apply(np.ones((self.n, 1)))[:, 0]
 
     @property
     def nbytes(self) -> int:

@@ -45,25 +45,35 @@ def start_worker(address: str, log: Path) -> subprocess.Popen:
 
 
 @contextmanager
-def fragile_cluster(folder: Path):
-    """A scheduler that allows no failure of a task's worker (dask's ``allowed-failures`` 0) and one
-    worker, on 127.0.0.1; yields ``(address, worker process)``; both stopped at the end."""
+def cli_cluster(folder: Path, n_workers: int = 2, env: dict | None = None):
+    """A scheduler and ``n_workers`` one-thread workers started with dask's command line on 127.0.0.1
+    (``env``: the scheduler's extra environment); yields ``(address, worker processes)``; all stopped at
+    the end."""
     import distributed
 
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
-    env = {**ENV, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
     cmd = [str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
     with open(folder / "scheduler.log", "wb") as fh:
-        sched = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
-    worker = start_worker(address, folder / "worker.log")
+        sched = subprocess.Popen(
+            cmd, env={**ENV, **(env or {})}, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True
+        )
+    workers = [start_worker(address, folder / f"worker{k}.log") for k in range(n_workers)]
     try:
         with distributed.Client(address, timeout=60) as client:
-            client.wait_for_workers(1, timeout=90)
-        yield address, worker
+            client.wait_for_workers(n_workers, timeout=90)
+        yield address, workers
     finally:
-        for p in (worker, sched):
+        for p in (*workers, sched):
             stop(p)
+
+
+@contextmanager
+def fragile_cluster(folder: Path):
+    """A scheduler that allows no failure of a task's worker (dask's ``allowed-failures`` 0) and one
+    worker, on 127.0.0.1; yields ``(address, worker process)``; both stopped at the end."""
+    with cli_cluster(folder, 1, {"DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}) as (address, workers):
+        yield address, workers[0]
 
 
 def wait_for(ready, proc: subprocess.Popen, what: str, timeout: float = 180.0) -> None:

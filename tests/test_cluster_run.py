@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from test_simulate import _implicit_run, small_case
 
-from crater_thermal import api, config, io, radiosity, runner, simulate, thermal, vfoperator, waveform
+from crater_thermal import api, cluster_run, config, io, radiosity, runner, simulate, thermal, vfoperator, waveform
 from crater_thermal import viewfactors as vf
 from crater_thermal.errors import ConfigError
 
@@ -124,6 +124,17 @@ def test_row_blocks_equal_the_whole_operator(tmp_path):
         vfoperator.load_row_block(tmp_path / "exact", 0, mesh.n_facets + 1)
 
 
+def _spy(cls, made: list):
+    """A subclass of ``cls`` whose instances are appended to ``made``."""
+
+    class Spy(cls):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    return Spy
+
+
 def _assert_close_to_local(path, ref, tol=DISTRIBUTED_TOL_K) -> dict:
     with io.open_run(path) as got:
         d = np.abs(got["surface_temperature"].values.astype(float) - ref["surface_temperature"].values)
@@ -141,6 +152,7 @@ def test_dask_cli_cluster_run_equals_single_process(local_run, dask_cli, tmp_pat
     assert r.returncode == 0, r.stderr
     rel = _assert_close_to_local(out, ref)
     assert rel["columns"].startswith("dask: 3 chunks on 2 worker(s)")
+    assert "operator rows built by the workers" in rel["columns"]
     assert not Path(str(out) + ".partial").exists()
 
 
@@ -181,10 +193,14 @@ def test_resume_with_another_coupling_is_refused(tmp_path):
     out = tmp_path / "run.nc"
     ckpt = Path(runner.checkpoint_path(out))
 
+    class Here:
+        def columns(self, fc):
+            solver = thermal.ColumnSolver([case.surface.nominal_profile] * fc.mesh.n_facets, emissivity=0.98)
+            return waveform.LocalColumns(solver, fc.F, 0.12, 0.98)
+
     @contextlib.contextmanager
-    def here(case, fc, store):
-        solver = thermal.ColumnSolver([case.surface.nominal_profile] * fc.mesh.n_facets, emissivity=0.98)
-        yield waveform.LocalColumns(solver, fc.F, 0.12, 0.98)
+    def here(case, mesh, store):
+        yield Here()
 
     class Stop(Exception):
         pass
@@ -201,10 +217,23 @@ def test_resume_with_another_coupling_is_refused(tmp_path):
     assert ckpt.exists()  # refused, not damaged
 
 
-def test_local_cluster_run_through_the_api(local_run, tmp_path):
+def test_local_cluster_run_through_the_api(local_run, tmp_path, monkeypatch):
+    """A local cluster through the API equals the single-process run; this process (the client) never
+    builds the compressed operator nor any block of it: the whole operator's constructor, its build and
+    the block builder raise here (the workers are other processes), and the run still completes."""
     tmp, path, ref = local_run
+
+    def not_here(*args, **kwargs):
+        raise AssertionError("the client built (part of) the view-factor operator")
+
+    monkeypatch.setattr(vfoperator, "compressed_view_factors", not_here)
+    monkeypatch.setattr(vfoperator.CompressedViewFactors, "__init__", not_here)
+    monkeypatch.setattr(vfoperator._Builder, "__init__", not_here)
+    made = []
+    monkeypatch.setattr(cluster_run, "ClusterOperator", _spy(cluster_run.ClusterOperator, made))
     out = tmp_path / "run.nc"
     api.run(path, out, workers=2, chunk_facets=64).close()
+    assert len(made) == 1 and made[0].nbytes == 16 * made[0].shape[0] < made[0].held_bytes  # its rows are there
     rel = _assert_close_to_local(out, ref)
     assert rel["columns"].startswith("dask: 5 chunks on 2 worker(s)")
     with pytest.raises(ConfigError, match="give one"):

@@ -333,3 +333,47 @@ def test_row_relative_bad_mode():
     m = terrain_mesh(200)
     with pytest.raises(ConfigError, match="tolerance_mode"):
         vo.compressed_view_factors(m, tolerance_mode="rows")
+
+
+def test_row_blocks_built_alone_equal_the_whole_operator(tmp_path):
+    """A distributed run's workers build their own rows from the mesh (``CompressedPlan.row_block``: the
+    blocks that meet them, nothing else), then the rescale of every row sum. Reference: the whole
+    operator (``compressed_view_factors``), saved and loaded on the same rows (``load_row_block``): the
+    products agree to round-off (the same stored entries summed in another order: ~1e-15 of the largest;
+    1e-12 fails for one missing entry) and every row is in one block. Three meshes: crater terrain, an
+    inward sphere (row sums above 1: the rescale), the row-relative tolerance (Monte-Carlo row sums that
+    every block must draw alike)."""
+    from crater_thermal.geometry import sphere_mesh
+
+    cases = [
+        (terrain_mesh(1500, rough_m=20.0), {}),
+        (sphere_mesh(800), {}),
+        (terrain_mesh(1000, rough_m=20.0), {"tolerance": 0.01, "tolerance_mode": "row"}),
+    ]
+    for k, (m, kw) in enumerate(cases):
+        whole = vo.compressed_view_factors(m, **kw)
+        vo.save_operator(whole, tmp_path / str(k))
+        plan = vo.CompressedPlan(m, **kw)
+        n = m.n_facets
+        bounds = [(0, n // 5), (n // 5, n // 2), (n // 2, n)]  # unequal, not on cluster boundaries
+        blocks = [plan.row_block(a, b) for a, b in bounds]
+        scale, excess = vo.rowsum_scale(np.concatenate([blk.row_sums() for blk in blocks]))
+        assert (scale is None) == (whole.scale is None) and excess == pytest.approx(whole.rowsum_excess, abs=1e-12)
+        if k == 1:
+            assert whole.scale is not None and whole.stats["lowrank_blocks"] > 0
+        X = np.random.default_rng(k).random((n, 3)) * 400.0
+        ref = whole @ X
+        for blk, (a, b) in zip(blocks, bounds):
+            blk = blk.with_scale(scale)
+            loaded = vo.load_row_block(tmp_path / str(k), a, b)
+            assert np.array_equal(blk.facets, loaded.facets)
+            np.testing.assert_allclose(blk.apply(X), ref[blk.facets], rtol=0, atol=1e-12 * np.abs(ref).max())
+            np.testing.assert_allclose(blk.apply(X), loaded.apply(X), rtol=0, atol=1e-12 * np.abs(ref).max())
+        seen = np.sort(np.concatenate([blk.facets for blk in blocks]))
+        assert np.array_equal(seen, np.arange(n))
+        # a block meeting two chunks' rows is built by both: more rays than the whole build, never twice
+        # as many as there are chunks
+        rays = sum(blk.stats["rays"] for blk in blocks)
+        assert whole.stats["rays"] <= rays <= len(blocks) * whole.stats["rays"]
+    with pytest.raises(ConfigError, match="outside"):
+        plan.row_block(0, n + 1)

@@ -1,0 +1,85 @@
+"""The view-factor operator of a run on a dask cluster, built by the workers that hold its rows (issue 22
+item 2: "the operator's blocks held by the workers that own their rows").
+
+References: the whole compressed operator built in one process (:func:`vfoperator.compressed_view_factors`),
+whose products the workers' row blocks must give to round-off, through a real scheduler and two worker
+processes started with dask's own command line on 127.0.0.1."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from crater_thermal import cluster_run, geometry, io, vfoperator
+
+distributed = pytest.importorskip("distributed")
+
+import dask_procs  # noqa: E402
+
+# the row blocks apply the same stored entries as the whole operator, summed in another order (the
+# operator's float32 factors in float64 products): round-off of the largest product, ~1e-15; 1e-12 leaves
+# a margin of 1000 and still fails for one missing or doubled entry (>= 1e-6 of the largest here)
+ROUNDOFF = 1e-12
+
+
+def _close(got, ref):
+    np.testing.assert_allclose(got, ref, rtol=0, atol=ROUNDOFF * np.abs(ref).max())
+
+
+def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
+    """An inward sphere of 800 facets (every facet sees most others; row sums above 1, so the rescale of
+    all row sums applies) in 3 chunks on 2 workers: ``F x``, ``F X`` and ``F^T y`` from the workers' rows
+    equal the whole operator's; this process holds only the facet order and areas. Then one worker is
+    SIGKILLed (and its nanny: a lost machine): its rows are built again on the other (the build tasks
+    are run again, seen in the scheduler's task stream) and the products are unchanged."""
+    mesh = geometry.sphere_mesh(800)
+    whole = vfoperator.compressed_view_factors(mesh)
+    assert whole.scale is not None and whole.stats["lowrank_blocks"] > 0  # the rescale and far blocks
+    rng = np.random.default_rng(3)
+    x, X, y = rng.random(mesh.n_facets), rng.random((mesh.n_facets, 4)), rng.random(mesh.n_facets)
+    store = io.SegmentStore(tmp_path / "run.nc.partial", 8)
+    with dask_procs.cli_cluster(tmp_path, 2) as (address, workers):
+        factory = cluster_run.distributed_columns(scheduler=address, chunk_facets=300)
+        with factory(None, mesh, store) as session:
+            F = session.view_factors(mesh, None, "compressed", vfoperator.DEFAULT_TOLERANCE)
+            assert isinstance(F, cluster_run.ClusterOperator) and len(F.rows) == 3
+            assert np.array_equal(np.sort(F.order), np.arange(mesh.n_facets))  # every row in one chunk
+            _close(F @ x, whole @ x)
+            _close(F @ X, whole @ X)
+            _close(F.rmatvec(y), whole.rmatvec(y))
+            assert F.rowsum_excess == pytest.approx(whole.rowsum_excess, abs=1e-12) and not F.is_zero
+            # the whole operator's entries are on the workers, not here
+            assert F.nbytes == 16 * mesh.n_facets and F.held_bytes >= whole.nbytes // 2
+            client = session.client
+            with distributed.get_task_stream(client) as stream:
+                os.killpg(workers[0].pid, signal.SIGKILL)
+                t0 = time.monotonic()
+                while len(client.scheduler_info()["workers"]) > 1:
+                    assert time.monotonic() - t0 < 60, "the scheduler did not notice the lost worker"
+                    time.sleep(0.05)
+                _close(F @ X, whole @ X)
+            rebuilt = [t["key"] for t in stream.data if str(t["key"]).startswith("ct-build-")]
+            assert rebuilt, "no row block was built again: the test proves nothing"
+
+
+def test_rows_of_another_mesh_are_refused(tmp_path):
+    """A worker builds rows only from the run's own mesh: mesh files that another run left or changed in
+    the scratch folder (another hash than the run's) stop the task with one line, and a plan cached on the
+    worker for another mesh at the same path is not reused."""
+    from crater_thermal.errors import ConfigError
+
+    a, b = geometry.sphere_mesh(200), geometry.sphere_mesh(202)
+    folder = tmp_path / "mesh"
+    folder.mkdir()
+    settings = {"tolerance": vfoperator.DEFAULT_TOLERANCE, "tolerance_mode": "block"}
+    for mesh in (a, b):  # the same folder, a new mesh: built from the new one, not the cached plan
+        np.save(folder / "vertices.npy", mesh.vertices)
+        np.save(folder / "faces.npy", mesh.faces)
+        block = cluster_run.build_rows(str(folder), 0, mesh.n_facets, {**settings, "mesh_hash": mesh.hash})
+        assert block.n == mesh.n_facets
+    with pytest.raises(ConfigError, match="is not the run's"):
+        cluster_run.build_rows(str(folder), 0, 10, {**settings, "mesh_hash": a.hash})
