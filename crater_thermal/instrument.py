@@ -173,18 +173,14 @@ def planck_integral(x1, x2) -> np.ndarray:
     x = 2, both tails above), so narrow bands lose only the digits the band's width implies.
     """
     x1, x2 = np.broadcast_arrays(np.asarray(x1, float), np.asarray(x2, float))
-    lo = np.minimum(x1, _X_SPLIT)
-    hi = np.minimum(x2, _X_SPLIT)
-    low_part = _power_series(hi) - _power_series(lo)  # the part of [x1, x2] below 2
-    a = np.maximum(x1, _X_SPLIT)
-    b = np.maximum(x2, _X_SPLIT)
-    fin_b = np.isfinite(b)
-    tail_b = np.zeros_like(b)
-    tail_b[fin_b] = _tail_series(b[fin_b])
-    fin_a = np.isfinite(a)
-    tail_a = np.zeros_like(a)
-    tail_a[fin_a] = _tail_series(a[fin_a])
-    return low_part + (tail_a - tail_b)  # the part above 2
+    # both edges in one evaluation of each series (element by element, the same numbers as one at a time)
+    low = _power_series(np.minimum(np.stack([x1, x2]), _X_SPLIT))
+    low_part = low[1] - low[0]  # the part of [x1, x2] below 2
+    ab = np.maximum(np.stack([x1, x2]), _X_SPLIT)
+    fin = np.isfinite(ab)
+    tail = np.zeros_like(ab)
+    tail[fin] = _tail_series(ab[fin])
+    return low_part + (tail[0] - tail[1])  # the part above 2
 
 
 def planck_dB_dT(wavelength_m, T_K) -> np.ndarray:
@@ -245,14 +241,30 @@ def band_radiance(T_K, band: Band) -> np.ndarray:
     """Band radiance L(T) [W m-2 sr-1] of a blackbody at ``T_K`` [K] (exact series, see module doc)."""
     T = _check_T(T_K)
     x1, x2 = band.x_edges(T)
-    return _C_BAND * T**4 * planck_integral(x1, x2)
+    return _radiance(T, planck_integral(x1, x2))
 
 
 def band_radiance_derivative(T_K, band: Band) -> np.ndarray:
     """dL/dT [W m-2 sr-1 K-1] = C T^3 (4 I - x2 f(x2) + x1 f(x1)), f(x) = x^3/(e^x - 1), exact."""
     T = _check_T(T_K)
     x1, x2 = band.x_edges(T)
+    return _derivative(T, x1, x2, planck_integral(x1, x2))
 
+
+def band_radiance_and_derivative(T_K, band: Band) -> tuple[np.ndarray, np.ndarray]:
+    """(L, dL/dT) [W m-2 sr-1, W m-2 sr-1 K-1]: :func:`band_radiance` and :func:`band_radiance_derivative`
+    from one evaluation of the Planck integral (the same numbers as the two calls)."""
+    T = _check_T(T_K)
+    x1, x2 = band.x_edges(T)
+    integral = planck_integral(x1, x2)
+    return _radiance(T, integral), _derivative(T, x1, x2, integral)
+
+
+def _radiance(T, integral):
+    return _C_BAND * T**4 * integral
+
+
+def _derivative(T, x1, x2, integral):
     def xf(x):
         out = np.zeros_like(x)
         ok = np.isfinite(x) & (x > 0)
@@ -260,7 +272,7 @@ def band_radiance_derivative(T_K, band: Band) -> np.ndarray:
             out[ok] = x[ok] ** 4 / np.expm1(x[ok])
         return out
 
-    return _C_BAND * T**3 * (4 * planck_integral(x1, x2) - xf(x2) + xf(x1))
+    return _C_BAND * T**3 * (4 * integral - xf(x2) + xf(x1))
 
 
 def band_brightness_temperature(
@@ -396,9 +408,13 @@ class Instrument:
 
     def netd(self, T_K) -> np.ndarray:
         """NETD [K] of one integration at scene temperature ``T_K`` [K]: NETD_ref L'(T_ref) / L'(T)."""
+        return self._netd_of_derivative(band_radiance_derivative(T_K, self.band))
+
+    def _netd_of_derivative(self, dL_dT) -> np.ndarray:
+        """NETD [K] at a scene whose band's dL/dT is ``dL_dT`` [W m-2 sr-1 K-1]."""
         ref = _ref_derivative(self.t_ref_K, self.lo_um, self.hi_um)
         with np.errstate(divide="ignore", over="ignore"):
-            return self.netd_ref_K * ref / band_radiance_derivative(T_K, self.band)
+            return self.netd_ref_K * ref / dL_dT
 
     def noise_equivalent_radiance(self) -> float:
         """NEdL [W m-2 sr-1] of one integration (scene-independent): NETD_ref x L'(T_ref)."""
@@ -677,9 +693,12 @@ def averaging(exposure, instrument: Instrument, obs: Observation) -> tuple[np.nd
 
 def gain_lever(T_K, band: Band) -> np.ndarray:
     """h(T) = L / L' [K]: a relative radiance gain error g moves a brightness temperature by g h (module doc)."""
-    T = _check_T(T_K)
+    return _lever(*band_radiance_and_derivative(T_K, band))
+
+
+def _lever(L, dL_dT):
     with np.errstate(divide="ignore", invalid="ignore"):
-        return band_radiance(T, band) / band_radiance_derivative(T, band)
+        return L / dL_dT
 
 
 def observed_difference(dT_K, T_nominal_K, instrument: Instrument, obs: Observation = Observation()):
@@ -692,8 +711,17 @@ def observed_difference(dT_K, T_nominal_K, instrument: Instrument, obs: Observat
     """
     T_nom = _check_T(T_nominal_K)
     T_off = _check_T(T_nom + np.asarray(dT_K, float))
-    T_cand = mixed_band_temperature(T_off, T_nom, obs.footprint_fraction, instrument.band)
+    if T_off.ndim == 0 and T_nom.ndim == 0:  # one scene (the report asks for it once per exposure search)
+        T_cand = np.asarray(_mixed_one(float(T_off), float(T_nom), float(obs.footprint_fraction), instrument.band))
+    else:
+        T_cand = mixed_band_temperature(T_off, T_nom, obs.footprint_fraction, instrument.band)
     return T_cand - T_nom, T_cand
+
+
+@functools.lru_cache(maxsize=4096)
+def _mixed_one(T_a_K: float, T_b_K: float, fraction_a: float, band: Band) -> float:
+    """:func:`mixed_band_temperature` of one footprint [K], remembered (deterministic in its arguments)."""
+    return float(mixed_band_temperature(T_a_K, T_b_K, fraction_a, band))
 
 
 def noise_terms(T_cand_K, T_ref_K, exposure, instrument: Instrument, obs: Observation = Observation()) -> dict:
@@ -705,15 +733,33 @@ def noise_terms(T_cand_K, T_ref_K, exposure, instrument: Instrument, obs: Observ
     ``natural_scatter`` = s^2 (1/k + 1/m); ``gain_error`` = (g (h(T_c) - h(T_r)))^2, h = L/L'
     (:func:`averaging` gives n and r).
     """
+    band = instrument.band
+    scene = _scene(band_radiance_and_derivative(T_cand_K, band), band_radiance_and_derivative(T_ref_K, band), instrument)
+    return _terms_of_scene(scene, exposure, instrument, obs)
+
+
+def _scene(cand_radiance: tuple, ref_radiance: tuple, instrument: Instrument) -> tuple:
+    """The exposure-independent factors of :func:`noise_terms`: (NETD(T_c), NETD(T_r), h(T_c) - h(T_r)) [K].
+
+    ``cand_radiance``, ``ref_radiance``: (L, dL/dT) of the band at the candidate's and the reference's
+    temperatures (:func:`band_radiance_and_derivative`).
+    """
+    (L_c, d_c), (L_r, d_r) = cand_radiance, ref_radiance
+    e_c, e_r = instrument._netd_of_derivative(d_c), instrument._netd_of_derivative(d_r)
+    with np.errstate(over="ignore", invalid="ignore"):
+        lever = _lever(L_c, d_c) - _lever(L_r, d_r)
+    return e_c, e_r, lever
+
+
+def _terms_of_scene(scene: tuple, exposure, instrument: Instrument, obs: Observation) -> dict:
+    """:func:`noise_terms` [K^2] from :func:`_scene`'s factors at an exposure (dwell [s] or passes [-])."""
+    e_c, e_r, lever = scene
     k, m = float(obs.candidate_footprints), float(obs.reference_footprints)
     n, r = averaging(exposure, instrument, obs)
-    e_c, e_r = instrument.netd(T_cand_K), instrument.netd(T_ref_K)
-    band = instrument.band
     with np.errstate(over="ignore", invalid="ignore"):
         per = e_c**2 / k + e_r**2 / m
         white = per / n
         floor = per * (instrument.integration_s / instrument.knee_s) / r
-        lever = gain_lever(T_cand_K, band) - gain_lever(T_ref_K, band)
         gain = (instrument.gain_error * lever) ** 2
     shape = np.broadcast(white, floor, gain).shape
     return {
@@ -760,9 +806,17 @@ def detection_probability(
     exposure : array             dwell on each footprint [s] (stare) or number of passes [-] (passes).
     """
     mu, T_cand = observed_difference(dT_K, T_nominal_K, instrument, obs)
-    var0 = _total(noise_terms(T_nominal_K, T_nominal_K, exposure, instrument, obs))
-    var1 = _total(noise_terms(T_cand, T_nominal_K, exposure, instrument, obs))
+    null, alt = _null_and_alternative(T_cand, T_nominal_K, instrument)
+    var0 = _total(_terms_of_scene(null, exposure, instrument, obs))
+    var1 = _total(_terms_of_scene(alt, exposure, instrument, obs))
     return _pd(mu, var0, var1, obs.false_alarm)
+
+
+def _null_and_alternative(T_cand_K, T_nominal_K, instrument: Instrument) -> tuple:
+    """:func:`_scene` under the null (candidate at ``T_nominal_K``) and the alternative (at ``T_cand_K``) [K]."""
+    nominal = band_radiance_and_derivative(T_nominal_K, instrument.band)
+    cand = band_radiance_and_derivative(T_cand_K, instrument.band)
+    return _scene(nominal, nominal, instrument), _scene(cand, nominal, instrument)
 
 
 def _exposure_words(exposure: float, instrument: Instrument, obs: Observation) -> str:
@@ -827,11 +881,14 @@ def dwell_for_detection(
     def exposure_of(steps):
         return steps if passes else steps * step_s
 
+    # the scene's NETDs and gain levers do not depend on the exposure: evaluated once for the whole search
+    null, alt = _null_and_alternative(T_cand, T_nominal_K, inst)
+
     def terms_at(steps):
-        return {k: float(v) for k, v in noise_terms(T_cand, T_nominal_K, exposure_of(steps), inst, obs).items()}
+        return {k: float(v) for k, v in _terms_of_scene(alt, exposure_of(steps), inst, obs).items()}
 
     def var0_at(steps):
-        return float(_total(noise_terms(T_nominal_K, T_nominal_K, exposure_of(steps), inst, obs)))
+        return float(_total(_terms_of_scene(null, exposure_of(steps), inst, obs)))
 
     def pd(steps):
         return float(_pd(mu, var0_at(steps), _total(terms_at(steps)), obs.false_alarm))
