@@ -734,40 +734,60 @@ def noise_terms(T_cand_K, T_ref_K, exposure, instrument: Instrument, obs: Observ
     (:func:`averaging` gives n and r).
     """
     band = instrument.band
-    scene = _scene(band_radiance_and_derivative(T_cand_K, band), band_radiance_and_derivative(T_ref_K, band), instrument)
-    return _terms_of_scene(scene, exposure, instrument, obs)
+    cand, ref = band_radiance_and_derivative(T_cand_K, band), band_radiance_and_derivative(T_ref_K, band)
+    return _scene(cand, ref, instrument, obs).terms(exposure, instrument, obs)
 
 
-def _scene(cand_radiance: tuple, ref_radiance: tuple, instrument: Instrument) -> tuple:
-    """The exposure-independent factors of :func:`noise_terms`: (NETD(T_c), NETD(T_r), h(T_c) - h(T_r)) [K].
+@dataclass(frozen=True)
+class _Scene:
+    """The exposure-independent parts of :func:`noise_terms` for one candidate and reference scene.
 
-    ``cand_radiance``, ``ref_radiance``: (L, dL/dT) of the band at the candidate's and the reference's
-    temperatures (:func:`band_radiance_and_derivative`).
+    ``netd_cand``, ``netd_ref`` [K] one integration's NETD at the two scenes; ``per`` [K^2]
+    NETD_c^2 / k + NETD_r^2 / m; ``floor_per`` [K^2] ``per`` x t_int / knee_s; ``natural`` and ``gain`` [K^2]
+    the natural-scatter and gain-error variances. An exposure only divides ``per`` by n and ``floor_per`` by r.
     """
+
+    netd_cand: np.ndarray
+    netd_ref: np.ndarray
+    per: np.ndarray
+    floor_per: np.ndarray
+    natural: float
+    gain: np.ndarray
+
+    def terms(self, exposure, instrument: Instrument, obs: Observation) -> dict:
+        """:func:`noise_terms` [K^2] at an exposure (dwell [s] or passes [-]), arrays of the broadcast shape."""
+        n, r = averaging(exposure, instrument, obs)
+        white, floor = self._white_floor(n, r)
+        shape = np.broadcast(white, floor, self.gain).shape
+        return {
+            "instrument_white": np.broadcast_to(white, shape).astype(float),
+            "allan_floor": np.broadcast_to(floor, shape).astype(float),
+            "natural_scatter": np.full(shape, self.natural),
+            "gain_error": np.broadcast_to(self.gain, shape).astype(float),
+        }
+
+    def variance(self, n, r):
+        """Variance of D [K^2] (the sum of :meth:`terms`, same order) with n samples and r floor offsets [-]."""
+        white, floor = self._white_floor(n, r)
+        return white + floor + self.natural + self.gain
+
+    def _white_floor(self, n, r):
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self.per / n, self.floor_per / r
+
+
+def _scene(cand_radiance: tuple, ref_radiance: tuple, instrument: Instrument, obs: Observation) -> _Scene:
+    """:class:`_Scene` from (L, dL/dT) of the band at the candidate's and the reference's temperatures
+    (:func:`band_radiance_and_derivative`)."""
     (L_c, d_c), (L_r, d_r) = cand_radiance, ref_radiance
     e_c, e_r = instrument._netd_of_derivative(d_c), instrument._netd_of_derivative(d_r)
+    k, m = float(obs.candidate_footprints), float(obs.reference_footprints)
     with np.errstate(over="ignore", invalid="ignore"):
         lever = _lever(L_c, d_c) - _lever(L_r, d_r)
-    return e_c, e_r, lever
-
-
-def _terms_of_scene(scene: tuple, exposure, instrument: Instrument, obs: Observation) -> dict:
-    """:func:`noise_terms` [K^2] from :func:`_scene`'s factors at an exposure (dwell [s] or passes [-])."""
-    e_c, e_r, lever = scene
-    k, m = float(obs.candidate_footprints), float(obs.reference_footprints)
-    n, r = averaging(exposure, instrument, obs)
-    with np.errstate(over="ignore", invalid="ignore"):
         per = e_c**2 / k + e_r**2 / m
-        white = per / n
-        floor = per * (instrument.integration_s / instrument.knee_s) / r
+        floor_per = per * (instrument.integration_s / instrument.knee_s)
         gain = (instrument.gain_error * lever) ** 2
-    shape = np.broadcast(white, floor, gain).shape
-    return {
-        "instrument_white": np.broadcast_to(white, shape).astype(float),
-        "allan_floor": np.broadcast_to(floor, shape).astype(float),
-        "natural_scatter": np.full(shape, obs.natural_scatter_K**2 * (1 / k + 1 / m)),
-        "gain_error": np.broadcast_to(gain, shape).astype(float),
-    }
+    return _Scene(e_c, e_r, per, floor_per, obs.natural_scatter_K**2 * (1 / k + 1 / m), gain)
 
 
 def _total(terms) -> np.ndarray:
@@ -806,17 +826,29 @@ def detection_probability(
     exposure : array             dwell on each footprint [s] (stare) or number of passes [-] (passes).
     """
     mu, T_cand = observed_difference(dT_K, T_nominal_K, instrument, obs)
-    null, alt = _null_and_alternative(T_cand, T_nominal_K, instrument)
-    var0 = _total(_terms_of_scene(null, exposure, instrument, obs))
-    var1 = _total(_terms_of_scene(alt, exposure, instrument, obs))
+    null, alt = _null_and_alternative(T_cand, T_nominal_K, instrument, obs)
+    var0 = _total(null.terms(exposure, instrument, obs))
+    var1 = _total(alt.terms(exposure, instrument, obs))
     return _pd(mu, var0, var1, obs.false_alarm)
 
 
-def _null_and_alternative(T_cand_K, T_nominal_K, instrument: Instrument) -> tuple:
-    """:func:`_scene` under the null (candidate at ``T_nominal_K``) and the alternative (at ``T_cand_K``) [K]."""
-    nominal = band_radiance_and_derivative(T_nominal_K, instrument.band)
-    cand = band_radiance_and_derivative(T_cand_K, instrument.band)
-    return _scene(nominal, nominal, instrument), _scene(cand, nominal, instrument)
+def _null_and_alternative(T_cand_K, T_nominal_K, instrument: Instrument, obs: Observation) -> tuple:
+    """:class:`_Scene` under the null (candidate at ``T_nominal_K``) and the alternative (at ``T_cand_K``) [K]."""
+    nominal = _radiance_pair(T_nominal_K, instrument.band)
+    cand = _radiance_pair(T_cand_K, instrument.band)
+    return _scene(nominal, nominal, instrument, obs), _scene(cand, nominal, instrument, obs)
+
+
+def _radiance_pair(T_K, band: Band) -> tuple:
+    """:func:`band_radiance_and_derivative`; one temperature's is remembered (the report asks for the same
+    scenes across instruments' observations and scatter values)."""
+    T = np.asarray(T_K, float)
+    return _radiance_one(float(T), band) if T.ndim == 0 else band_radiance_and_derivative(T, band)
+
+
+@functools.lru_cache(maxsize=4096)
+def _radiance_one(T_K: float, band: Band) -> tuple:
+    return band_radiance_and_derivative(T_K, band)
 
 
 def _exposure_words(exposure: float, instrument: Instrument, obs: Observation) -> str:
@@ -852,14 +884,16 @@ def dwell_for_detection(
     mu_a, T_cand_a = observed_difference(dT_K, T_nominal_K, instrument, obs)
     mu, T_cand = float(mu_a), float(T_cand_a)
     inst = instrument
+    # the scene's NETDs and gain levers do not depend on the exposure: evaluated once for the whole search
+    null, alt = _null_and_alternative(T_cand, T_nominal_K, inst, obs)
     mode = observing_mode(inst, obs)
     passes = mode == "passes"
     t_pass = pass_integration(inst, obs) if passes else None
     out = {
         "mu_K": mu,
         "T_candidate_K": T_cand,
-        "netd_candidate_K": float(inst.netd(T_cand)),
-        "netd_reference_K": float(inst.netd(T_nominal_K)),
+        "netd_candidate_K": float(alt.netd_cand),  # inst.netd(T_cand) and inst.netd(T_nominal_K)
+        "netd_reference_K": float(alt.netd_ref),
         "mode": mode,
         "exposure_unit": exposure_unit(inst, obs),
         "pass_integration_s": t_pass,
@@ -881,17 +915,15 @@ def dwell_for_detection(
     def exposure_of(steps):
         return steps if passes else steps * step_s
 
-    # the scene's NETDs and gain levers do not depend on the exposure: evaluated once for the whole search
-    null, alt = _null_and_alternative(T_cand, T_nominal_K, inst)
-
     def terms_at(steps):
-        return {k: float(v) for k, v in _terms_of_scene(alt, exposure_of(steps), inst, obs).items()}
+        return {k: float(v) for k, v in alt.terms(exposure_of(steps), inst, obs).items()}
 
     def var0_at(steps):
-        return float(_total(_terms_of_scene(null, exposure_of(steps), inst, obs)))
+        return float(null.variance(*averaging(exposure_of(steps), inst, obs)))
 
     def pd(steps):
-        return float(_pd(mu, var0_at(steps), _total(terms_at(steps)), obs.false_alarm))
+        n, r = averaging(exposure_of(steps), inst, obs)
+        return float(_pd(mu, null.variance(n, r), float(alt.variance(n, r)), obs.false_alarm))
 
     inf_terms = terms_at(np.inf)
     inf_terms["instrument_white"] = 0.0
