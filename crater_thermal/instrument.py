@@ -173,14 +173,18 @@ def planck_integral(x1, x2) -> np.ndarray:
     x = 2, both tails above), so narrow bands lose only the digits the band's width implies.
     """
     x1, x2 = np.broadcast_arrays(np.asarray(x1, float), np.asarray(x2, float))
-    # both edges in one evaluation of each series (element by element, the same numbers as one at a time)
-    low = _power_series(np.minimum(np.stack([x1, x2]), _X_SPLIT))
-    low_part = low[1] - low[0]  # the part of [x1, x2] below 2
-    ab = np.maximum(np.stack([x1, x2]), _X_SPLIT)
-    fin = np.isfinite(ab)
-    tail = np.zeros_like(ab)
-    tail[fin] = _tail_series(ab[fin])
-    return low_part + (tail[0] - tail[1])  # the part above 2
+    lo = np.minimum(x1, _X_SPLIT)
+    hi = np.minimum(x2, _X_SPLIT)
+    low_part = _power_series(hi) - _power_series(lo)  # the part of [x1, x2] below 2
+    a = np.maximum(x1, _X_SPLIT)
+    b = np.maximum(x2, _X_SPLIT)
+    fin_b = np.isfinite(b)
+    tail_b = np.zeros_like(b)
+    tail_b[fin_b] = _tail_series(b[fin_b])
+    fin_a = np.isfinite(a)
+    tail_a = np.zeros_like(a)
+    tail_a[fin_a] = _tail_series(a[fin_a])
+    return low_part + (tail_a - tail_b)  # the part above 2
 
 
 def planck_dB_dT(wavelength_m, T_K) -> np.ndarray:
@@ -305,12 +309,12 @@ def _invert(L, band, lo, hi, rtol):
     T = np.where(hi > lo, 0.5 * (lo + hi), lo)
     logL = np.log(L)
     for _ in range(200):
-        Lt = band_radiance(T, band)
+        Lt, dLt = band_radiance_and_derivative(T, band)  # one Planck integral for both
         g = np.log(Lt) - logL
         lo = np.where(g < 0, T, lo)
         hi = np.where(g > 0, T, hi)
         with np.errstate(divide="ignore", invalid="ignore"):
-            step = g / (band_radiance_derivative(T, band) / Lt)
+            step = g / (dLt / Lt)
         Tn = T - step
         bad = ~np.isfinite(Tn) | (Tn <= lo) | (Tn >= hi)
         Tn = np.where(bad, 0.5 * (lo + hi), Tn)
