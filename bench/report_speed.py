@@ -58,6 +58,7 @@ def one(out_dir: Path) -> dict:
     sys.path.insert(0, str(HERE.parent / "tests"))
     from crater_thermal import instrument as ins
     from crater_thermal import report as rp
+
     from synthetic import make_replay, make_run
 
     presets = [ins.PRESETS[n] for n in ("diviner_ch7", "diviner_ch8", "diviner_ch9", "microbolometer")]
@@ -160,8 +161,8 @@ def main() -> None:
         for r in range(args.repeat):
             for which in ("old", "new"):
                 wall, tail = _pytest_wall_s(trees[which], test_file)
-                tests.append({"file": test_file, "version": which, "repeat": r, "wall_s": round(wall, 2), "pytest": tail})
-                tests[-1]["loadavg"] = os.getloadavg()
+                row = {"file": test_file, "version": which, "repeat": r, "wall_s": round(wall, 2), "pytest": tail}
+                tests.append({**row, "loadavg": os.getloadavg()})
                 print(json.dumps(tests[-1]), flush=True)
     test_med = {
         f: {w: float(np.median([t["wall_s"] for t in tests if t["file"] == f and t["version"] == w])) for w in trees}
