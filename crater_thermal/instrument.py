@@ -256,8 +256,13 @@ def band_radiance_derivative(T_K, band: Band) -> np.ndarray:
 
 
 def band_radiance_and_derivative(T_K, band: Band) -> tuple[np.ndarray, np.ndarray]:
-    """(L, dL/dT) [W m-2 sr-1, W m-2 sr-1 K-1]: :func:`band_radiance` and :func:`band_radiance_derivative`
-    from one evaluation of the Planck integral (the same numbers as the two calls)."""
+    """Band radiance and its temperature derivative at ``T_K`` [K] from one evaluation of the Planck integral.
+
+    Returns
+    -------
+    L : array [W m-2 sr-1]           :func:`band_radiance`.
+    dL_dT : array [W m-2 sr-1 K-1]   :func:`band_radiance_derivative` (the same numbers as the two calls).
+    """
     T = _check_T(T_K)
     x1, x2 = band.x_edges(T)
     integral = planck_integral(x1, x2)
