@@ -6,14 +6,15 @@ Run:  PYTHONPATH=$PWD python bench/report_speed.py --old-tree DIR [--repeat 3] [
 ``DIR`` holds another version of the repository (``git archive COMMIT | tar -x -C DIR``). Each measurement
 is a fresh process with that version first on ``PYTHONPATH`` (``--one``), the processes alternating old,
 new, old, new ...; the remembered values of the instrument module (its ``functools`` caches) are cleared
-before each timed call, so every timing starts cold. Per call [ms]: ``dwell_for_detection`` over 48 scenes
-(4 presets x 3 contrasts x 4 nominal temperatures, default observation), ``detection_probability`` of one
-facet (the site map's former loop) and of 300 facets in one call, ``noise_terms`` of one scene,
-``band_radiance_derivative`` of one temperature; and one ``report.make_report`` [s] of the test suite's
-synthetic runs at -86 and -80 deg (tests/synthetic.py of this tree, snapshots off). The outputs are compared
-between the versions: the dwell answers (every number) and the report's summary.json, report.html and figures
-(bytes). With ``--tests`` each named test file is also run by pytest in each tree (old, new alternating,
-``--repeat`` times) and its wall time recorded. Writes ``bench/results/report_speed.json`` and prints it.
+before each timed round of calls (median of 7 rounds), so every timing starts cold. Per call [ms]:
+``dwell_for_detection`` over 48 scenes (4 presets x 3 contrasts x 4 nominal temperatures, default
+observation), ``detection_probability`` of one facet (the site map's former loop) and of 300 facets in one
+call, ``noise_terms`` of one scene, ``band_radiance_derivative`` of one temperature; and one
+``report.make_report`` [s] of the test suite's synthetic runs at -86 and -80 deg (tests/synthetic.py of this
+tree, snapshots off). The outputs are compared between the versions: the dwell answers (every number) and
+the report's summary.json, report.html and figures (bytes). With ``--tests`` each named test file is also
+run by pytest in each tree (old, new alternating, ``--repeat`` times) and its wall time recorded. Writes
+``bench/results/report_speed.json`` and prints it.
 """
 
 from __future__ import annotations
@@ -43,9 +44,9 @@ def _cold(ins) -> None:
 
 
 def _per_call_ms(ins, f, calls) -> float:
-    """Median over 5 rounds of the time per call [ms] of ``f`` over ``calls``, caches cleared each round."""
+    """Median over 7 rounds of the time per call [ms] of ``f`` over ``calls``, caches cleared each round."""
     out = []
-    for _ in range(5):
+    for _ in range(7):
         _cold(ins)
         t0 = time.perf_counter()
         for c in calls:
@@ -75,8 +76,8 @@ def one(out_dir: Path) -> dict:
         "detection_probability_300_facets_ms": _per_call_ms(
             ins, ins.detection_probability, [(dT, Tn, 100.0, ch9, obs)]
         ),
-        "noise_terms_ms": _per_call_ms(ins, ins.noise_terms, [(55.0, 58.0, 100.0, ch9, obs)] * 50),
-        "band_radiance_derivative_ms": _per_call_ms(ins, ins.band_radiance_derivative, [(58.0, ch9.band)] * 50),
+        "noise_terms_ms": _per_call_ms(ins, ins.noise_terms, [(55.0, 58.0, 100.0, ch9, obs)] * 300),
+        "band_radiance_derivative_ms": _per_call_ms(ins, ins.band_radiance_derivative, [(58.0, ch9.band)] * 300),
     }
     _cold(ins)
     answers = [ins.dwell_for_detection(*s) for s in scenes]
