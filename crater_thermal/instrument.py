@@ -245,14 +245,35 @@ def band_radiance(T_K, band: Band) -> np.ndarray:
     """Band radiance L(T) [W m-2 sr-1] of a blackbody at ``T_K`` [K] (exact series, see module doc)."""
     T = _check_T(T_K)
     x1, x2 = band.x_edges(T)
-    return _C_BAND * T**4 * planck_integral(x1, x2)
+    return _radiance(T, planck_integral(x1, x2))
 
 
 def band_radiance_derivative(T_K, band: Band) -> np.ndarray:
     """dL/dT [W m-2 sr-1 K-1] = C T^3 (4 I - x2 f(x2) + x1 f(x1)), f(x) = x^3/(e^x - 1), exact."""
     T = _check_T(T_K)
     x1, x2 = band.x_edges(T)
+    return _derivative(T, x1, x2, planck_integral(x1, x2))
 
+
+def band_radiance_and_derivative(T_K, band: Band) -> tuple[np.ndarray, np.ndarray]:
+    """Band radiance and its temperature derivative at ``T_K`` [K] from one evaluation of the Planck integral.
+
+    Returns
+    -------
+    L : array [W m-2 sr-1]           :func:`band_radiance`.
+    dL_dT : array [W m-2 sr-1 K-1]   :func:`band_radiance_derivative` (the same numbers as the two calls).
+    """
+    T = _check_T(T_K)
+    x1, x2 = band.x_edges(T)
+    integral = planck_integral(x1, x2)
+    return _radiance(T, integral), _derivative(T, x1, x2, integral)
+
+
+def _radiance(T, integral):
+    return _C_BAND * T**4 * integral
+
+
+def _derivative(T, x1, x2, integral):
     def xf(x):
         out = np.zeros_like(x)
         ok = np.isfinite(x) & (x > 0)
@@ -260,7 +281,7 @@ def band_radiance_derivative(T_K, band: Band) -> np.ndarray:
             out[ok] = x[ok] ** 4 / np.expm1(x[ok])
         return out
 
-    return _C_BAND * T**3 * (4 * planck_integral(x1, x2) - xf(x2) + xf(x1))
+    return _C_BAND * T**3 * (4 * integral - xf(x2) + xf(x1))
 
 
 def band_brightness_temperature(
@@ -293,12 +314,12 @@ def _invert(L, band, lo, hi, rtol):
     T = np.where(hi > lo, 0.5 * (lo + hi), lo)
     logL = np.log(L)
     for _ in range(200):
-        Lt = band_radiance(T, band)
+        Lt, dLt = band_radiance_and_derivative(T, band)  # one Planck integral for both
         g = np.log(Lt) - logL
         lo = np.where(g < 0, T, lo)
         hi = np.where(g > 0, T, hi)
         with np.errstate(divide="ignore", invalid="ignore"):
-            step = g / (band_radiance_derivative(T, band) / Lt)
+            step = g / (dLt / Lt)
         Tn = T - step
         bad = ~np.isfinite(Tn) | (Tn <= lo) | (Tn >= hi)
         Tn = np.where(bad, 0.5 * (lo + hi), Tn)
@@ -396,9 +417,13 @@ class Instrument:
 
     def netd(self, T_K) -> np.ndarray:
         """NETD [K] of one integration at scene temperature ``T_K`` [K]: NETD_ref L'(T_ref) / L'(T)."""
+        return self._netd_of_derivative(band_radiance_derivative(T_K, self.band))
+
+    def _netd_of_derivative(self, dL_dT) -> np.ndarray:
+        """NETD [K] at a scene whose band's dL/dT is ``dL_dT`` [W m-2 sr-1 K-1]."""
         ref = _ref_derivative(self.t_ref_K, self.lo_um, self.hi_um)
         with np.errstate(divide="ignore", over="ignore"):
-            return self.netd_ref_K * ref / band_radiance_derivative(T_K, self.band)
+            return self.netd_ref_K * ref / dL_dT
 
     def noise_equivalent_radiance(self) -> float:
         """NEdL [W m-2 sr-1] of one integration (scene-independent): NETD_ref x L'(T_ref)."""
@@ -677,9 +702,12 @@ def averaging(exposure, instrument: Instrument, obs: Observation) -> tuple[np.nd
 
 def gain_lever(T_K, band: Band) -> np.ndarray:
     """h(T) = L / L' [K]: a relative radiance gain error g moves a brightness temperature by g h (module doc)."""
-    T = _check_T(T_K)
+    return _lever(*band_radiance_and_derivative(T_K, band))
+
+
+def _lever(L, dL_dT):
     with np.errstate(divide="ignore", invalid="ignore"):
-        return band_radiance(T, band) / band_radiance_derivative(T, band)
+        return L / dL_dT
 
 
 def observed_difference(dT_K, T_nominal_K, instrument: Instrument, obs: Observation = Observation()):
@@ -692,8 +720,17 @@ def observed_difference(dT_K, T_nominal_K, instrument: Instrument, obs: Observat
     """
     T_nom = _check_T(T_nominal_K)
     T_off = _check_T(T_nom + np.asarray(dT_K, float))
-    T_cand = mixed_band_temperature(T_off, T_nom, obs.footprint_fraction, instrument.band)
+    if T_off.ndim == 0 and T_nom.ndim == 0:  # one scene (the report asks for it once per exposure search)
+        T_cand = np.asarray(_mixed_one(float(T_off), float(T_nom), float(obs.footprint_fraction), instrument.band))
+    else:
+        T_cand = mixed_band_temperature(T_off, T_nom, obs.footprint_fraction, instrument.band)
     return T_cand - T_nom, T_cand
+
+
+@functools.lru_cache(maxsize=4096)
+def _mixed_one(T_a_K: float, T_b_K: float, fraction_a: float, band: Band) -> float:
+    """:func:`mixed_band_temperature` of one footprint [K], remembered (deterministic in its arguments)."""
+    return float(mixed_band_temperature(T_a_K, T_b_K, fraction_a, band))
 
 
 def noise_terms(T_cand_K, T_ref_K, exposure, instrument: Instrument, obs: Observation = Observation()) -> dict:
@@ -705,23 +742,61 @@ def noise_terms(T_cand_K, T_ref_K, exposure, instrument: Instrument, obs: Observ
     ``natural_scatter`` = s^2 (1/k + 1/m); ``gain_error`` = (g (h(T_c) - h(T_r)))^2, h = L/L'
     (:func:`averaging` gives n and r).
     """
-    k, m = float(obs.candidate_footprints), float(obs.reference_footprints)
-    n, r = averaging(exposure, instrument, obs)
-    e_c, e_r = instrument.netd(T_cand_K), instrument.netd(T_ref_K)
     band = instrument.band
+    cand, ref = band_radiance_and_derivative(T_cand_K, band), band_radiance_and_derivative(T_ref_K, band)
+    return _scene(cand, ref, instrument, obs).terms(exposure, instrument, obs)
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """The exposure-independent parts of :func:`noise_terms` for one candidate and reference scene.
+
+    ``netd_cand``, ``netd_ref`` [K] one integration's NETD at the two scenes; ``per`` [K^2]
+    NETD_c^2 / k + NETD_r^2 / m; ``floor_per`` [K^2] ``per`` x t_int / knee_s; ``natural`` and ``gain`` [K^2]
+    the natural-scatter and gain-error variances. An exposure only divides ``per`` by n and ``floor_per`` by r.
+    """
+
+    netd_cand: np.ndarray
+    netd_ref: np.ndarray
+    per: np.ndarray
+    floor_per: np.ndarray
+    natural: float
+    gain: np.ndarray
+
+    def terms(self, exposure, instrument: Instrument, obs: Observation) -> dict:
+        """:func:`noise_terms` [K^2] at an exposure (dwell [s] or passes [-]), arrays of the broadcast shape."""
+        n, r = averaging(exposure, instrument, obs)
+        white, floor = self._white_floor(n, r)
+        shape = np.broadcast(white, floor, self.gain).shape
+        return {
+            "instrument_white": np.broadcast_to(white, shape).astype(float),
+            "allan_floor": np.broadcast_to(floor, shape).astype(float),
+            "natural_scatter": np.full(shape, self.natural),
+            "gain_error": np.broadcast_to(self.gain, shape).astype(float),
+        }
+
+    def variance(self, n, r):
+        """Variance of D [K^2] (the sum of :meth:`terms`, same order) with n samples and r floor offsets [-]."""
+        white, floor = self._white_floor(n, r)
+        return white + floor + self.natural + self.gain
+
+    def _white_floor(self, n, r):
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self.per / n, self.floor_per / r
+
+
+def _scene(cand_radiance: tuple, ref_radiance: tuple, instrument: Instrument, obs: Observation) -> _Scene:
+    """:class:`_Scene` from (L, dL/dT) of the band at the candidate's and the reference's temperatures
+    (:func:`band_radiance_and_derivative`)."""
+    (L_c, d_c), (L_r, d_r) = cand_radiance, ref_radiance
+    e_c, e_r = instrument._netd_of_derivative(d_c), instrument._netd_of_derivative(d_r)
+    k, m = float(obs.candidate_footprints), float(obs.reference_footprints)
     with np.errstate(over="ignore", invalid="ignore"):
+        lever = _lever(L_c, d_c) - _lever(L_r, d_r)
         per = e_c**2 / k + e_r**2 / m
-        white = per / n
-        floor = per * (instrument.integration_s / instrument.knee_s) / r
-        lever = gain_lever(T_cand_K, band) - gain_lever(T_ref_K, band)
+        floor_per = per * (instrument.integration_s / instrument.knee_s)
         gain = (instrument.gain_error * lever) ** 2
-    shape = np.broadcast(white, floor, gain).shape
-    return {
-        "instrument_white": np.broadcast_to(white, shape).astype(float),
-        "allan_floor": np.broadcast_to(floor, shape).astype(float),
-        "natural_scatter": np.full(shape, obs.natural_scatter_K**2 * (1 / k + 1 / m)),
-        "gain_error": np.broadcast_to(gain, shape).astype(float),
-    }
+    return _Scene(e_c, e_r, per, floor_per, obs.natural_scatter_K**2 * (1 / k + 1 / m), gain)
 
 
 def _total(terms) -> np.ndarray:
@@ -760,9 +835,29 @@ def detection_probability(
     exposure : array             dwell on each footprint [s] (stare) or number of passes [-] (passes).
     """
     mu, T_cand = observed_difference(dT_K, T_nominal_K, instrument, obs)
-    var0 = _total(noise_terms(T_nominal_K, T_nominal_K, exposure, instrument, obs))
-    var1 = _total(noise_terms(T_cand, T_nominal_K, exposure, instrument, obs))
+    null, alt = _null_and_alternative(T_cand, T_nominal_K, instrument, obs)
+    var0 = _total(null.terms(exposure, instrument, obs))
+    var1 = _total(alt.terms(exposure, instrument, obs))
     return _pd(mu, var0, var1, obs.false_alarm)
+
+
+def _null_and_alternative(T_cand_K, T_nominal_K, instrument: Instrument, obs: Observation) -> tuple:
+    """:class:`_Scene` under the null (candidate at ``T_nominal_K``) and the alternative (at ``T_cand_K``) [K]."""
+    nominal = _radiance_pair(T_nominal_K, instrument.band)
+    cand = _radiance_pair(T_cand_K, instrument.band)
+    return _scene(nominal, nominal, instrument, obs), _scene(cand, nominal, instrument, obs)
+
+
+def _radiance_pair(T_K, band: Band) -> tuple:
+    """:func:`band_radiance_and_derivative`; one temperature's is remembered (the report asks for the same
+    scenes across instruments' observations and scatter values)."""
+    T = np.asarray(T_K, float)
+    return _radiance_one(float(T), band) if T.ndim == 0 else band_radiance_and_derivative(T, band)
+
+
+@functools.lru_cache(maxsize=4096)
+def _radiance_one(T_K: float, band: Band) -> tuple:
+    return band_radiance_and_derivative(T_K, band)
 
 
 def _exposure_words(exposure: float, instrument: Instrument, obs: Observation) -> str:
@@ -798,14 +893,16 @@ def dwell_for_detection(
     mu_a, T_cand_a = observed_difference(dT_K, T_nominal_K, instrument, obs)
     mu, T_cand = float(mu_a), float(T_cand_a)
     inst = instrument
+    # the scene's NETDs and gain levers do not depend on the exposure: evaluated once for the whole search
+    null, alt = _null_and_alternative(T_cand, T_nominal_K, inst, obs)
     mode = observing_mode(inst, obs)
     passes = mode == "passes"
     t_pass = pass_integration(inst, obs) if passes else None
     out = {
         "mu_K": mu,
         "T_candidate_K": T_cand,
-        "netd_candidate_K": float(inst.netd(T_cand)),
-        "netd_reference_K": float(inst.netd(T_nominal_K)),
+        "netd_candidate_K": float(alt.netd_cand),  # inst.netd(T_cand) and inst.netd(T_nominal_K)
+        "netd_reference_K": float(alt.netd_ref),
         "mode": mode,
         "exposure_unit": exposure_unit(inst, obs),
         "pass_integration_s": t_pass,
@@ -828,13 +925,14 @@ def dwell_for_detection(
         return steps if passes else steps * step_s
 
     def terms_at(steps):
-        return {k: float(v) for k, v in noise_terms(T_cand, T_nominal_K, exposure_of(steps), inst, obs).items()}
+        return {k: float(v) for k, v in alt.terms(exposure_of(steps), inst, obs).items()}
 
     def var0_at(steps):
-        return float(_total(noise_terms(T_nominal_K, T_nominal_K, exposure_of(steps), inst, obs)))
+        return float(null.variance(*averaging(exposure_of(steps), inst, obs)))
 
     def pd(steps):
-        return float(_pd(mu, var0_at(steps), _total(terms_at(steps)), obs.false_alarm))
+        n, r = averaging(exposure_of(steps), inst, obs)
+        return float(_pd(mu, null.variance(n, r), float(alt.variance(n, r)), obs.false_alarm))
 
     inf_terms = terms_at(np.inf)
     inf_terms["instrument_white"] = 0.0

@@ -1090,10 +1090,8 @@ def _fig_site_maps(A, path, instruments: Sequence[ins.Instrument], observation: 
             ok = np.isfinite(dT) & np.isfinite(T_night) & (T_night + np.nan_to_num(dT) > 0)
             pd = np.full(len(f), np.nan)
             expo = ins.stated_exposure(inst, observation, REFERENCE_DWELL_S)
-            for k in np.flatnonzero(ok & inner):
-                pd[k] = float(
-                    np.ravel(ins.detection_probability(dT[k], T_night[k], np.array([expo]), inst, observation))[0]
-                )
+            k = np.flatnonzero(ok & inner)
+            pd[k] = ins.detection_probability(dT[k], T_night[k], expo, inst, observation)  # all facets at once
             at = f"{expo:.0f} passes" if ins.observing_mode(inst, observation) == "passes" else f"{expo:g} s"
             panels.append((pd, f"P(detect) in {at}, {inst.name}", "viridis", (0.0, 1.0)))
     n = len(panels)
