@@ -48,7 +48,8 @@ LENGTH_UNITS = ("m", "km")
 #: Spin-up procedures (runner.run_case).
 SPINUP_MODES = ("periodic", "fixed")
 #: IR exchange during a periodic spin-up: "coupled" (every step, as the record), "lagged" (each window
-#: with the IR series of the previous one), "auto" (simulate.spinup_ir_method: lagged on large meshes).
+#: with the IR series of the previous one, the first with each facet's IR held a day at a time), "auto"
+#: (simulate.spinup_ir_method: lagged on large meshes).
 SPINUP_IR_METHODS = ("auto", "coupled", "lagged")
 #: How a coupled step gets the IR at its end (radiosity.CoupledStepper): extrapolated from the exact IR of
 #: the two previous samples (one conduction solve per step), or predictor-corrector (two); or "relaxed":
