@@ -531,7 +531,12 @@ class SegmentStore:
             b = k // self.block
             f = self._file(name, b)
             try:
-                arr = np.load(f, allow_pickle=False)
+                # mapped, so that a read of a few rows (a block's first row, read with the block
+                # before it) loads those rows and not the whole block
+                try:
+                    arr = np.load(f, mmap_mode="r", allow_pickle=False)
+                except ValueError:  # e.g. a block of no rows cannot be mapped
+                    arr = np.load(f, allow_pickle=False)
             except (OSError, ValueError) as exc:
                 raise FluxFileError(
                     f"scratch store {self.folder}: block {os.path.basename(f)} unreadable ({exc})"
@@ -543,7 +548,8 @@ class SegmentStore:
                 )
             parts.append(arr[lo:hi])
             k = b * self.block + hi
-        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+        # a copy in memory: no view of a file that a later write of the block replaces
+        return np.array(parts[0]) if len(parts) == 1 else np.concatenate(parts)
 
     def mark(self, name: str) -> None:
         """Record that a stage finished (an empty marker file, written atomically)."""

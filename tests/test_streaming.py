@@ -57,6 +57,26 @@ def test_segment_store_rows_across_blocks(tmp_path):
     assert not (tmp_path / "s").exists()
 
 
+def test_segment_store_reads_copies_and_reports_torn_blocks(tmp_path):
+    """Reads are mapped (a block's first row alone loads only that row) but return copies: a block
+    written again afterwards does not change what was read; a block cut short on disk is an error
+    naming the block, not a crash or silently short data."""
+    store = io.SegmentStore(tmp_path / "s", block=4)
+    data = np.arange(8 * 5, dtype=float).reshape(8, 5)
+    store.write_rows("x", 0, data)
+    first = store.read("x", 0, 4)
+    edge = store.read("x", 4, 5)  # one row of the second block
+    store.write("x", 0, -data[:4])
+    store.write("x", 4, -data[4:])
+    np.testing.assert_array_equal(first, data[:4])
+    np.testing.assert_array_equal(edge, data[4:5])
+    np.testing.assert_array_equal(store.read("x", 3, 5), -data[3:5])
+    f = tmp_path / "s" / "x.00000001.npy"
+    f.write_bytes(f.read_bytes()[:-16])  # the last two values lost
+    with pytest.raises(io.FluxFileError, match="x.00000001.npy"):
+        store.read("x", 4, 8)
+
+
 def test_tiny_budget_gives_the_same_run(tmp_path):
     """Blocks of a few samples (a tiny chunk_mb) change nothing: the same fluxes and temperatures to
     rounding (uniform start and fixed spin-up: no block-wise means; the scattering solve of a different
