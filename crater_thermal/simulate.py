@@ -527,6 +527,10 @@ LAGGED_SPINUP_MIN_FACETS = 10_000
 #: a coupled first pass (3,000 facets: residuals 2.5, 0.18, 0.024, 0.003 K against 2.5, 0.18, 0.027,
 #: 0.004 K; holding 4 days took one pass more, a constant IR two).
 FIRST_PASS_HOLD_S = 86400.0
+#: The first lagged pass steps at most this far [s] (every third sample of 4-hour steps; conduction
+#: sub-steps as long): it only seeds the later passes, whose fixed point does not depend on it. Its
+#: temperatures and IR between those samples are interpolated linearly in time for the next pass.
+FIRST_PASS_STEP_S = 43200.0
 
 
 def spinup_ir_method(method: str, F, n_facets: int) -> str:
@@ -713,13 +717,16 @@ class _SpinUpWindow:
     def _held_ir_block(self, b0: int, b1: int, ir: np.ndarray):
         """The first pass over samples b0..b1 - 1: each facet's IR held for :data:`FIRST_PASS_HOLD_S` from
         ``ir`` [W m-2], then that of the temperatures reached (a one-vector product per hold; products
-        of a few right-hand sides cost as much as those of a block, measured).
-        Returns (input IR rows, surface temperature rows, the IR at the block's end)."""
+        of a few right-hand sides cost as much as those of a block, measured); steps of up to
+        :data:`FIRST_PASS_STEP_S` (the solver's sub-step limit raised to it by the caller), the samples
+        between interpolated linearly in time.
+        Returns (input IR rows, surface temperature rows, their IR rows, the IR at the block's end)."""
         fc, ns, t = self.fc, self.n, self.t
         e = min(ns, b1 + 1)
         sol = fc.rows(fc.drive, b0, e)
         ir_in = np.empty((b1 - b0, len(ir)))
-        T_out = np.empty((b1 - b0, len(ir)))
+        known: list[int] = []  # the samples stepped to, b0 .. e - 1
+        T_known: list[np.ndarray] = []
         k = b0
         while k < b1:
             k1 = k + 1  # the samples within the hold time of sample k
@@ -727,11 +734,32 @@ class _SpinUpWindow:
                 k1 += 1
             k2 = min(ns, k1 + 1)
             ir_in[k - b0 : k1 - b0] = ir
-            T = self.solver.run_series(t[k:k2], self.stepper.absorbed(sol[k - b0 : k2 - b0], ir[None, :]), record=True)
-            T_out[k - b0 : k1 - b0] = T[: k1 - k]
+            sub = [k]  # the samples of this hold stepped to: at most FIRST_PASS_STEP_S apart
+            while sub[-1] < k2 - 1:
+                j = sub[-1] + 1
+                while j < k2 - 1 and t[j + 1] - t[sub[-1]] <= FIRST_PASS_STEP_S:
+                    j += 1
+                sub.append(j)
+            sub = np.asarray(sub)
+            T = self.solver.run_series(t[sub], self.stepper.absorbed(sol[sub - b0], ir[None, :]), record=True)
+            known.extend(sub[:-1].tolist())
+            T_known.extend(T[:-1])
             ir = self.stepper.ir(T[-1])
             k = k1
-        return ir_in, T_out, ir
+        known.append(int(sub[-1]))
+        T_known.append(T[-1])
+        Tk = np.asarray(T_known)
+        irk = self.stepper.ir_rows(Tk)
+        # linear interpolation in time onto every sample of the block
+        kk = np.asarray(known)
+        rows = np.arange(b0, b1)
+        left = np.clip(np.searchsorted(kk, rows, side="right") - 1, 0, len(kk) - 1)
+        right = np.minimum(left + 1, len(kk) - 1)
+        span = t[kk[right]] - t[kk[left]]
+        w = np.where(span > 0, (t[rows] - t[kk[left]]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
+        T_out = (1.0 - w) * Tk[left] + w * Tk[right]
+        ir_out = (1.0 - w) * irk[left] + w * irk[right]
+        return ir_in, T_out, ir_out, ir
 
     def lagged(self, report, expected: int) -> None:
         """One lagged pass (the first one with each facet's IR held a day at a time, recording the IR
@@ -747,32 +775,40 @@ class _SpinUpWindow:
         self.columns_run.append(int(run.size))
         moved = np.zeros(self.skipped.size)  # max |output - input| of this pass, per column
         t_min = np.full(run.size, np.inf)
-        for b0 in range(0, ns, block):
-            b1 = min(ns, b0 + block)
-            e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
-            if first:
-                ir, T, ir_held = self._held_ir_block(b0, b1, ir_held)
-                fc.store.write(self.lag_in, b0, ir)
-            else:
-                ir = fc.store.read(self.lag_in, b0, e)
-                sol = fc.rows(fc.drive, b0, e)
-                if some:  # the skipped columns' temperatures are those of their last run
-                    T = fc.store.read("lag_T", b0, e).astype(float)
-                    T[:, run] = self.solver.run_columns(run, t[b0:e], self.stepper.absorbed(sol[:, run], ir[:, run]))
+        dt_max, adapt_K = self.solver.dt_max, self.solver.adapt_K
+        if first:  # the first pass's coarse steps (FIRST_PASS_STEP_S), one sub-step each, not refined
+            self.solver.dt_max, self.solver.adapt_K = max(dt_max, FIRST_PASS_STEP_S), 0.0
+        try:
+            for b0 in range(0, ns, block):
+                b1 = min(ns, b0 + block)
+                e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
+                if first:
+                    ir, T, rows, ir_held = self._held_ir_block(b0, b1, ir_held)
+                    fc.store.write(self.lag_in, b0, ir)
                 else:
-                    T = self.solver.run_series(t[b0:e], self.stepper.absorbed(sol, ir), record=True)
-                del sol
-                T = T[: b1 - b0]
-            rows = self.stepper.ir_rows(T)
-            fc.store.write(self.lag_out, b0, rows)
-            fc.store.write("lag_T", b0, T.astype(np.float32))
-            np.maximum(moved, np.max(np.abs(rows - ir[: b1 - b0]), axis=0), out=moved)
-            np.minimum(t_min, np.min(T[:, run], axis=0), out=t_min)
-            if b1 == ns:  # the IR of the window's last state: the record's first sample
-                self.ir_end = rows[-1].copy()
-            del ir, T, rows
-            if on_step is not None:
-                on_step(e - 1)
+                    ir = fc.store.read(self.lag_in, b0, e)
+                    sol = fc.rows(fc.drive, b0, e)
+                    if some:  # the skipped columns' temperatures are those of their last run
+                        T = fc.store.read("lag_T", b0, e).astype(float)
+                        T[:, run] = self.solver.run_columns(
+                            run, t[b0:e], self.stepper.absorbed(sol[:, run], ir[:, run])
+                        )
+                    else:
+                        T = self.solver.run_series(t[b0:e], self.stepper.absorbed(sol, ir), record=True)
+                    del sol
+                    T = T[: b1 - b0]
+                    rows = self.stepper.ir_rows(T)
+                fc.store.write(self.lag_out, b0, rows)
+                fc.store.write("lag_T", b0, T.astype(np.float32))
+                np.maximum(moved, np.max(np.abs(rows - ir[: b1 - b0]), axis=0), out=moved)
+                np.minimum(t_min, np.min(T[:, run], axis=0), out=t_min)
+                if b1 == ns:  # the IR of the window's last state: the record's first sample
+                    self.ir_end = rows[-1].copy()
+                del ir, T, rows
+                if on_step is not None:
+                    on_step(e - 1)
+        finally:
+            self.solver.dt_max, self.solver.adapt_K = dt_max, adapt_K
         self.t_min[run] = t_min
         # the next input is this output: each column's input drift since its last run
         self.drift = np.where(self.skipped, self.drift, 0.0) + moved
