@@ -395,3 +395,25 @@ def test_redo_columns_failure_names_the_solver_column():
     # only from the snapshot the step was taken from (its energy accumulators are rewound with it)
     with pytest.raises(SolverError, match="latest state"):
         s.redo_columns(np.array([1]), start.copy(), np.full(1, 10.0), np.full(1, 10.0), 14400.0)
+
+
+@pytest.mark.parametrize("labels", [["1300/1800"] * 40, ["1300/1800", "rock", "1100/1900", "1300/1800"] * 10])
+def test_columns_alike_or_not_match_each_column_alone(labels):
+    """Alike columns (one profile) share one batch of coefficients in the kernel; any mix keeps them per
+    column. Either way every column equals the same column solved alone, bit for bit, through a series
+    and through one-step calls (the kernel never lets a column's result depend on its batch)."""
+    t = np.arange(0.0, 30 * FLUX_STEP, FLUX_STEP)
+    kinds = ("wall", "floor")
+    Q = np.column_stack([forcing(kinds[j % 2], t) * (0.5 + 0.03 * j) for j in range(len(labels))])
+    many = th.ColumnSolver(labels)
+    many.set_uniform(150.0)
+    T_many = many.run_series(t, Q)
+    for k in range(5):
+        many.advance(Q[k], Q[k + 1], FLUX_STEP)
+    for j in (0, 1, 2, 17, len(labels) - 1):
+        one = th.ColumnSolver([labels[j]])
+        one.set_uniform(150.0)
+        np.testing.assert_array_equal(one.run_series(t, Q[:, j : j + 1])[:, 0], T_many[:, j])
+        for k in range(5):
+            one.advance(Q[k, j : j + 1], Q[k + 1, j : j + 1], FLUX_STEP)
+        np.testing.assert_array_equal(one.T[0], many.T[j])
