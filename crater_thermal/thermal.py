@@ -406,12 +406,20 @@ class ColumnSolver:
         self.dz = np.ascontiguousarray(g.dz)
         self.rdz = 1.0 / self.dz
         self._batched = None
+        self._alike = False  # every column has the same coefficients (set with _batched)
 
     def _interleaved(self) -> tuple:
         """The coefficients ``m, b0, b3, e0, e1`` in the kernel's batch layout (``kernels.conduction.interleave``),
         made once: a call then copies none of them (at 10,000 columns the copies cost as much as one step)."""
         if self._batched is None:
-            self._batched = tuple(_k.interleave(x) for x in (self.m, self.b0, self.b3, self.e0, self.e1))
+            coef = (self.m, self.b0, self.b3, self.e0, self.e1)
+            self._alike = self.ncol > 1 and all(np.array_equal(x, np.broadcast_to(x[:1], x.shape)) for x in coef)
+            if self._alike:
+                # every column alike (one profile, the usual run): one batch's worth, read by every batch
+                # (the kernel's convention for a single batch of coefficients), so that a call streams the
+                # temperatures and not the coefficients (one-step calls at 100,000 columns: 140 MB less)
+                coef = tuple(x[:1] for x in coef)
+            self._batched = tuple(_k.interleave(x) for x in coef)
         return self._batched
 
     @property
@@ -554,7 +562,11 @@ class ColumnSolver:
             m, b0, b3, e0, e1 = self._interleaved()
         else:  # a subset of the columns (copies, written back below)
             T, rock, acc = (np.ascontiguousarray(x[cols]) for x in (self.T, self.rock, self.acc))
-            m, b0, b3, e0, e1 = (_k.interleave(x[cols]) for x in (self.m, self.b0, self.b3, self.e0, self.e1))
+            batched = self._interleaved()
+            if self._alike:
+                m, b0, b3, e0, e1 = batched
+            else:
+                m, b0, b3, e0, e1 = (_k.interleave(x[cols]) for x in (self.m, self.b0, self.b3, self.e0, self.e1))
         ncol = T.shape[0]
         if out is None:
             out = np.empty((nt, ncol)) if record else np.empty((1, 1))

@@ -397,7 +397,8 @@ def test_redo_columns_failure_names_the_solver_column():
         s.redo_columns(np.array([1]), start.copy(), np.full(1, 10.0), np.full(1, 10.0), 14400.0)
 
 
-@pytest.mark.parametrize("labels", [["1300/1800"] * 40, ["1300/1800", "rock", "1100/1900", "1300/1800"] * 10])
+# 80 columns: 5 batches of LANES, enough for the kernel's threaded path (from 2 batches per thread)
+@pytest.mark.parametrize("labels", [["1300/1800"] * 80, ["1300/1800", "rock", "1100/1900", "1300/1800"] * 20])
 def test_columns_alike_or_not_match_each_column_alone(labels):
     """Alike columns (one profile) share one batch of coefficients in the kernel; any mix keeps them per
     column. Either way every column equals the same column solved alone, bit for bit, through a series

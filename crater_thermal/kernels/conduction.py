@@ -331,11 +331,12 @@ def _run_batch(
     nl = min(LANES, ncol - c0)
     Tb = np.empty((nz, nl))
     # the batch's coefficients, already interleaved (nz or nz-1, LANES): no copy per call
-    mb = m[bi]
-    b0b = b0[bi]
-    b3b = b3[bi]
-    e0b = e0[bi]
-    e1b = e1[bi]
+    sb = np.int64(bi) if m.shape[0] > 1 else np.int64(0)  # one batch of coefficients: every column alike
+    mb = m[sb]
+    b0b = b0[sb]
+    b3b = b3[sb]
+    e0b = e0[sb]
+    e1b = e1[sb]
     anyrock = False
     for j in range(nl):
         if rock[c0 + j] != 0:
@@ -558,7 +559,8 @@ def run_columns(
     T : (ncol, nz) float64 [K], updated in place.
     m : (nb, nz, LANES) [kg m-2]; b0, b3, e0, e1 : (nb, nz-1, LANES): the columns' coefficients
     interleaved by batch of :data:`LANES` (:func:`interleave`; nb = ceil(ncol / LANES)), so that a
-    call copies none of them; rock : (ncol,) uint8 (1: rock term).
+    call copies none of them; or (1, ., LANES), one batch read by every batch (columns alike);
+    rock : (ncol,) uint8 (1: rock term).
     ccoef : (5,); ctmin [K]; rdz : (nz-1,) inverse link lengths [m-1]; es = eps sigma
     [W m-2 K-4]; G [W m-2]; scheme : SCHEME_BE or SCHEME_TRBDF2; dt_max [s];
     adapt_K [K]: local-error threshold (TR-BDF2 only; 0 disables). After each sub-step, a column
