@@ -95,7 +95,9 @@ def load_rows(folder: str, a: int, b: int):
     return None if folder is None else vfoperator.load_row_block(folder, a, b)
 
 
-def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K: float = 0.0):
+def solve_chunk(
+    rows, facets, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K: float = 0.0, hold: bool = False
+):
     """Conduct one chunk's columns through a window (runs on a worker, one thread).
 
     Parameters
@@ -107,22 +109,26 @@ def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict, prev
     prev, skip_K : this chunk's result of the previous iteration of the window (a
         :class:`waveform.Window`, kept on the workers) and the change [K] below which a column keeps it
         (:func:`waveform.active_columns`).
+    hold : ``E`` is one row (1, nf) whose IR is held over the window (:meth:`waveform.LocalColumns.solve`).
 
     Returns
     -------
     waveform.Window of the chunk's columns.
     """
     with cluster.one_numba_thread():
-        return _chunk_window(rows, E, len(facets), ir0, state, times_s, solar, options, prev, skip_K)
+        return _chunk_window(rows, E, len(facets), ir0, state, times_s, solar, options, prev, skip_K, hold)
 
 
-def _chunk_window(rows, E, m: int, ir0, state, times_s, solar, options: dict, prev=None, skip_K: float = 0.0):
+def _chunk_window(
+    rows, E, m: int, ir0, state, times_s, solar, options: dict, prev=None, skip_K: float = 0.0, hold: bool = False
+):
     """A chunk of ``m`` columns through a window, driven by the IR its operator rows form from the emitted
-    flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given); the
-    :class:`waveform.Window` of the chunk."""
+    flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given; with ``hold``, ``E``
+    is one row whose IR is held over the window); the :class:`waveform.Window` of the chunk."""
     _PLANS.clear()  # the operator's rows are built: its plan is no longer needed on this worker
-    ir = np.zeros((len(times_s), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
-    if ir0 is not None:
+    ir = np.zeros((len(E), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
+    ir = waveform.held_ir(ir, len(times_s), hold)
+    if ir0 is not None and not hold:
         ir[0] = ir0
     eps = options["emissivity"]
     a = radiosity.absorbed_flux(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
@@ -163,7 +169,7 @@ class DaskColumns:
     def n_facets(self) -> int:
         return self._n
 
-    def solve(self, state, times_s, solar, E, ir0=None, prev=None, skip_K: float = 0.0):
+    def solve(self, state, times_s, solar, E, ir0=None, prev=None, skip_K: float = 0.0, hold: bool = False):
         """As :meth:`waveform.LocalColumns.solve`; ``prev`` must be the result of this backend's latest call
         (its chunks' parts stay on the workers and are used there)."""
         from distributed import KilledWorker
@@ -172,7 +178,7 @@ class DaskColumns:
             self._last = self._state = None
         for attempt in range(RESENDS + 1):
             try:
-                return self._round(state, times_s, solar, E, ir0, skip_K if prev is not None else 0.0)
+                return self._round(state, times_s, solar, E, ir0, skip_K if prev is not None else 0.0, hold)
             except KilledWorker as exc:
                 raise _gave_up(exc, _RESUME) from None
             except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
@@ -186,10 +192,18 @@ class DaskColumns:
         """:meth:`_lagged_pass`, with dask's failures turned into one-line errors, or into
         :class:`waveform.PassLost` when data of the pass went with a worker (the caller runs the pass again
         through the command)."""
+        return self._whole_pass(self._lagged_pass, state, times_s, rows, block, previous, on_step)
+
+    def held_pass(self, state, times_s, rows, block: int, on_step=None):
+        """:meth:`_held_pass`, with dask's failures turned into one-line errors or :class:`waveform.PassLost`
+        (as :meth:`lagged_pass`)."""
+        return self._whole_pass(self._held_pass, state, times_s, rows, block, on_step)
+
+    def _whole_pass(self, run, *args):
         from distributed import KilledWorker
 
         try:
-            return self._lagged_pass(state, times_s, rows, block, previous, on_step)
+            return run(*args)
         except KilledWorker as exc:
             raise _gave_up(exc) from None
         except (CraterThermalError, MemoryError):
@@ -209,15 +223,9 @@ class DaskColumns:
 
         Returns (end state (nf, nz) [K], accumulators (nf, n_acc), IR at the last sample (nf,) [W m-2]).
         """
-        client, chunks, nf = self.client, self.chunks, self._n
+        client, chunks = self.client, self.chunks
         n = len(times_s)
-        blocks = [(b0, min(n - 1, b0 + block)) for b0 in range(0, n - 1, block)]
-        if self._spin is None:  # the spin-up window's sunlight and the chunking, sent once for all passes
-            self._chunks_f = client.scatter(_Facets(chunks), hash=False)
-            self._spin = {
-                b0: client.scatter([np.ascontiguousarray(rows(b0, b1 + 1)[:, idx]) for idx in chunks], hash=False)
-                for b0, b1 in blocks
-            }
+        blocks = self._send_spin(times_s, rows, block)
         start = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
         new, surfaces = {}, {}
         for b0, b1 in blocks:
@@ -243,6 +251,68 @@ class DaskColumns:
             ]
             new[b0], start = futs, futs
             surfaces[b0] = [client.submit(_surface, f, pure=False) for f in futs]
+        return self._pass_end(new, surfaces, blocks, n, on_step)
+
+    def _send_spin(self, times_s, rows, block: int) -> list[tuple[int, int]]:
+        """The blocks ``(b0, b1)`` of a spin-up pass; the spin-up window's sunlight (per block and chunk) and
+        the chunking sent to the workers once for all passes."""
+        n = len(times_s)
+        blocks = [(b0, min(n - 1, b0 + block)) for b0 in range(0, n - 1, block)]
+        if self._spin is None:
+            client, chunks = self.client, self.chunks
+            self._chunks_f = client.scatter(_Facets(chunks), hash=False)
+            self._spin = {
+                b0: client.scatter([np.ascontiguousarray(rows(b0, b1 + 1)[:, idx]) for idx in chunks], hash=False)
+                for b0, b1 in blocks
+            }
+        return blocks
+
+    def _held_pass(self, state, times_s, rows, block: int, on_step=None):
+        """The first pass of the periodic start (:meth:`waveform.SpinUp.held`) kept on the workers, submitted
+        whole: per hold (:func:`waveform.hold_spans`), each chunk's task forms its rows' IR from the surface
+        temperatures every chunk reached at the hold's start (worker to worker: one float per facet) and
+        conducts its columns through the hold with that IR; the holds of a block are joined into the
+        block's window, whose temperatures drive the next (lagged) pass on the workers. Only the end
+        states, accumulators and last IR come back (as :meth:`_lagged_pass`).
+
+        Returns (end state (nf, nz) [K], accumulators (nf, n_acc), IR at the last sample (nf,) [W m-2]).
+        """
+        client, chunks = self.client, self.chunks
+        n = len(times_s)
+        blocks = self._send_spin(times_s, rows, block)
+        start = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
+        source = client.scatter(np.ascontiguousarray(state[:, 0]), hash=False)  # the surfaces at the start
+        new, surfaces = {}, {}
+        for b0, b1 in blocks:
+            holds = []
+            for k, k1 in waveform.hold_spans(times_s, b0, b1):
+                futs = [
+                    client.submit(
+                        held_chunk,
+                        self.row_futures[c],
+                        self._chunks_f,
+                        c,
+                        source,
+                        start[c],
+                        times_s[k : k1 + 1],
+                        self._spin[b0][c],
+                        k - b0,
+                        self.options,
+                        pure=False,
+                        retries=RETRIES,
+                    )
+                    for c in range(len(chunks))
+                ]
+                source = [client.submit(_last_surface, f, pure=False) for f in futs]
+                holds.append(futs)
+                start = futs
+            new[b0] = [client.submit(_joined, *[h[c] for h in holds], pure=False) for c in range(len(chunks))]
+            surfaces[b0] = [client.submit(_surface, f, pure=False) for f in new[b0]]
+        return self._pass_end(new, surfaces, blocks, n, on_step)
+
+    def _pass_end(self, new, surfaces, blocks, n: int, on_step):
+        """Gather a pass's end (end states, accumulators, last IR) and keep its windows on the workers."""
+        client, chunks, nf = self.client, self.chunks, self._n
         summaries = [
             client.submit(_pass_summary, *[new[b0][c] for b0, _ in blocks], pure=False) for c in range(len(chunks))
         ]
@@ -281,7 +351,7 @@ class DaskColumns:
         """Release the spin-up's data on the workers."""
         self._pass = self._surfaces = self._spin = self._chunks_f = None
 
-    def _round(self, state, times_s, solar, E, ir0, skip_K):
+    def _round(self, state, times_s, solar, E, ir0, skip_K, hold=False):
         client = self.client
         if self._state is None:  # a new window (or a resent one): its start state and sunlight, once
             self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
@@ -303,6 +373,7 @@ class DaskColumns:
                 self.options,
                 last[c],
                 skip_K if last[c] is not None else 0.0,
+                hold,
                 pure=False,
                 retries=RETRIES,
             )
@@ -318,6 +389,38 @@ class DaskColumns:
 def _surface(w):
     """A chunk window's surface temperatures [K] and conducted-column count (a small task)."""
     return w.T, w.active
+
+
+def _last_surface(w):
+    """A chunk window's surface temperatures [K] at its last sample (a small task)."""
+    return w.T[-1]
+
+
+def held_chunk(rows, chunks, c: int, source, start, times_s, solar, i0: int, options: dict):
+    """One chunk through one hold of a periodic start's first pass (runs on a worker, one thread): its IR
+    held at its rows' ``F e(T)`` of every facet's surface temperature [K] at the hold's start (``source``:
+    one (nf,) array, or every chunk's part), from ``start`` (a state array, or the chunk's window of the
+    hold before); ``solar`` the chunk's sunlight rows of the block [W m-2], the hold's from row ``i0``."""
+    if isinstance(source, np.ndarray):
+        T = source
+    else:
+        T = np.empty(sum(len(idx) for idx in chunks.idx))
+        for idx, part in zip(chunks.idx, source):
+            T[idx] = part
+    state = start.end if isinstance(start, waveform.Window) else start
+    E = radiosity.emitted(T, options["emissivity"])[None, :]
+    sol = solar[i0 : i0 + len(times_s)]
+    with cluster.one_numba_thread():
+        return _chunk_window(rows, E, len(chunks.idx[c]), None, state, times_s, sol, options, hold=True)
+
+
+def _joined(*windows):
+    """The holds of a block joined into one window (consecutive holds share a sample, the later one's
+    first)."""
+    last = windows[-1]
+    T = np.concatenate([w.T[:-1] for w in windows[:-1]] + [last.T])
+    ir = np.concatenate([w.ir[:-1] for w in windows[:-1]] + [last.ir])
+    return waveform.Window(T, ir, last.end, sum(w.acc for w in windows))
 
 
 def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: dict):

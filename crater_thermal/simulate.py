@@ -34,7 +34,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from crater_thermal import cache, ephemeris, geometry, radiosity, raytrace, sunlight, terrain, thermal, vfoperator
+from crater_thermal import (
+    cache,
+    ephemeris,
+    geometry,
+    radiosity,
+    raytrace,
+    sunlight,
+    terrain,
+    thermal,
+    vfoperator,
+    waveform,
+)
 from crater_thermal.constants import SIGMA
 
 # ----------------------------------------------------------------------------- memory budget
@@ -523,10 +534,8 @@ LAGGED_SPINUP_MIN_FACETS = 10_000
 
 
 #: The first lagged spin-up pass holds each facet's IR for this long [s] before taking the IR of the
-#: temperatures reached: a day is 1/30 of the lunar day, and the windows after it then converge as after
-#: a coupled first pass (3,000 facets: residuals 2.5, 0.18, 0.024, 0.003 K against 2.5, 0.18, 0.027,
-#: 0.004 K; holding 4 days took one pass more, a constant IR two).
-FIRST_PASS_HOLD_S = 86400.0
+#: temperatures reached (:data:`crater_thermal.waveform.FIRST_PASS_HOLD_S`, shared with the relaxed start).
+FIRST_PASS_HOLD_S = waveform.FIRST_PASS_HOLD_S
 
 
 def spinup_ir_method(method: str, F, n_facets: int) -> str:
@@ -720,17 +729,12 @@ class _SpinUpWindow:
         sol = fc.rows(fc.drive, b0, e)
         ir_in = np.empty((b1 - b0, len(ir)))
         T_out = np.empty((b1 - b0, len(ir)))
-        k = b0
-        while k < b1:
-            k1 = k + 1  # the samples within the hold time of sample k
-            while k1 < b1 and t[k1] - t[k] < FIRST_PASS_HOLD_S:
-                k1 += 1
+        for k, k1 in waveform.hold_spans(t, b0, b1, FIRST_PASS_HOLD_S):
             k2 = min(ns, k1 + 1)
             ir_in[k - b0 : k1 - b0] = ir
             T = self.solver.run_series(t[k:k2], self.stepper.absorbed(sol[k - b0 : k2 - b0], ir[None, :]), record=True)
             T_out[k - b0 : k1 - b0] = T[: k1 - k]
             ir = self.stepper.ir(T[-1])
-            k = k1
         return ir_in, T_out, ir
 
     def lagged(self, report, expected: int) -> None:
