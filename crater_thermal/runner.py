@@ -423,7 +423,8 @@ def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, t
 def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, progress):
     """:func:`simulate.spin_up` with the passes through the spin-up window relaxed (:class:`waveform.SpinUp`):
     the periodic state over lagged passes (the first one holding each facet's IR a day at a time, as
-    the local lagged start's), or one relaxed pass (fixed spin-up). Returns (info, IR [W m-2] at the record's first sample)."""
+    the local lagged start's), or one relaxed pass (fixed spin-up). Returns (info, IR [W m-2] at the
+    record's first sample)."""
     period = case.period
     T0 = period.initial_temperature_K
     if T0 is not None:

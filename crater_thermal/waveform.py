@@ -299,7 +299,8 @@ class SpinUp:
         spans = [hold_spans(self.t, b0, b1) for b0, b1 in self._blocks()]
         if hasattr(self.columns, "held_pass") and not self.remote_lost:  # the pass on the workers
             try:
-                end, acc, self.ir_end = self.columns.held_pass(self.solver.state(), self.t, self.rows, self.block, on_step)
+                state = self.solver.state()
+                end, acc, self.ir_end = self.columns.held_pass(state, self.t, self.rows, self.block, on_step)
             except PassLost:  # data of the pass went with a worker: the pass through ``solve``
                 self.remote_lost, self.remote_pass = True, False
             else:
