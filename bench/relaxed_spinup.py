@@ -7,13 +7,17 @@ process importing ``crater_thermal`` from its tree (``--old``, e.g. ``git archiv
 /tmp/old``, or this repository), after an untimed warm-up run of a small case (imports, numba). The
 modes alternate (old, new, old, new, ...: ``--pairs``) so that both see the same machine load.
 
-Recorded per run: the spin-up's seconds (the run's ``conduction_spinup``), its passes (the periodic
-start's ``spinup_iterations``), the rounds of ``LocalColumns.solve`` during it (each a client<->worker
-exchange on the round-based distributed path: the former first pass relaxed window by window, the held
-pass once per hold), the right-hand sides of the IR products they made, the load average, and the
-largest difference of the start (the record's first sample) between the trees.
+With ``--workers N`` the runs are on a local dask cluster of N one-thread workers (``run --workers``;
+the cluster's start is outside the spin-up's seconds).
 
-Usage: ``python bench/relaxed_spinup.py --old /tmp/old [--facets 3000] [--pairs 2]
+Recorded per run: the spin-up's seconds (the run's ``conduction_spinup``), its passes (the periodic
+start's ``spinup_iterations``), the rounds of the backend's ``solve`` during it (each a client<->worker
+exchange on a cluster: the former first pass relaxed window by window; in this process the held pass
+makes one per hold), the right-hand sides of the IR products they made, the passes submitted whole to
+the cluster (one exchange each), the load average, and the largest difference of the start (the
+record's first sample) between the trees.
+
+Usage: ``python bench/relaxed_spinup.py --old /tmp/old [--facets 3000] [--pairs 2] [--workers 0]
 [--out bench/results/relaxed_spinup.json]``.
 """
 
@@ -31,7 +35,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def child(tree: Path, facets: int, work: Path, out_json: Path) -> None:
+def child(tree: Path, facets: int, work: Path, out_json: Path, workers: int = 0) -> None:
     """One run with ``crater_thermal`` from ``tree`` (in a fresh process)."""
     sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
     sys.path.insert(0, str(tree))
@@ -39,7 +43,7 @@ def child(tree: Path, facets: int, work: Path, out_json: Path) -> None:
 
     import numpy as np
 
-    from crater_thermal import config, io, runner, waveform
+    from crater_thermal import cluster_run, config, io, runner, waveform
 
     spec = importlib.util.spec_from_file_location("bench_scale", REPO / "bench" / "scale.py")
     scale = importlib.util.module_from_spec(spec)
@@ -54,21 +58,35 @@ def child(tree: Path, facets: int, work: Path, out_json: Path) -> None:
         path.write_text(text)
         return config.load_case(path)
 
+    def columns():
+        return cluster_run.distributed_columns(workers=workers) if workers else None
+
     runner.run_case(
         case("warm", 300, "2019-01-02T00:00", 'spinup = "periodic"\nspinup_days = 29.53'),
         work / "warm.nc",
         progress=False,
         overwrite=True,
+        columns=columns(),
     )
-    counts = {"rounds": 0, "rhs": 0}
-    solve = waveform.LocalColumns.solve
+    counts = {"rounds": 0, "rhs": 0, "whole_passes": 0}
+    backend = cluster_run.DaskColumns if workers else waveform.LocalColumns
+    solve = backend.solve
 
     def counted(self, state, times_s, solar, E, *args, **kwargs):
         counts["rounds"] += 1
         counts["rhs"] += len(E)
         return solve(self, state, times_s, solar, E, *args, **kwargs)
 
-    waveform.LocalColumns.solve = counted
+    backend.solve = counted
+    for name in ("lagged_pass", "held_pass"):  # a pass submitted whole: one exchange
+        whole = getattr(backend, name, None)
+        if whole is not None:
+
+            def counted_pass(self, *args, _whole=whole, **kwargs):
+                counts["whole_passes"] += 1
+                return _whole(self, *args, **kwargs)
+
+            setattr(backend, name, counted_pass)
     spin_up = runner._spin_up_relaxed
     at_spin = {}
 
@@ -85,6 +103,7 @@ def child(tree: Path, facets: int, work: Path, out_json: Path) -> None:
         work / "run.nc",
         progress=False,
         overwrite=True,
+        columns=columns(),
     )
     wall = time.perf_counter() - t0
     with io.open_run(out) as ds:
@@ -100,6 +119,8 @@ def child(tree: Path, facets: int, work: Path, out_json: Path) -> None:
             "start_method": str(ds.attrs["start_method"]),
             "spinup_solve_rounds": at_spin["rounds"],
             "spinup_product_rhs": at_spin["rhs"],
+            "spinup_whole_passes": at_spin["whole_passes"],
+            "workers": workers,
             "loadavg_start": load0,
             "loadavg_end": os.getloadavg()[0],
         }
@@ -112,11 +133,12 @@ def main() -> None:
     ap.add_argument("--old", type=Path, required=True, help="the other tree (its crater_thermal is imported)")
     ap.add_argument("--facets", type=int, default=3000)
     ap.add_argument("--pairs", type=int, default=2)
+    ap.add_argument("--workers", type=int, default=0, help="a local dask cluster of this many 1-thread workers")
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "relaxed_spinup.json")
     ap.add_argument("--child", nargs=3, metavar=("TREE", "WORK", "JSON"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        child(Path(args.child[0]), args.facets, Path(args.child[1]), Path(args.child[2]))
+        child(Path(args.child[0]), args.facets, Path(args.child[1]), Path(args.child[2]), args.workers)
         return
     import numpy as np
 
@@ -130,6 +152,7 @@ def main() -> None:
                 work.mkdir()
                 js = work / "result.json"
                 cmd = [sys.executable, __file__, "--facets", str(args.facets), "--old", str(args.old)]
+                cmd += ["--workers", str(args.workers)]
                 subprocess.run(cmd + ["--child", str(tree), str(work), str(js)], env=env, check=True)
                 r = json.loads(js.read_text())
                 r.update(mode=mode, pair=i, start_K=str(js.with_suffix(".npy")))
@@ -143,6 +166,7 @@ def main() -> None:
             "passes": sorted({r["passes"] for r in runs if r["mode"] == m}),
             "spinup_solve_rounds": sorted({r["spinup_solve_rounds"] for r in runs if r["mode"] == m}),
             "spinup_product_rhs": sorted({r["spinup_product_rhs"] for r in runs if r["mode"] == m}),
+            "spinup_whole_passes": sorted({r["spinup_whole_passes"] for r in runs if r["mode"] == m}),
         }
         for m in ("old", "new")
     }
@@ -150,6 +174,7 @@ def main() -> None:
     result = {
         "old_tree": str(args.old),
         "facets_requested": args.facets,
+        "workers": args.workers,
         "cpus": os.cpu_count(),
         "runs": runs,
         "summary": summary,
