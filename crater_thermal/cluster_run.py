@@ -162,7 +162,7 @@ class DaskColumns:
         self._last = None  # the chunks' result futures of the latest round (the next iteration's prev)
         self._state = None  # the chunks' start states of the current window (futures)
         # lagged spin-up passes kept on the workers: sunlight per block, the latest pass's windows
-        self._spin = self._pass = self._surfaces = self._chunks_f = None
+        self._spin = self._pass = self._surfaces = self._chunks_f = self._next = None
         self.description = f"dask: {len(chunks)} chunks on {n_workers} worker(s) at start"
 
     @property
@@ -188,11 +188,41 @@ class DaskColumns:
                     raise _failed(exc, _RESUME) from None
                 self._last = self._state = None
 
-    def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
+    def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None, skip=None):
         """:meth:`_lagged_pass`, with dask's failures turned into one-line errors, or into
         :class:`waveform.PassLost` when data of the pass went with a worker (the caller runs the pass again
         through the command)."""
-        return self._whole_pass(self._lagged_pass, state, times_s, rows, block, previous, on_step)
+        return self._whole_pass(self._lagged_pass, state, times_s, rows, block, previous, on_step, skip)
+
+    def next_inputs(self):
+        """The next lagged pass's input IR formed on the workers from the latest pass's temperatures (per
+        block and chunk, kept there for that pass: the products it would make itself); returns (max |its
+        change| from the latest pass's input [W m-2], the coldest surface temperature [K]) per facet
+        (one exchange), or None when data of the pass is lost (that pass then runs every column)."""
+        client, chunks = self.client, self.chunks
+        try:
+            nxt = {
+                b0: [
+                    client.submit(
+                        _next_ir, self.row_futures[c], self._chunks_f, self._surfaces[b0], w, self.options, pure=False
+                    )
+                    for c, w in enumerate(windows)
+                ]
+                for b0, windows in self._pass.items()
+            }
+            summaries = [
+                client.submit(_drift_summary, *[nxt[b0][c] for b0 in nxt], pure=False) for c in range(len(chunks))
+            ]
+            dq, t_min = np.empty(self._n), np.empty(self._n)
+            for idx, (d, t) in zip(chunks, client.gather(summaries)):
+                dq[idx], t_min[idx] = d, t
+        except (CraterThermalError, MemoryError):
+            raise
+        except Exception:  # a worker lost with data of the pass: the next pass finds out and falls back
+            self._next = None
+            return None
+        self._next = nxt
+        return dq, t_min
 
     def held_pass(self, state, times_s, rows, block: int, on_step=None):
         """:meth:`_held_pass`, with dask's failures turned into one-line errors or :class:`waveform.PassLost`
@@ -214,12 +244,14 @@ class DaskColumns:
                 raise _failed(exc) from None
             raise waveform.PassLost(str(exc)) from None
 
-    def _lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
+    def _lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None, skip=None):
         """One lagged pass of the periodic start (:meth:`waveform.SpinUp.lagged`) kept on the workers: the
         whole pass is submitted at once (each chunk's block starts from its block before), each task
         builds the emission from the previous pass's temperatures, worker to worker, and only the end
         states, accumulators and last IR come back. ``previous(k0, k1)``: the previous pass's temperature
-        rows [K] from the command's store, used when no pass has run on the workers yet.
+        rows [K] from the command's store, used when no pass has run on the workers yet. ``skip`` (bool
+        (nf,)): columns not to run (they keep the previous pass's windows), with the input IR formed by
+        :meth:`next_inputs`.
 
         Returns (end state (nf, nz) [K], accumulators (nf, n_acc), IR at the last sample (nf,) [W m-2]).
         """
@@ -228,8 +260,14 @@ class DaskColumns:
         blocks = self._send_spin(times_s, rows, block)
         start = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
         new, surfaces = {}, {}
+        nxt, self._next = self._next, None
+        run = [None] * len(chunks)
+        if skip is not None and nxt is not None and np.any(skip):
+            run = [np.flatnonzero(~np.asarray(skip)[idx]) for idx in chunks]
         for b0, b1 in blocks:
-            if self._surfaces is None:
+            if nxt is not None:
+                source = nxt[b0]
+            elif self._surfaces is None:
                 source = [client.scatter(np.ascontiguousarray(previous(b0, b1 + 1)), hash=False)] * len(chunks)
             else:
                 source = [self._surfaces[b0]] * len(chunks)
@@ -244,6 +282,8 @@ class DaskColumns:
                     times_s[b0 : b1 + 1],
                     self._spin[b0][c],
                     self.options,
+                    run[c],
+                    None if run[c] is None else self._pass[b0][c],
                     pure=False,
                     retries=RETRIES,
                 )
@@ -349,7 +389,7 @@ class DaskColumns:
 
     def end_spinup(self) -> None:
         """Release the spin-up's data on the workers."""
-        self._pass = self._surfaces = self._spin = self._chunks_f = None
+        self._pass = self._surfaces = self._spin = self._chunks_f = self._next = None
 
     def _round(self, state, times_s, solar, E, ir0, skip_K, hold=False):
         client = self.client
@@ -391,6 +431,25 @@ def _surface(w):
     return w.T, w.active
 
 
+def _next_ir(rows, chunks, surfaces, w, options: dict):
+    """A chunk's input IR [W m-2] of the next lagged pass over a block, from every chunk's surface
+    temperatures [K] of the latest pass (``surfaces``: their ``(T, active)`` parts), with its change from
+    the chunk's latest input (``w``: its window of the block) and the chunk's coldest surface temperature
+    [K]: ``(ir, max |change| per column, min T per column)``."""
+    T = np.empty((len(w.T), sum(len(idx) for idx in chunks.idx)))
+    for idx, (t_part, _) in zip(chunks.idx, surfaces):
+        T[:, idx] = t_part
+    E = radiosity.emitted(T, options["emissivity"])
+    with cluster.one_numba_thread():
+        ir = np.zeros_like(w.ir) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
+    return ir, np.max(np.abs(ir - w.ir), axis=0), np.min(w.T, axis=0)
+
+
+def _drift_summary(*parts):
+    """A chunk's max |input change| [W m-2] and coldest surface temperature [K] over all blocks."""
+    return np.max([p[1] for p in parts], axis=0), np.min([p[2] for p in parts], axis=0)
+
+
 def _last_surface(w):
     """A chunk window's surface temperatures [K] at its last sample (a small task)."""
     return w.T[-1]
@@ -423,14 +482,25 @@ def _joined(*windows):
     return waveform.Window(T, ir, last.end, sum(w.acc for w in windows))
 
 
-def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: dict):
+def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: dict, run=None, prev=None):
     """One chunk through one block of a lagged spin-up pass (runs on a worker, one thread): driven by the IR
     of the previous pass's temperatures of every facet over the block, from ``start`` (a state array, or
     the chunk's window of the block before in this pass).
 
     ``source``: the previous pass's surface temperatures [K] over the block, as one (n, nf) array or as
-    every chunk's ``(T, active)`` part (``chunks`` gives their facets).
+    every chunk's ``(T, active)`` part (``chunks`` gives their facets); or the chunk's input IR formed by
+    :func:`_next_ir` (a tuple). ``run``: the chunk's columns to run [indices] (the others keep ``prev``,
+    the chunk's window of the block in the previous pass), or None: all.
     """
+    state = start.end if isinstance(start, waveform.Window) else start
+    if isinstance(source, tuple):  # the input IR, formed between the passes
+        ir = source[0]
+        a = radiosity.absorbed_flux(solar, ir, options["albedo"], options["emissivity"], options["solar_is_absorbed"])
+        if run is not None:
+            prev = waveform.Window(prev.T, ir, prev.end, np.zeros_like(prev.acc))
+        with cluster.one_numba_thread():
+            solver = _solver(options, len(chunks.idx[c]))
+            return waveform.conduct(solver, state, times_s, a, ir, prev, 0.0, options["emissivity"], active=run)
     chunks = chunks.idx
     if isinstance(source, np.ndarray):
         T = source
@@ -438,7 +508,6 @@ def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: d
         T = np.empty((len(times_s), sum(len(idx) for idx in chunks)))
         for idx, (t_part, _) in zip(chunks, source):
             T[:, idx] = t_part
-    state = start.end if isinstance(start, waveform.Window) else start
     E = radiosity.emitted(T, options["emissivity"])
     with cluster.one_numba_thread():
         return _chunk_window(rows, E, len(chunks[c]), None, state, times_s, solar, options)

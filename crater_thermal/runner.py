@@ -452,7 +452,7 @@ def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, 
         method = (
             f"periodic steady state over {years} yr (tolerance {tol_K} K), each spin-up window driven by the "
             f"previous window's IR, the first holding each facet's IR {waveform.FIRST_PASS_HOLD_S / 86400:g} d "
-            f"at a time ({spin.holds} holds)"
+            f"at a time ({spin.holds} holds; columns run per window: {', '.join(map(str, spin.columns_run))})"
         )
         return {
             "start_method": method,

@@ -785,8 +785,7 @@ class _SpinUpWindow:
     def skip(self, converged: np.ndarray) -> np.ndarray:
         """The ``skip`` hook of :func:`thermal.periodic_state`: the converged columns the next lagged pass
         need not run (their input IR has moved by less than 4 sigma T_min^3 tol / 4 since their last run)."""
-        bound = self.drift / (4.0 * SIGMA * np.maximum(self.t_min, 1.0) ** 3)
-        self.skipped = np.asarray(converged, bool) & (bound <= 0.25 * self.tol_K)
+        self.skipped = waveform.skippable(converged, self.drift, self.t_min, self.tol_K)
         return self.skipped
 
     def save_lagged_spin_ir(self) -> None:
