@@ -14,8 +14,9 @@ Recorded per run: the spin-up's seconds (the run's ``conduction_spinup``), its p
 start's ``spinup_iterations``), the rounds of the backend's ``solve`` during it (each a client<->worker
 exchange on a cluster: the former first pass relaxed window by window; in this process the held pass
 makes one per hold), the right-hand sides of the IR products they made, the passes submitted whole to
-the cluster (one exchange each), the load average, and the largest difference of the start (the
-record's first sample) between the trees.
+the cluster (one exchange each), the next passes' inputs formed on the workers between passes (one
+exchange each: the skipped columns' test), the load average, and the largest difference of the start
+(the record's first sample) between the trees.
 
 Usage: ``python bench/relaxed_spinup.py --old /tmp/old [--facets 3000] [--pairs 2] [--workers 0]
 [--out bench/results/relaxed_spinup.json]``.
@@ -68,7 +69,7 @@ def child(tree: Path, facets: int, work: Path, out_json: Path, workers: int = 0)
         overwrite=True,
         columns=columns(),
     )
-    counts = {"rounds": 0, "rhs": 0, "whole_passes": 0}
+    counts = {"rounds": 0, "rhs": 0, "whole_passes": 0, "next_inputs": 0}
     backend = cluster_run.DaskColumns if workers else waveform.LocalColumns
     solve = backend.solve
 
@@ -87,6 +88,14 @@ def child(tree: Path, facets: int, work: Path, out_json: Path, workers: int = 0)
                 return _whole(self, *args, **kwargs)
 
             setattr(backend, name, counted_pass)
+    next_inputs = getattr(backend, "next_inputs", None)
+    if next_inputs is not None:  # the next pass's input formed on the workers between passes: one exchange
+
+        def counted_next(self, *args, **kwargs):
+            counts["next_inputs"] += 1
+            return next_inputs(self, *args, **kwargs)
+
+        backend.next_inputs = counted_next
     spin_up = runner._spin_up_relaxed
     at_spin = {}
 
@@ -120,6 +129,7 @@ def child(tree: Path, facets: int, work: Path, out_json: Path, workers: int = 0)
             "spinup_solve_rounds": at_spin["rounds"],
             "spinup_product_rhs": at_spin["rhs"],
             "spinup_whole_passes": at_spin["whole_passes"],
+            "spinup_next_inputs": at_spin["next_inputs"],
             "workers": workers,
             "loadavg_start": load0,
             "loadavg_end": os.getloadavg()[0],
@@ -167,6 +177,7 @@ def main() -> None:
             "spinup_solve_rounds": sorted({r["spinup_solve_rounds"] for r in runs if r["mode"] == m}),
             "spinup_product_rhs": sorted({r["spinup_product_rhs"] for r in runs if r["mode"] == m}),
             "spinup_whole_passes": sorted({r["spinup_whole_passes"] for r in runs if r["mode"] == m}),
+            "spinup_next_inputs": sorted({r.get("spinup_next_inputs", 0) for r in runs if r["mode"] == m}),
         }
         for m in ("old", "new")
     }
