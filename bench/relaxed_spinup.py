@@ -13,7 +13,8 @@ the cluster's start is outside the spin-up's seconds).
 Recorded per run: the spin-up's seconds (the run's ``conduction_spinup``), its passes (the periodic
 start's ``spinup_iterations``), the rounds of the backend's ``solve`` during it (each a client<->worker
 exchange on a cluster: the former first pass relaxed window by window; in this process the held pass
-makes one per hold), the right-hand sides of the IR products they made, the passes submitted whole to
+makes one per hold), the right-hand sides of the IR products they made (and in this process those made
+between passes for the next pass, ``ir_rows``), the passes submitted whole to
 the cluster (one exchange each), the next passes' inputs formed on the workers between passes (one
 exchange each: the skipped columns' test), the load average, and the largest difference of the start
 (the record's first sample) between the trees.
@@ -79,6 +80,14 @@ def child(tree: Path, facets: int, work: Path, out_json: Path, workers: int = 0)
         return solve(self, state, times_s, solar, E, *args, **kwargs)
 
     backend.solve = counted
+    ir_rows = getattr(backend, "ir_rows", None)
+    if ir_rows is not None:  # the next pass's input IR formed between passes (products too)
+
+        def counted_rows(self, T, *args, **kwargs):
+            counts["rhs"] += len(T)
+            return ir_rows(self, T, *args, **kwargs)
+
+        backend.ir_rows = counted_rows
     for name in ("lagged_pass", "held_pass"):  # a pass submitted whole: one exchange
         whole = getattr(backend, name, None)
         if whole is not None:
