@@ -196,8 +196,8 @@ class DaskColumns:
 
     def next_inputs(self):
         """The next lagged pass's input IR formed on the workers from the latest pass's temperatures (per
-        block and chunk, kept there for that pass: the products it would make itself); returns (max |its
-        change| from the latest pass's input [W m-2], the coldest surface temperature [K]) per facet
+        block and chunk, kept there for that pass: the products it would make itself); returns (the largest
+        change from the latest pass's input [W m-2], the coldest surface temperature [K]) per facet
         (one exchange), or None when data of the pass is lost (that pass then runs every column)."""
         client, chunks = self.client, self.chunks
         try:
@@ -435,7 +435,7 @@ def _next_ir(rows, chunks, surfaces, w, options: dict):
     """A chunk's input IR [W m-2] of the next lagged pass over a block, from every chunk's surface
     temperatures [K] of the latest pass (``surfaces``: their ``(T, active)`` parts), with its change from
     the chunk's latest input (``w``: its window of the block) and the chunk's coldest surface temperature
-    [K]: ``(ir, max |change| per column, min T per column)``."""
+    [K]: ``(ir, the largest absolute change per column, min T per column)``."""
     T = np.empty((len(w.T), sum(len(idx) for idx in chunks.idx)))
     for idx, (t_part, _) in zip(chunks.idx, surfaces):
         T[:, idx] = t_part
@@ -446,7 +446,7 @@ def _next_ir(rows, chunks, surfaces, w, options: dict):
 
 
 def _drift_summary(*parts):
-    """A chunk's max |input change| [W m-2] and coldest surface temperature [K] over all blocks."""
+    """A chunk's largest absolute input change [W m-2] and coldest surface temperature [K] over all blocks."""
     return np.max([p[1] for p in parts], axis=0), np.min([p[2] for p in parts], axis=0)
 
 

@@ -444,7 +444,7 @@ class SpinUp:
         return self.skipped
 
     def _next_inputs(self):
-        """Form the next pass's input IR from the latest pass's temperatures; returns (max |its change|
+        """Form the next pass's input IR from the latest pass's temperatures; returns (the largest change
         from the latest pass's input [W m-2], the coldest surface temperature [K]) per column, or None."""
         if self.remote_pass and not self.remote_lost:
             return self.columns.next_inputs() if hasattr(self.columns, "next_inputs") else None
