@@ -95,7 +95,9 @@ def load_rows(folder: str, a: int, b: int):
     return None if folder is None else vfoperator.load_row_block(folder, a, b)
 
 
-def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K: float = 0.0):
+def solve_chunk(
+    rows, facets, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K: float = 0.0, hold: bool = False
+):
     """Conduct one chunk's columns through a window (runs on a worker, one thread).
 
     Parameters
@@ -107,22 +109,26 @@ def solve_chunk(rows, facets, E, state, times_s, solar, ir0, options: dict, prev
     prev, skip_K : this chunk's result of the previous iteration of the window (a
         :class:`waveform.Window`, kept on the workers) and the change [K] below which a column keeps it
         (:func:`waveform.active_columns`).
+    hold : ``E`` is one row (1, nf) whose IR is held over the window (:meth:`waveform.LocalColumns.solve`).
 
     Returns
     -------
     waveform.Window of the chunk's columns.
     """
     with cluster.one_numba_thread():
-        return _chunk_window(rows, E, len(facets), ir0, state, times_s, solar, options, prev, skip_K)
+        return _chunk_window(rows, E, len(facets), ir0, state, times_s, solar, options, prev, skip_K, hold)
 
 
-def _chunk_window(rows, E, m: int, ir0, state, times_s, solar, options: dict, prev=None, skip_K: float = 0.0):
+def _chunk_window(
+    rows, E, m: int, ir0, state, times_s, solar, options: dict, prev=None, skip_K: float = 0.0, hold: bool = False
+):
     """A chunk of ``m`` columns through a window, driven by the IR its operator rows form from the emitted
-    flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given); the
-    :class:`waveform.Window` of the chunk."""
+    flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given; with ``hold``, ``E``
+    is one row whose IR is held over the window); the :class:`waveform.Window` of the chunk."""
     _PLANS.clear()  # the operator's rows are built: its plan is no longer needed on this worker
-    ir = np.zeros((len(times_s), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
-    if ir0 is not None:
+    ir = np.zeros((len(E), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
+    ir = waveform.held_ir(ir, len(times_s), hold)
+    if ir0 is not None and not hold:
         ir[0] = ir0
     eps = options["emissivity"]
     a = radiosity.absorbed_flux(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
@@ -156,14 +162,14 @@ class DaskColumns:
         self._last = None  # the chunks' result futures of the latest round (the next iteration's prev)
         self._state = None  # the chunks' start states of the current window (futures)
         # lagged spin-up passes kept on the workers: sunlight per block, the latest pass's windows
-        self._spin = self._pass = self._surfaces = self._chunks_f = None
+        self._spin = self._pass = self._surfaces = self._chunks_f = self._next = None
         self.description = f"dask: {len(chunks)} chunks on {n_workers} worker(s) at start"
 
     @property
     def n_facets(self) -> int:
         return self._n
 
-    def solve(self, state, times_s, solar, E, ir0=None, prev=None, skip_K: float = 0.0):
+    def solve(self, state, times_s, solar, E, ir0=None, prev=None, skip_K: float = 0.0, hold: bool = False):
         """As :meth:`waveform.LocalColumns.solve`; ``prev`` must be the result of this backend's latest call
         (its chunks' parts stay on the workers and are used there)."""
         from distributed import KilledWorker
@@ -172,7 +178,7 @@ class DaskColumns:
             self._last = self._state = None
         for attempt in range(RESENDS + 1):
             try:
-                return self._round(state, times_s, solar, E, ir0, skip_K if prev is not None else 0.0)
+                return self._round(state, times_s, solar, E, ir0, skip_K if prev is not None else 0.0, hold)
             except KilledWorker as exc:
                 raise _gave_up(exc, _RESUME) from None
             except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
@@ -182,14 +188,52 @@ class DaskColumns:
                     raise _failed(exc, _RESUME) from None
                 self._last = self._state = None
 
-    def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
+    def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None, skip=None):
         """:meth:`_lagged_pass`, with dask's failures turned into one-line errors, or into
         :class:`waveform.PassLost` when data of the pass went with a worker (the caller runs the pass again
         through the command)."""
+        return self._whole_pass(self._lagged_pass, state, times_s, rows, block, previous, on_step, skip)
+
+    def next_inputs(self):
+        """The next lagged pass's input IR formed on the workers from the latest pass's temperatures (per
+        block and chunk, kept there for that pass: the products it would make itself); returns (the largest
+        change from the latest pass's input [W m-2], the coldest surface temperature [K]) per facet
+        (one exchange), or None when data of the pass is lost (that pass then runs every column)."""
+        client, chunks = self.client, self.chunks
+        try:
+            nxt = {
+                b0: [
+                    client.submit(
+                        _next_ir, self.row_futures[c], self._chunks_f, self._surfaces[b0], w, self.options, pure=False
+                    )
+                    for c, w in enumerate(windows)
+                ]
+                for b0, windows in self._pass.items()
+            }
+            summaries = [
+                client.submit(_drift_summary, *[nxt[b0][c] for b0 in nxt], pure=False) for c in range(len(chunks))
+            ]
+            dq, t_min = np.empty(self._n), np.empty(self._n)
+            for idx, (d, t) in zip(chunks, client.gather(summaries)):
+                dq[idx], t_min[idx] = d, t
+        except (CraterThermalError, MemoryError):
+            raise
+        except Exception:  # a worker lost with data of the pass: the next pass finds out and falls back
+            self._next = None
+            return None
+        self._next = nxt
+        return dq, t_min
+
+    def held_pass(self, state, times_s, rows, block: int, on_step=None):
+        """:meth:`_held_pass`, with dask's failures turned into one-line errors or :class:`waveform.PassLost`
+        (as :meth:`lagged_pass`)."""
+        return self._whole_pass(self._held_pass, state, times_s, rows, block, on_step)
+
+    def _whole_pass(self, run, *args):
         from distributed import KilledWorker
 
         try:
-            return self._lagged_pass(state, times_s, rows, block, previous, on_step)
+            return run(*args)
         except KilledWorker as exc:
             raise _gave_up(exc) from None
         except (CraterThermalError, MemoryError):
@@ -200,28 +244,30 @@ class DaskColumns:
                 raise _failed(exc) from None
             raise waveform.PassLost(str(exc)) from None
 
-    def _lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None):
+    def _lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None, skip=None):
         """One lagged pass of the periodic start (:meth:`waveform.SpinUp.lagged`) kept on the workers: the
         whole pass is submitted at once (each chunk's block starts from its block before), each task
         builds the emission from the previous pass's temperatures, worker to worker, and only the end
         states, accumulators and last IR come back. ``previous(k0, k1)``: the previous pass's temperature
-        rows [K] from the command's store, used when no pass has run on the workers yet.
+        rows [K] from the command's store, used when no pass has run on the workers yet. ``skip`` (bool
+        (nf,)): columns not to run (they keep the previous pass's windows), with the input IR formed by
+        :meth:`next_inputs`.
 
         Returns (end state (nf, nz) [K], accumulators (nf, n_acc), IR at the last sample (nf,) [W m-2]).
         """
-        client, chunks, nf = self.client, self.chunks, self._n
+        client, chunks = self.client, self.chunks
         n = len(times_s)
-        blocks = [(b0, min(n - 1, b0 + block)) for b0 in range(0, n - 1, block)]
-        if self._spin is None:  # the spin-up window's sunlight and the chunking, sent once for all passes
-            self._chunks_f = client.scatter(_Facets(chunks), hash=False)
-            self._spin = {
-                b0: client.scatter([np.ascontiguousarray(rows(b0, b1 + 1)[:, idx]) for idx in chunks], hash=False)
-                for b0, b1 in blocks
-            }
+        blocks = self._send_spin(times_s, rows, block)
         start = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
         new, surfaces = {}, {}
+        nxt, self._next = self._next, None
+        run = [None] * len(chunks)
+        if skip is not None and nxt is not None and np.any(skip):
+            run = [np.flatnonzero(~np.asarray(skip)[idx]) for idx in chunks]
         for b0, b1 in blocks:
-            if self._surfaces is None:
+            if nxt is not None:
+                source = nxt[b0]
+            elif self._surfaces is None:
                 source = [client.scatter(np.ascontiguousarray(previous(b0, b1 + 1)), hash=False)] * len(chunks)
             else:
                 source = [self._surfaces[b0]] * len(chunks)
@@ -236,6 +282,8 @@ class DaskColumns:
                     times_s[b0 : b1 + 1],
                     self._spin[b0][c],
                     self.options,
+                    run[c],
+                    None if run[c] is None else self._pass[b0][c],
                     pure=False,
                     retries=RETRIES,
                 )
@@ -243,6 +291,68 @@ class DaskColumns:
             ]
             new[b0], start = futs, futs
             surfaces[b0] = [client.submit(_surface, f, pure=False) for f in futs]
+        return self._pass_end(new, surfaces, blocks, n, on_step)
+
+    def _send_spin(self, times_s, rows, block: int) -> list[tuple[int, int]]:
+        """The blocks ``(b0, b1)`` of a spin-up pass; the spin-up window's sunlight (per block and chunk) and
+        the chunking sent to the workers once for all passes."""
+        n = len(times_s)
+        blocks = [(b0, min(n - 1, b0 + block)) for b0 in range(0, n - 1, block)]
+        if self._spin is None:
+            client, chunks = self.client, self.chunks
+            self._chunks_f = client.scatter(_Facets(chunks), hash=False)
+            self._spin = {
+                b0: client.scatter([np.ascontiguousarray(rows(b0, b1 + 1)[:, idx]) for idx in chunks], hash=False)
+                for b0, b1 in blocks
+            }
+        return blocks
+
+    def _held_pass(self, state, times_s, rows, block: int, on_step=None):
+        """The first pass of the periodic start (:meth:`waveform.SpinUp.held`) kept on the workers, submitted
+        whole: per hold (:func:`waveform.hold_spans`), each chunk's task forms its rows' IR from the surface
+        temperatures every chunk reached at the hold's start (worker to worker: one float per facet) and
+        conducts its columns through the hold with that IR; the holds of a block are joined into the
+        block's window, whose temperatures drive the next (lagged) pass on the workers. Only the end
+        states, accumulators and last IR come back (as :meth:`_lagged_pass`).
+
+        Returns (end state (nf, nz) [K], accumulators (nf, n_acc), IR at the last sample (nf,) [W m-2]).
+        """
+        client, chunks = self.client, self.chunks
+        n = len(times_s)
+        blocks = self._send_spin(times_s, rows, block)
+        start = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
+        source = client.scatter(np.ascontiguousarray(state[:, 0]), hash=False)  # the surfaces at the start
+        new, surfaces = {}, {}
+        for b0, b1 in blocks:
+            holds = []
+            for k, k1 in waveform.hold_spans(times_s, b0, b1):
+                futs = [
+                    client.submit(
+                        held_chunk,
+                        self.row_futures[c],
+                        self._chunks_f,
+                        c,
+                        source,
+                        start[c],
+                        times_s[k : k1 + 1],
+                        self._spin[b0][c],
+                        k - b0,
+                        self.options,
+                        pure=False,
+                        retries=RETRIES,
+                    )
+                    for c in range(len(chunks))
+                ]
+                source = [client.submit(_last_surface, f, pure=False) for f in futs]
+                holds.append(futs)
+                start = futs
+            new[b0] = [client.submit(_joined, *[h[c] for h in holds], pure=False) for c in range(len(chunks))]
+            surfaces[b0] = [client.submit(_surface, f, pure=False) for f in new[b0]]
+        return self._pass_end(new, surfaces, blocks, n, on_step)
+
+    def _pass_end(self, new, surfaces, blocks, n: int, on_step):
+        """Gather a pass's end (end states, accumulators, last IR) and keep its windows on the workers."""
+        client, chunks, nf = self.client, self.chunks, self._n
         summaries = [
             client.submit(_pass_summary, *[new[b0][c] for b0, _ in blocks], pure=False) for c in range(len(chunks))
         ]
@@ -279,9 +389,9 @@ class DaskColumns:
 
     def end_spinup(self) -> None:
         """Release the spin-up's data on the workers."""
-        self._pass = self._surfaces = self._spin = self._chunks_f = None
+        self._pass = self._surfaces = self._spin = self._chunks_f = self._next = None
 
-    def _round(self, state, times_s, solar, E, ir0, skip_K):
+    def _round(self, state, times_s, solar, E, ir0, skip_K, hold=False):
         client = self.client
         if self._state is None:  # a new window (or a resent one): its start state and sunlight, once
             self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
@@ -303,6 +413,7 @@ class DaskColumns:
                 self.options,
                 last[c],
                 skip_K if last[c] is not None else 0.0,
+                hold,
                 pure=False,
                 retries=RETRIES,
             )
@@ -320,14 +431,76 @@ def _surface(w):
     return w.T, w.active
 
 
-def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: dict):
+def _next_ir(rows, chunks, surfaces, w, options: dict):
+    """A chunk's input IR [W m-2] of the next lagged pass over a block, from every chunk's surface
+    temperatures [K] of the latest pass (``surfaces``: their ``(T, active)`` parts), with its change from
+    the chunk's latest input (``w``: its window of the block) and the chunk's coldest surface temperature
+    [K]: ``(ir, the largest absolute change per column, min T per column)``."""
+    T = np.empty((len(w.T), sum(len(idx) for idx in chunks.idx)))
+    for idx, (t_part, _) in zip(chunks.idx, surfaces):
+        T[:, idx] = t_part
+    E = radiosity.emitted(T, options["emissivity"])
+    with cluster.one_numba_thread():
+        ir = np.zeros_like(w.ir) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
+    return ir, np.max(np.abs(ir - w.ir), axis=0), np.min(w.T, axis=0)
+
+
+def _drift_summary(*parts):
+    """A chunk's largest absolute input change [W m-2] and coldest surface temperature [K] over all blocks."""
+    return np.max([p[1] for p in parts], axis=0), np.min([p[2] for p in parts], axis=0)
+
+
+def _last_surface(w):
+    """A chunk window's surface temperatures [K] at its last sample (a small task)."""
+    return w.T[-1]
+
+
+def held_chunk(rows, chunks, c: int, source, start, times_s, solar, i0: int, options: dict):
+    """One chunk through one hold of a periodic start's first pass (runs on a worker, one thread): its IR
+    held at its rows' ``F e(T)`` of every facet's surface temperature [K] at the hold's start (``source``:
+    one (nf,) array, or every chunk's part), from ``start`` (a state array, or the chunk's window of the
+    hold before); ``solar`` the chunk's sunlight rows of the block [W m-2], the hold's from row ``i0``."""
+    if isinstance(source, np.ndarray):
+        T = source
+    else:
+        T = np.empty(sum(len(idx) for idx in chunks.idx))
+        for idx, part in zip(chunks.idx, source):
+            T[idx] = part
+    state = start.end if isinstance(start, waveform.Window) else start
+    E = radiosity.emitted(T, options["emissivity"])[None, :]
+    sol = solar[i0 : i0 + len(times_s)]
+    with cluster.one_numba_thread():
+        return _chunk_window(rows, E, len(chunks.idx[c]), None, state, times_s, sol, options, hold=True)
+
+
+def _joined(*windows):
+    """The holds of a block joined into one window (consecutive holds share a sample, the later one's
+    first)."""
+    last = windows[-1]
+    T = np.concatenate([w.T[:-1] for w in windows[:-1]] + [last.T])
+    ir = np.concatenate([w.ir[:-1] for w in windows[:-1]] + [last.ir])
+    return waveform.Window(T, ir, last.end, sum(w.acc for w in windows))
+
+
+def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: dict, run=None, prev=None):
     """One chunk through one block of a lagged spin-up pass (runs on a worker, one thread): driven by the IR
     of the previous pass's temperatures of every facet over the block, from ``start`` (a state array, or
     the chunk's window of the block before in this pass).
 
     ``source``: the previous pass's surface temperatures [K] over the block, as one (n, nf) array or as
-    every chunk's ``(T, active)`` part (``chunks`` gives their facets).
+    every chunk's ``(T, active)`` part (``chunks`` gives their facets); or the chunk's input IR formed by
+    :func:`_next_ir` (a tuple). ``run``: the chunk's columns to run [indices] (the others keep ``prev``,
+    the chunk's window of the block in the previous pass), or None: all.
     """
+    state = start.end if isinstance(start, waveform.Window) else start
+    if isinstance(source, tuple):  # the input IR, formed between the passes
+        ir = source[0]
+        a = radiosity.absorbed_flux(solar, ir, options["albedo"], options["emissivity"], options["solar_is_absorbed"])
+        if run is not None:
+            prev = waveform.Window(prev.T, ir, prev.end, np.zeros_like(prev.acc))
+        with cluster.one_numba_thread():
+            solver = _solver(options, len(chunks.idx[c]))
+            return waveform.conduct(solver, state, times_s, a, ir, prev, 0.0, options["emissivity"], active=run)
     chunks = chunks.idx
     if isinstance(source, np.ndarray):
         T = source
@@ -335,7 +508,6 @@ def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: d
         T = np.empty((len(times_s), sum(len(idx) for idx in chunks)))
         for idx, (t_part, _) in zip(chunks, source):
             T[:, idx] = t_part
-    state = start.end if isinstance(start, waveform.Window) else start
     E = radiosity.emitted(T, options["emissivity"])
     with cluster.one_numba_thread():
         return _chunk_window(rows, E, len(chunks[c]), None, state, times_s, solar, options)

@@ -422,8 +422,9 @@ def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, t
 
 def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, progress):
     """:func:`simulate.spin_up` with the passes through the spin-up window relaxed (:class:`waveform.SpinUp`):
-    the periodic state over lagged passes (the first one relaxed window by window), or one relaxed pass
-    (fixed spin-up). Returns (info, IR [W m-2] at the record's first sample)."""
+    the periodic state over lagged passes (the first one holding each facet's IR a day at a time, as
+    the local lagged start's), or one relaxed pass (fixed spin-up). Returns (info, IR [W m-2] at the
+    record's first sample)."""
     period = case.period
     T0 = period.initial_temperature_K
     if T0 is not None:
@@ -439,10 +440,9 @@ def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, 
         spin_t,
         block,
         eps,
-        # a periodic start only seeds its lagged passes with the first one: a loose tolerance over whole
-        # blocks (the fixed point of the passes does not depend on it); a fixed spin-up is that one pass
-        waveform.SEED_TOL_K if period.spinup == "periodic" else waveform.DEFAULT_TOL_K,
-        block if period.spinup == "periodic" else waveform.window_samples(block),
+        # the relaxation of a fixed spin-up's one pass (a periodic start's passes are held or lagged)
+        waveform.DEFAULT_TOL_K,
+        waveform.window_samples(block),
         save_spin,
     )
     years, tol_K = period.spinup_years, period.periodic_tol_K
@@ -451,7 +451,8 @@ def _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, 
             info = spin.periodic(tol_K, report)
         method = (
             f"periodic steady state over {years} yr (tolerance {tol_K} K), each spin-up window driven by the "
-            f"previous window's IR, the first relaxed to {waveform.SEED_TOL_K} K"
+            f"previous window's IR, the first holding each facet's IR {waveform.FIRST_PASS_HOLD_S / 86400:g} d "
+            f"at a time ({spin.holds} holds; columns run per window: {', '.join(map(str, spin.columns_run))})"
         )
         return {
             "start_method": method,

@@ -34,7 +34,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from crater_thermal import cache, ephemeris, geometry, radiosity, raytrace, sunlight, terrain, thermal, vfoperator
+from crater_thermal import (
+    cache,
+    ephemeris,
+    geometry,
+    radiosity,
+    raytrace,
+    sunlight,
+    terrain,
+    thermal,
+    vfoperator,
+    waveform,
+)
 from crater_thermal.constants import SIGMA
 
 # ----------------------------------------------------------------------------- memory budget
@@ -523,13 +534,13 @@ LAGGED_SPINUP_MIN_FACETS = 10_000
 
 
 #: The first lagged spin-up pass holds each facet's IR for this long [s] before taking the IR of the
-#: temperatures reached: a day is 1/30 of the lunar day, and the windows after it then converge as after
-#: a coupled first pass (3,000 facets: residuals 2.5, 0.18, 0.024, 0.003 K against 2.5, 0.18, 0.027,
-#: 0.004 K; holding 4 days took one pass more, a constant IR two).
-FIRST_PASS_HOLD_S = 86400.0
+#: temperatures reached (:data:`crater_thermal.waveform.FIRST_PASS_HOLD_S`, shared with the relaxed start).
+FIRST_PASS_HOLD_S = waveform.FIRST_PASS_HOLD_S
 #: The first lagged pass steps at most this far [s] (every third sample of 4-hour steps; conduction
-#: sub-steps as long): it only seeds the later passes, whose fixed point does not depend on it. Its
-#: temperatures and IR between those samples are interpolated linearly in time for the next pass.
+#: sub-steps as long, not refined): it only seeds the later passes, whose fixed point does not depend on
+#: it. Its temperatures and IR between those samples are interpolated linearly in time for the next pass.
+#: 0: every sample, with the solver's sub-steps and refinement (the relaxed start's first pass,
+#: :meth:`crater_thermal.waveform.SpinUp.held`, still steps so).
 FIRST_PASS_STEP_S = 43200.0
 
 
@@ -727,11 +738,7 @@ class _SpinUpWindow:
         ir_in = np.empty((b1 - b0, len(ir)))
         known: list[int] = []  # the samples stepped to, b0 .. e - 1
         T_known: list[np.ndarray] = []
-        k = b0
-        while k < b1:
-            k1 = k + 1  # the samples within the hold time of sample k
-            while k1 < b1 and t[k1] - t[k] < FIRST_PASS_HOLD_S:
-                k1 += 1
+        for k, k1 in waveform.hold_spans(t, b0, b1, FIRST_PASS_HOLD_S):
             k2 = min(ns, k1 + 1)
             ir_in[k - b0 : k1 - b0] = ir
             sub = [k]  # the samples of this hold stepped to: at most FIRST_PASS_STEP_S apart
@@ -745,7 +752,6 @@ class _SpinUpWindow:
             known.extend(sub[:-1].tolist())
             T_known.extend(T[:-1])
             ir = self.stepper.ir(T[-1])
-            k = k1
         known.append(int(sub[-1]))
         T_known.append(T[-1])
         Tk = np.asarray(T_known)
@@ -776,7 +782,7 @@ class _SpinUpWindow:
         moved = np.zeros(self.skipped.size)  # max |output - input| of this pass, per column
         t_min = np.full(run.size, np.inf)
         dt_max, adapt_K = self.solver.dt_max, self.solver.adapt_K
-        if first:  # the first pass's coarse steps (FIRST_PASS_STEP_S), one sub-step each, not refined
+        if first and FIRST_PASS_STEP_S > 0:  # the first pass's coarse steps, one sub-step each, not refined
             self.solver.dt_max, self.solver.adapt_K = max(dt_max, FIRST_PASS_STEP_S), 0.0
         try:
             for b0 in range(0, ns, block):
@@ -817,8 +823,7 @@ class _SpinUpWindow:
     def skip(self, converged: np.ndarray) -> np.ndarray:
         """The ``skip`` hook of :func:`thermal.periodic_state`: the converged columns the next lagged pass
         need not run (their input IR has moved by less than 4 sigma T_min^3 tol / 4 since their last run)."""
-        bound = self.drift / (4.0 * SIGMA * np.maximum(self.t_min, 1.0) ** 3)
-        self.skipped = np.asarray(converged, bool) & (bound <= 0.25 * self.tol_K)
+        self.skipped = waveform.skippable(converged, self.drift, self.t_min, self.tol_K)
         return self.skipped
 
     def save_lagged_spin_ir(self) -> None:

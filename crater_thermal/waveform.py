@@ -41,9 +41,12 @@ from crater_thermal.errors import SolverError
 #: Default convergence tolerance of a window [K]: the largest change of any surface temperature between
 #: two iterations (the remaining error is a fraction of it, see the module docstring).
 DEFAULT_TOL_K = 1e-3
-#: Tolerance [K] of the relaxed first pass that seeds a periodic start's lagged passes (their fixed point
-#: does not depend on the seed; a closer seed saves passes, a looser one iterations).
-SEED_TOL_K = 0.05
+#: The first pass of a periodic start holds each facet's IR for this long [s] before taking the IR of the
+#: temperatures reached (one one-vector product per hold): a day is 1/30 of the lunar day, and the passes
+#: after it then converge as after a coupled first pass (3,000 facets: residuals 2.5, 0.18, 0.024, 0.003 K
+#: against 2.5, 0.18, 0.027, 0.004 K; holding 4 days took one pass more, a constant IR two). Used by both
+#: lagged starts, this module's :class:`SpinUp` and :mod:`crater_thermal.simulate`'s.
+FIRST_PASS_HOLD_S = 86400.0
 #: Most iterations per window before the run stops with an error.
 MAX_ITERATIONS = 30
 #: After the first iteration of a window, a column is conducted again only when its new IR can move its
@@ -55,6 +58,21 @@ SKIP_FRACTION = 0.25
 #: samples, 7-8 at 96 on crater terrain), but the later ones conduct few columns, and a distributed run
 #: exchanges once per iteration: measured in ``docs/cluster.md``.
 DEFAULT_WINDOW = 96
+
+
+def hold_spans(times_s, b0: int, b1: int, hold_s: float = FIRST_PASS_HOLD_S) -> list[tuple[int, int]]:
+    """The holds of a first pass over samples ``b0 .. b1 - 1``: ``(k, k1)`` pairs, the IR held over samples
+    ``k .. k1 - 1`` (the samples within ``hold_s`` [s] of sample k, at least one) and the next hold starting
+    at ``k1 <= b1`` from the IR of the temperatures at sample ``k1``; ``times_s`` (n,) [s]."""
+    spans = []
+    k = int(b0)
+    while k < b1:
+        k1 = k + 1
+        while k1 < b1 and times_s[k1] - times_s[k] < hold_s:
+            k1 += 1
+        spans.append((k, k1))
+        k = k1
+    return spans
 
 
 def window_samples(block: int) -> int:
@@ -105,7 +123,9 @@ class LocalColumns:
     def n_facets(self) -> int:
         return self.solver.ncol
 
-    def solve(self, state, times_s, solar, E, ir0=None, prev: Window | None = None, skip_K: float = 0.0) -> Window:
+    def solve(
+        self, state, times_s, solar, E, ir0=None, prev: Window | None = None, skip_K: float = 0.0, hold: bool = False
+    ) -> Window:
         """Conduct the columns over the window from ``state``.
 
         Parameters
@@ -119,12 +139,42 @@ class LocalColumns:
         prev, skip_K : the previous iterate of the same window and a temperature change [K]: the columns
             whose IR changed so little since ``prev`` that their temperatures cannot move by more than
             ``skip_K`` (:func:`active_columns`) keep ``prev``'s results instead of being conducted again.
+        hold : ``E`` is one row (1, nf) whose IR ``F E`` is held over every sample (a first pass's hold,
+            :meth:`SpinUp.held`: one one-vector product); ``ir0`` is then ignored.
         """
-        ir = radiosity.ir_of_emission(self.F, E)
-        if ir0 is not None:
+        ir = held_ir(radiosity.ir_of_emission(self.F, E), len(times_s), hold)
+        if ir0 is not None and not hold:
             ir[0] = ir0
         a = radiosity.absorbed_flux(solar, ir, self.albedo, self.emissivity, self.solar_is_absorbed)
         return conduct(self.solver, state, times_s, a, ir, prev, skip_K, self.emissivity)
+
+    def ir_rows(self, T) -> np.ndarray:
+        """The IR [W m-2] (n, nf) of surface temperature rows ``T`` (n, nf) [K]: one product."""
+        return radiosity.ir_of_emission(self.F, radiosity.emitted(np.asarray(T, float), self.emissivity))
+
+    def run_ir(self, state, times_s, solar, ir, active, T_last) -> Window:
+        """Conduct the ``active`` columns [indices] over the window from ``state`` driven by the given IR
+        rows ``ir`` (n, nf) [W m-2]; the others keep their surface temperatures ``T_last`` (n, nf) [K] and
+        their state (a periodic start's skipped columns, :meth:`SpinUp.skip`)."""
+        a = radiosity.absorbed_flux(solar, ir, self.albedo, self.emissivity, self.solar_is_absorbed)
+        prev = Window(np.asarray(T_last, float), ir, np.asarray(state, float), np.zeros_like(self.solver.acc))
+        return conduct(self.solver, state, times_s, a, ir, prev, 0.0, self.emissivity, active=active)
+
+
+def skippable(converged, drift, t_min, tol_K: float) -> np.ndarray:
+    """The columns a periodic start's next lagged pass need not run (the ``skip`` hook of
+    :func:`thermal.periodic_state`, here and in :mod:`crater_thermal.simulate`): converged (bool (nf,)) and
+    whose input IR has moved, since their last run, by ``drift`` [W m-2] (max over the samples) less than
+    what could move them by :data:`SKIP_FRACTION` of ``tol_K`` [K], by the radiative bound
+    ``|dT| <= |dIR| / (4 sigma T_min^3)`` (``t_min`` [K]: their coldest surface temperature of that run)."""
+    bound = np.asarray(drift) / (4.0 * SIGMA * np.maximum(t_min, 1.0) ** 3)
+    return np.asarray(converged, bool) & (bound <= SKIP_FRACTION * tol_K)
+
+
+def held_ir(ir, n: int, hold: bool) -> np.ndarray:
+    """The IR rows [W m-2] of a window of ``n`` samples: ``ir`` (n, m) itself, or with ``hold`` its one row
+    (1, m) repeated over the n samples."""
+    return np.repeat(ir[:1], n, axis=0) if hold else ir
 
 
 def active_columns(ir, prev: Window, skip_K: float, emissivity: float) -> np.ndarray:
@@ -141,15 +191,19 @@ def active_columns(ir, prev: Window, skip_K: float, emissivity: float) -> np.nda
     return np.flatnonzero(dq > skip_K * 4.0 * emissivity * SIGMA * tmin**3)
 
 
-def conduct(solver, state, times_s, a, ir, prev: Window | None, skip_K: float, emissivity: float) -> Window:
+def conduct(
+    solver, state, times_s, a, ir, prev: Window | None, skip_K: float, emissivity: float, active=None
+) -> Window:
     """Run ``solver``'s columns (all, or only the active ones against ``prev``) from ``state`` with absorbed
-    flux rows ``a`` (n, m) [W m-2] driven by IR rows ``ir``; the :class:`Window` of all columns."""
+    flux rows ``a`` (n, m) [W m-2] driven by IR rows ``ir``; the :class:`Window` of all columns.
+    ``active``: the columns to run [indices] (the others keep ``prev``'s results), instead of those of
+    :func:`active_columns` with ``skip_K``."""
     solver.set_state(state)
     solver.reset_accumulators()
-    if prev is None or skip_K <= 0.0:
+    if prev is None or (skip_K <= 0.0 and active is None) or (active is not None and len(active) == solver.ncol):
         T = solver.run_series(times_s, a, record=True)
         return Window(T, ir, solver.state(), solver.acc.copy())
-    act = active_columns(ir, prev, skip_K, emissivity)
+    act = active_columns(ir, prev, skip_K, emissivity) if active is None else np.asarray(active)
     T, end, acc = prev.T.copy(), prev.end.copy(), prev.acc.copy()
     if act.size:
         T[:, act] = solver.run_columns(act, times_s, a[:, act])
@@ -201,8 +255,9 @@ def relax(
 
 class SpinUp:
     """The start of the record by waveform relaxation: the periodic state over the spin-up window, each pass
-    through it driven by the previous pass's emission (the lagged spin-up of :mod:`crater_thermal.simulate`,
-    with the first pass relaxed window by window instead of stepped), or one relaxed pass (fixed spin-up).
+    through it driven by the previous pass's emission (the lagged spin-up of :mod:`crater_thermal.simulate`:
+    the same first pass, each facet's IR held :data:`FIRST_PASS_HOLD_S` at a time, :meth:`held`), or one
+    relaxed pass (fixed spin-up, :meth:`coupled`).
 
     Parameters
     ----------
@@ -212,7 +267,20 @@ class SpinUp:
     rows : ``rows(k0, k1)`` -> sunlight rows k0..k1-1 of the spin-up window [W m-2].
     store : segment store for the passes' temperature series (``wr_T0`` / ``wr_T1``) and ``spin_ir``.
     times_s : (ns,) the spin-up window's times [s]; block : samples per block (memory).
-    emissivity : [-]; tol_K : relaxation tolerance of the first pass [K]; window : its window [samples].
+    emissivity : [-]; tol_K : relaxation tolerance of a :meth:`coupled` pass [K]; window : its window
+    [samples].
+
+    Backends with ``held_pass`` and ``lagged_pass`` (the dask one) run the periodic start's passes whole on
+    their side; when one of those loses data (:class:`PassLost`), the pass is run again through
+    ``columns.solve`` (a held pass: a fresh first pass; the periodic start's fixed point does not depend
+    on it) and the later passes go through the store.
+
+    Converged columns are skipped as in the local lagged start (:meth:`skip`, the ``skip`` hook of
+    :func:`thermal.periodic_state`): between two passes the next pass's input IR is formed (``F e(T)`` of
+    the pass's temperatures, into the store, or on the workers by ``next_inputs``), and a converged
+    column whose input moved too little since its last run (:func:`skippable`) is not run; its last
+    run's temperatures stand in the IR products. Backends without ``run_ir`` or ``next_inputs`` (and
+    every pass after a lost one) run every column.
     """
 
     def __init__(self, columns, solver, rows, store, times_s, block, emissivity, tol_K, window, save_spin):
@@ -227,15 +295,27 @@ class SpinUp:
         )
         self.n = len(times_s)
         self.passes = 0
-        self.iterations: list[int] = []  # relaxation iterations per window of the first pass
+        self.iterations: list[int] = []  # relaxation iterations per window of a coupled pass
+        self.holds = 0  # holds (one-vector products) of the held passes
         self.ir_end = None
         self.lag_in, self.lag_out = None, "wr_T0"
         self.remote_pass = False  # the latest pass ran on the backend and its series stayed there
         self.remote_lost = False  # a backend pass lost data once: later passes go through the store
+        nf = solver.ncol
+        self.periodic_tol = 0.0  # the periodic start's tolerance [K] (:meth:`periodic`)
+        self.skipped = np.zeros(nf, bool)  # columns the next pass does not run
+        self.drift = np.zeros(nf)  # max |input IR change| [W m-2] of each column since its last run
+        self.t_min = np.full(nf, np.inf)  # coldest surface temperature [K] of each column's last run
+        self.next_ready = False  # the next pass's input IR is formed ("wr_irn" or on the workers)
+        #: columns run by each pass (diagnostics)
+        self.columns_run: list[int] = []
 
     def coupled(self, on_step=None) -> None:
-        """One relaxed pass from the solver's state; its temperatures kept as the next pass's input."""
+        """One relaxed pass from the solver's state (window by window to ``tol_K``); its temperatures kept as
+        the next pass's input."""
         self.passes += 1
+        self.columns_run.append(self.columns.n_facets)
+        self.next_ready = False
         state = self.solver.state()
         ir = None
         acc = np.zeros_like(self.solver.acc)
@@ -244,18 +324,66 @@ class SpinUp:
             win, it, _ = relax(self.columns, state, self.t[w0 : w1 + 1], self.rows(w0, w1 + 1), ir, self.eps, self.tol)
             self.iterations.append(it)
             self._keep(w0, win.T, win.ir, last=w1 == self.n - 1)
+            self._keep_input(w0, win.ir, last=w1 == self.n - 1)
             state, ir, acc = win.end, win.ir[-1], acc + win.acc
             if on_step is not None:
                 on_step(w1)
         self._finish(state, acc)
 
+    def _blocks(self) -> list[tuple[int, int]]:
+        """The passes' blocks ``(b0, b1)``: samples b0..b1, consecutive blocks sharing one."""
+        return [(b0, min(self.n - 1, b0 + self.block)) for b0 in range(0, self.n - 1, self.block)]
+
+    def held(self, on_step=None) -> None:
+        """The first pass of a periodic start: every column conducted for :data:`FIRST_PASS_HOLD_S` with
+        each facet's IR held at ``F e(T)`` of the temperatures at the hold's start, then one one-vector
+        product of the emission reached gives the next hold's IR (:func:`hold_spans`, the same holds as
+        :mod:`crater_thermal.simulate`'s lagged start); its temperatures are the next pass's input."""
+        self.passes += 1
+        self.columns_run.append(self.columns.n_facets)
+        self.next_ready = False
+        spans = [hold_spans(self.t, b0, b1) for b0, b1 in self._blocks()]
+        if hasattr(self.columns, "held_pass") and not self.remote_lost:  # the pass on the workers
+            try:
+                state = self.solver.state()
+                end, acc, self.ir_end = self.columns.held_pass(state, self.t, self.rows, self.block, on_step)
+            except PassLost:  # data of the pass went with a worker: the pass through ``solve``
+                self.remote_lost, self.remote_pass = True, False
+            else:
+                self.holds += sum(map(len, spans))
+                self.remote_pass = True
+                self.solver.set_state(end)
+                self.solver.acc += acc
+                self._swap()
+                return
+        state = self.solver.state()
+        acc = np.zeros_like(self.solver.acc)
+        surface = state[:, 0]
+        for (b0, b1), holds in zip(self._blocks(), spans):
+            sol = self.rows(b0, b1 + 1)
+            T, ir = np.empty((b1 - b0 + 1, self.columns.n_facets)), np.empty((b1 - b0 + 1, self.columns.n_facets))
+            for k, k1 in holds:
+                E = radiosity.emitted(surface, self.eps)[None, :]
+                win = self.columns.solve(state, self.t[k : k1 + 1], sol[k - b0 : k1 - b0 + 1], E, hold=True)
+                T[k - b0 : k1 - b0 + 1], ir[k - b0 : k1 - b0 + 1] = win.T, win.ir
+                state, acc, surface = win.end, acc + win.acc, np.asarray(win.T[-1], float)
+            self.holds += len(holds)
+            self._keep(b0, T, ir, last=b1 == self.n - 1)
+            self._keep_input(b0, ir, last=b1 == self.n - 1)
+            if on_step is not None:
+                on_step(b1)
+        self._finish(state, acc)
+
     def lagged(self, on_step=None) -> None:
         """One pass from the solver's state driven by the previous pass's emission (the first pass is
-        :meth:`coupled`)."""
+        :meth:`held`); the columns :meth:`skip` named are not run."""
         if self.lag_in is None:
-            self.coupled(on_step)
+            self.held(on_step)
             return
         self.passes += 1
+        ready, self.next_ready = self.next_ready, False
+        skipped = self.skipped if ready else np.zeros_like(self.skipped)
+        self.columns_run.append(int(np.count_nonzero(~skipped)))
         if hasattr(self.columns, "lagged_pass") and not self.remote_lost:  # the pass on the workers
             try:
                 end, acc, self.ir_end = self.columns.lagged_pass(
@@ -265,11 +393,13 @@ class SpinUp:
                     self.block,
                     lambda a, b: self.store.read(self.lag_in, a, b),
                     on_step,
+                    skip=skipped if ready else None,
                 )
-            except PassLost:  # the previous pass's series went with a worker: a relaxed pass instead
+            except PassLost:  # the previous pass's series went with a worker: a fresh first pass instead
                 self.passes -= 1
+                self.columns_run.pop()
                 self.remote_lost, self.remote_pass = True, False
-                self.coupled(on_step)
+                self.held(on_step)
                 return
             self.remote_pass = True
             self.solver.set_state(end)
@@ -277,15 +407,58 @@ class SpinUp:
             return
         state = self.solver.state()
         acc = np.zeros_like(self.solver.acc)
-        for b0 in range(0, self.n - 1, self.block):
-            b1 = min(self.n - 1, b0 + self.block)
-            E = radiosity.emitted(self.store.read(self.lag_in, b0, b1 + 1), self.eps)
-            win = self.columns.solve(state, self.t[b0 : b1 + 1], self.rows(b0, b1 + 1), E, None)
+        run = np.flatnonzero(~skipped)
+        for b0, b1 in self._blocks():
+            T_last = self.store.read(self.lag_in, b0, b1 + 1)
+            if ready:  # the input IR formed by :meth:`skip`
+                ir = self.store.read("wr_irn", b0, b1 + 1)
+                win = self.columns.run_ir(state, self.t[b0 : b1 + 1], self.rows(b0, b1 + 1), ir, run, T_last)
+            else:
+                E = radiosity.emitted(T_last, self.eps)
+                win = self.columns.solve(state, self.t[b0 : b1 + 1], self.rows(b0, b1 + 1), E, None)
             self._keep(b0, win.T, win.ir, last=b1 == self.n - 1)
+            self._keep_input(b0, win.ir, last=b1 == self.n - 1)
             state, acc = win.end, acc + win.acc
             if on_step is not None:
                 on_step(b1)
         self._finish(state, acc)
+
+    def _keep_input(self, k0, ir, last: bool) -> None:
+        """Rows k0.. of the pass's input IR (``wr_irc``), for the drift of the next input (:meth:`skip`)."""
+        if hasattr(self.columns, "run_ir"):
+            self.store.write_rows("wr_irc", k0, np.asarray(ir[: len(ir) if last else len(ir) - 1]))
+
+    def skip(self, converged) -> np.ndarray:
+        """The ``skip`` hook of :func:`thermal.periodic_state`: forms the next pass's input IR and returns
+        the converged columns that pass need not run (:func:`skippable`); none where the backend cannot
+        (the class docstring)."""
+        moved = self._next_inputs()
+        if moved is None:
+            self.skipped = np.zeros_like(self.skipped)
+            return self.skipped
+        dq, t_min = moved
+        self.drift = np.where(self.skipped, self.drift, 0.0) + dq
+        self.t_min = t_min
+        self.next_ready = True
+        self.skipped = skippable(converged, self.drift, self.t_min, self.periodic_tol)
+        return self.skipped
+
+    def _next_inputs(self):
+        """Form the next pass's input IR from the latest pass's temperatures; returns (the largest change
+        from the latest pass's input [W m-2], the coldest surface temperature [K]) per column, or None."""
+        if self.remote_pass and not self.remote_lost:
+            return self.columns.next_inputs() if hasattr(self.columns, "next_inputs") else None
+        if self.remote_pass or not hasattr(self.columns, "run_ir") or self.lag_in is None:
+            return None
+        dq = np.zeros(self.columns.n_facets)
+        t_min = np.full(self.columns.n_facets, np.inf)
+        for b0, b1 in self._blocks():
+            T = self.store.read(self.lag_in, b0, b1 + 1)
+            ir = self.columns.ir_rows(T)
+            np.maximum(dq, np.max(np.abs(ir - self.store.read("wr_irc", b0, b1 + 1)), axis=0), out=dq)
+            np.minimum(t_min, np.min(T, axis=0), out=t_min)
+            self.store.write_rows("wr_irn", b0, ir[: len(ir) if b1 == self.n - 1 else len(ir) - 1])
+        return dq, t_min
 
     def _keep(self, k0, T, ir, last: bool) -> None:
         """Rows k0.. of the pass (the window's last row belongs to the next window, except at the end)."""
@@ -299,6 +472,10 @@ class SpinUp:
     def _finish(self, state, acc) -> None:
         self.solver.set_state(state)
         self.solver.acc += acc
+        self._swap()
+
+    def _swap(self) -> None:
+        """The series just written is the next pass's input."""
         self.lag_in, self.lag_out = self.lag_out, ("wr_T1" if self.lag_out == "wr_T0" else "wr_T0")
 
     def periodic(self, tol_K: float, report=None) -> dict:
@@ -312,7 +489,8 @@ class SpinUp:
             self.lagged(None if report is None else (lambda k: report(done0 + k, total)))
             return self.solver.T.copy()
 
-        info = thermal.periodic_state(self.solver, phi, tol_K=tol_K, anderson=False)
+        self.periodic_tol = float(tol_K)
+        info = thermal.periodic_state(self.solver, phi, tol_K=tol_K, anderson=False, skip=self.skip)
         if self.remote_pass:
             if self.save_spin:  # the IR the last pass ran with, from the backend
                 for b0 in range(0, self.n, self.block):
