@@ -44,6 +44,17 @@ def start_worker(address: str, log: Path) -> subprocess.Popen:
         return subprocess.Popen(cmd, env=ENV, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
 
 
+def process_of(client, address: str, workers: list) -> subprocess.Popen:
+    """The process of ``workers`` (started by :func:`start_worker`, each in its own session) that runs the
+    dask worker at ``address``: the worker process is its nanny's child, in the nanny's process group."""
+    pid = client.run(os.getpid, workers=[address])[address]
+    group = os.getpgid(pid)
+    for proc in workers:
+        if proc.pid in (pid, group):
+            return proc
+    raise LookupError(f"no started worker process runs {address} (pid {pid}, group {group})")
+
+
 @contextmanager
 def cli_cluster(folder: Path, n_workers: int = 2, env: dict | None = None):
     """A scheduler and ``n_workers`` one-thread workers started with dask's command line on 127.0.0.1

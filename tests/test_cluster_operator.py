@@ -55,8 +55,11 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
             # the whole operator's entries are on the workers, not here
             assert F.nbytes == 16 * mesh.n_facets and F.held_bytes >= whole.nbytes // 2
             client = session.client
+            # the victim holds a row block (the scheduler may have put every block on one worker)
+            holders = sorted({a for addrs in client.who_has(F.rows).values() for a in addrs})
+            victim = dask_procs.process_of(client, holders[0], workers)
             with distributed.get_task_stream(client) as stream:
-                os.killpg(workers[0].pid, signal.SIGKILL)
+                os.killpg(victim.pid, signal.SIGKILL)
                 t0 = time.monotonic()
                 while len(client.scheduler_info()["workers"]) > 1:
                     assert time.monotonic() - t0 < 60, "the scheduler did not notice the lost worker"
