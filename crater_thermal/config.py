@@ -480,8 +480,8 @@ SCHEMA: Tuple[Key, ...] = (
         "choice",
         "auto",
         "IR exchange in the periodic spin-up windows: coupled (every step, as in the record), lagged (each "
-        "window driven by the previous window's IR, the first by each facet's IR held a day at a time: one "
-        "conduction solve per step; converged columns whose IR stays put are skipped), auto "
+        "window driven by the previous window's IR, the first by each facet's IR held a day at a time, in "
+        "12-hour steps: one conduction solve per step; converged columns whose IR stays put are skipped), auto "
         "(lagged from 10,000 facets)",
         choices=choices.SPINUP_IR_METHODS,
     ),
