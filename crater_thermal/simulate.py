@@ -642,7 +642,8 @@ class _SpinUpWindow:
     one conduction solve per step instead of the coupled step's two, a block of samples per kernel call,
     and the IR products done a block of samples at a time. The first window holds each facet's IR for
     :data:`FIRST_PASS_HOLD_S` and then takes the IR of the temperatures reached (a coupled window at a
-    day's exchange interval, for the price of a lagged one); every later window is driven by the IR series
+    day's exchange interval), stepping :data:`FIRST_PASS_STEP_S` at a time (a seed: the fixed point does
+    not depend on it); every later window is driven by the IR series
     of the window before it (kept in the store as "lag_ir0" / "lag_ir1" alternately, the surface
     temperatures as "lag_T"). At the fixed point the IR is that of the periodic temperatures at every
     sample. The last window's input series is the saved spin-up IR (a replay re-runs it exactly).
@@ -768,8 +769,9 @@ class _SpinUpWindow:
         return ir_in, T_out, ir_out, ir
 
     def lagged(self, report, expected: int) -> None:
-        """One lagged pass (the first one with each facet's IR held a day at a time, recording the IR
-        series the next passes start from); converged columns whose input moved too little are skipped."""
+        """One lagged pass (the first one with each facet's IR held a day at a time, in steps of up to
+        :data:`FIRST_PASS_STEP_S`, recording the IR series the next passes start from); converged columns
+        whose input moved too little are skipped."""
         on_step = self._progress(report, expected)
         fc, ns, block, t = self.fc, self.n, self.block, self.t
         first = self.lag_in is None

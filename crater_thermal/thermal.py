@@ -416,8 +416,8 @@ class ColumnSolver:
             self._alike = self.ncol > 1 and all(np.array_equal(x, np.broadcast_to(x[:1], x.shape)) for x in coef)
             if self._alike:
                 # every column alike (one profile, the usual run): one batch's worth, read by every batch
-                # (the kernel's convention for a single batch of coefficients), so that a call streams the
-                # temperatures and not the coefficients (one-step calls at 100,000 columns: 140 MB less)
+                # (the kernel's convention for a single batch of coefficients): 140 MB less memory at
+                # 100,000 columns; the calls' speed did not change (docs/performance.md)
                 coef = tuple(x[:1] for x in coef)
             self._batched = tuple(_k.interleave(x) for x in coef)
         return self._batched
