@@ -109,7 +109,8 @@ def solve_chunk(
     prev, skip_K : this chunk's result of the previous iteration of the window (a
         :class:`waveform.Window`, kept on the workers) and the change [K] below which a column keeps it
         (:func:`waveform.active_columns`).
-    hold : ``E`` is one row (1, nf) whose IR is held over the window (:meth:`waveform.LocalColumns.solve`).
+    hold : ``E`` is one row (1, nf) whose IR is held over the window, conducted with the first pass's
+        coarse steps (:meth:`waveform.LocalColumns.solve`).
 
     Returns
     -------
@@ -132,7 +133,8 @@ def _chunk_window(
         ir[0] = ir0
     eps = options["emissivity"]
     a = radiosity.absorbed_flux(solar, ir, options["albedo"], eps, options["solar_is_absorbed"])
-    return waveform.conduct(_solver(options, m), state, times_s, a, ir, prev, skip_K, eps)
+    with waveform.first_pass_steps(_solver(options, m), hold) as solver:  # a hold: the first pass's steps
+        return waveform.conduct(solver, state, times_s, a, ir, prev, skip_K, eps)
 
 
 #: What a run's errors on the cluster add once its record has begun (there is a checkpoint to resume from).
@@ -459,7 +461,10 @@ def held_chunk(rows, chunks, c: int, source, start, times_s, solar, i0: int, opt
     """One chunk through one hold of a periodic start's first pass (runs on a worker, one thread): its IR
     held at its rows' ``F e(T)`` of every facet's surface temperature [K] at the hold's start (``source``:
     one (nf,) array, or every chunk's part), from ``start`` (a state array, or the chunk's window of the
-    hold before); ``solar`` the chunk's sunlight rows of the block [W m-2], the hold's from row ``i0``."""
+    hold before); ``solar`` the chunk's sunlight rows of the block [W m-2], the hold's from row ``i0``.
+    Stepped as in one process (:func:`waveform.held_window`): to the samples of
+    :func:`waveform.hold_samples` with coarse sub-steps, the others filled in; a window of every sample
+    of the hold."""
     if isinstance(source, np.ndarray):
         T = source
     else:
@@ -469,8 +474,13 @@ def held_chunk(rows, chunks, c: int, source, start, times_s, solar, i0: int, opt
     state = start.end if isinstance(start, waveform.Window) else start
     E = radiosity.emitted(T, options["emissivity"])[None, :]
     sol = solar[i0 : i0 + len(times_s)]
+    m = len(chunks.idx[c])
+
+    def solve(times, solar_rows):
+        return _chunk_window(rows, E, m, None, state, times, solar_rows, options, hold=True)
+
     with cluster.one_numba_thread():
-        return _chunk_window(rows, E, len(chunks.idx[c]), None, state, times_s, sol, options, hold=True)
+        return waveform.held_window(solve, times_s, sol)
 
 
 def _joined(*windows):

@@ -533,17 +533,6 @@ def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> 
 LAGGED_SPINUP_MIN_FACETS = 10_000
 
 
-#: The first lagged spin-up pass holds each facet's IR for this long [s] before taking the IR of the
-#: temperatures reached (:data:`crater_thermal.waveform.FIRST_PASS_HOLD_S`, shared with the relaxed start).
-FIRST_PASS_HOLD_S = waveform.FIRST_PASS_HOLD_S
-#: The first lagged pass steps at most this far [s] (every third sample of 4-hour steps; conduction
-#: sub-steps as long, not refined): it only seeds the later passes, whose fixed point does not depend on
-#: it. Its temperatures and IR between those samples are interpolated linearly in time for the next pass.
-#: 0: every sample, with the solver's sub-steps and refinement (the relaxed start's first pass,
-#: :meth:`crater_thermal.waveform.SpinUp.held`, still steps so).
-FIRST_PASS_STEP_S = 43200.0
-
-
 def spinup_ir_method(method: str, F, n_facets: int) -> str:
     """ "coupled" or "lagged": the IR exchange of the periodic spin-up windows for ``[period] spinup_ir``
     ``method`` ("auto" | "coupled" | "lagged"), the operator ``F`` (None: no exchange) and the facet count."""
@@ -641,9 +630,10 @@ class _SpinUpWindow:
     Lagged (:meth:`lagged`): every window is driven by a given IR series, so its columns are independent:
     one conduction solve per step instead of the coupled step's two, a block of samples per kernel call,
     and the IR products done a block of samples at a time. The first window holds each facet's IR for
-    :data:`FIRST_PASS_HOLD_S` and then takes the IR of the temperatures reached (a coupled window at a
-    day's exchange interval), stepping :data:`FIRST_PASS_STEP_S` at a time (a seed: the fixed point does
-    not depend on it); every later window is driven by the IR series
+    :data:`crater_thermal.waveform.FIRST_PASS_HOLD_S` and then takes the IR of the temperatures reached (a
+    coupled window at a day's exchange interval), stepping :data:`crater_thermal.waveform.FIRST_PASS_STEP_S`
+    at a time (a seed: the fixed point does not depend on it; the relaxed start's first pass,
+    :meth:`crater_thermal.waveform.SpinUp.held`, is the same); every later window is driven by the IR series
     of the window before it (kept in the store as "lag_ir0" / "lag_ir1" alternately, the surface
     temperatures as "lag_T"). At the fixed point the IR is that of the periodic temperatures at every
     sample. The last window's input series is the saved spin-up IR (a replay re-runs it exactly).
@@ -727,11 +717,14 @@ class _SpinUpWindow:
             self.ir_end = rows[-1].copy()
 
     def _held_ir_block(self, b0: int, b1: int, ir: np.ndarray):
-        """The first pass over samples b0..b1 - 1: each facet's IR held for :data:`FIRST_PASS_HOLD_S` from
-        ``ir`` [W m-2], then that of the temperatures reached (a one-vector product per hold; products
-        of a few right-hand sides cost as much as those of a block, measured); steps of up to
-        :data:`FIRST_PASS_STEP_S` (the solver's sub-step limit raised to it by the caller), the samples
-        between interpolated linearly in time.
+        """The first pass over samples b0..b1 - 1: each facet's IR held for
+        :data:`crater_thermal.waveform.FIRST_PASS_HOLD_S` from ``ir`` [W m-2], then that of the temperatures
+        reached (a one-vector product per hold; products of a few right-hand sides cost as much as those
+        of a block, measured); stepped to the samples of :func:`crater_thermal.waveform.hold_samples` (up
+        to :data:`crater_thermal.waveform.FIRST_PASS_STEP_S` apart, the solver's coarse steps set by the
+        caller), the IR products made on those samples and interpolated linearly in time between them,
+        the temperatures filled in so that their emission is linear in time
+        (:func:`crater_thermal.waveform.between`: the relaxed start's first pass, the same numbers).
         Returns (input IR rows, surface temperature rows, their IR rows, the IR at the block's end)."""
         fc, ns, t = self.fc, self.n, self.t
         e = min(ns, b1 + 1)
@@ -739,16 +732,10 @@ class _SpinUpWindow:
         ir_in = np.empty((b1 - b0, len(ir)))
         known: list[int] = []  # the samples stepped to, b0 .. e - 1
         T_known: list[np.ndarray] = []
-        for k, k1 in waveform.hold_spans(t, b0, b1, FIRST_PASS_HOLD_S):
+        for k, k1 in waveform.hold_spans(t, b0, b1):
             k2 = min(ns, k1 + 1)
             ir_in[k - b0 : k1 - b0] = ir
-            sub = [k]  # the samples of this hold stepped to: at most FIRST_PASS_STEP_S apart
-            while sub[-1] < k2 - 1:
-                j = sub[-1] + 1
-                while j < k2 - 1 and t[j + 1] - t[sub[-1]] <= FIRST_PASS_STEP_S:
-                    j += 1
-                sub.append(j)
-            sub = np.asarray(sub)
+            sub = k + waveform.hold_samples(t[k:k2])
             T = self.solver.run_series(t[sub], self.stepper.absorbed(sol[sub - b0], ir[None, :]), record=True)
             known.extend(sub[:-1].tolist())
             T_known.extend(T[:-1])
@@ -756,22 +743,15 @@ class _SpinUpWindow:
         known.append(int(sub[-1]))
         T_known.append(T[-1])
         Tk = np.asarray(T_known)
-        irk = self.stepper.ir_rows(Tk)
-        # linear interpolation in time onto every sample of the block
-        kk = np.asarray(known)
         rows = np.arange(b0, b1)
-        left = np.clip(np.searchsorted(kk, rows, side="right") - 1, 0, len(kk) - 1)
-        right = np.minimum(left + 1, len(kk) - 1)
-        span = t[kk[right]] - t[kk[left]]
-        w = np.where(span > 0, (t[rows] - t[kk[left]]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
-        T_out = (1.0 - w) * Tk[left] + w * Tk[right]
-        ir_out = (1.0 - w) * irk[left] + w * irk[right]
+        T_out = waveform.between(t, known, Tk, rows, emission=True)
+        ir_out = waveform.between(t, known, self.stepper.ir_rows(Tk), rows)
         return ir_in, T_out, ir_out, ir
 
     def lagged(self, report, expected: int) -> None:
         """One lagged pass (the first one with each facet's IR held a day at a time, in steps of up to
-        :data:`FIRST_PASS_STEP_S`, recording the IR series the next passes start from); converged columns
-        whose input moved too little are skipped."""
+        :data:`crater_thermal.waveform.FIRST_PASS_STEP_S`, recording the IR series the next passes start
+        from); converged columns whose input moved too little are skipped."""
         on_step = self._progress(report, expected)
         fc, ns, block, t = self.fc, self.n, self.block, self.t
         first = self.lag_in is None
@@ -783,10 +763,8 @@ class _SpinUpWindow:
         self.columns_run.append(int(run.size))
         moved = np.zeros(self.skipped.size)  # max |output - input| of this pass, per column
         t_min = np.full(run.size, np.inf)
-        dt_max, adapt_K = self.solver.dt_max, self.solver.adapt_K
-        if first and FIRST_PASS_STEP_S > 0:  # the first pass's coarse steps, one sub-step each, not refined
-            self.solver.dt_max, self.solver.adapt_K = max(dt_max, FIRST_PASS_STEP_S), 0.0
-        try:
+        # the first pass's coarse steps: one sub-step each, not refined
+        with waveform.first_pass_steps(self.solver, first):
             for b0 in range(0, ns, block):
                 b1 = min(ns, b0 + block)
                 e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
@@ -815,8 +793,6 @@ class _SpinUpWindow:
                 del ir, T, rows
                 if on_step is not None:
                     on_step(e - 1)
-        finally:
-            self.solver.dt_max, self.solver.adapt_K = dt_max, adapt_K
         self.t_min[run] = t_min
         # the next input is this output: each column's input drift since its last run
         self.drift = np.where(self.skipped, self.drift, 0.0) + moved

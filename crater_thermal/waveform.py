@@ -30,6 +30,8 @@ distributed backend is tested against).
 
 from __future__ import annotations
 
+import contextlib
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +49,13 @@ DEFAULT_TOL_K = 1e-3
 #: against 2.5, 0.18, 0.027, 0.004 K; holding 4 days took one pass more, a constant IR two). Used by both
 #: lagged starts, this module's :class:`SpinUp` and :mod:`crater_thermal.simulate`'s.
 FIRST_PASS_HOLD_S = 86400.0
+#: The first pass steps at most this far [s] within a hold (every third sample of 4-hour steps), with
+#: conduction sub-steps as long and no adaptive refinement (:func:`first_pass_steps`): it only seeds the
+#: later passes, whose fixed point does not depend on it. Between the samples stepped to, its surface
+#: temperatures are filled in so that their emission, and so the IR of the next pass, is linear in time
+#: (:func:`between`). 0: every sample, with the solver's own sub-steps and refinement. Used by both lagged
+#: starts (:meth:`SpinUp.held`, on a cluster too, and :mod:`crater_thermal.simulate`'s).
+FIRST_PASS_STEP_S = 43200.0
 #: Most iterations per window before the run stops with an error.
 MAX_ITERATIONS = 30
 #: After the first iteration of a window, a column is conducted again only when its new IR can move its
@@ -73,6 +82,72 @@ def hold_spans(times_s, b0: int, b1: int, hold_s: float = FIRST_PASS_HOLD_S) -> 
         spans.append((k, k1))
         k = k1
     return spans
+
+
+def hold_samples(times_s, step_s: float | None = None) -> np.ndarray:
+    """The samples a first pass's hold over ``times_s`` (n,) [s] (its samples, the next hold's first
+    included) steps to: indices from 0 to n - 1, each the last sample at most ``step_s`` [s] (default
+    :data:`FIRST_PASS_STEP_S`) after the one before, and at least the next one (0: every sample)."""
+    step = FIRST_PASS_STEP_S if step_s is None else float(step_s)
+    t = np.asarray(times_s, float)
+    sub = [0]
+    while sub[-1] < len(t) - 1:
+        j = sub[-1] + 1
+        while j < len(t) - 1 and t[j + 1] - t[sub[-1]] <= step:
+            j += 1
+        sub.append(j)
+    return np.asarray(sub)
+
+
+def between(times_s, known, values, rows, emission: bool = False) -> np.ndarray:
+    """Rows of a first pass at samples ``rows`` (indices, within ``known[0] .. known[-1]``) from its rows
+    ``values`` (m, nf) at the samples stepped to, ``known`` (m,) (increasing indices of ``times_s`` [s]):
+    linear in time between them, or with ``emission`` (``values`` surface temperatures [K]) the
+    temperatures whose emission ``eps sigma T^4`` is linear in time (so that the IR ``F e(T)`` the next
+    pass forms from them is the IR of the stepped samples interpolated linearly, as
+    :mod:`crater_thermal.simulate`'s lagged start forms it; the stepped samples' own values are kept)."""
+    t, kk, v = np.asarray(times_s, float), np.asarray(known), np.asarray(values, float)
+    rows = np.asarray(rows)
+    left = np.clip(np.searchsorted(kk, rows, side="right") - 1, 0, len(kk) - 1)
+    right = np.minimum(left + 1, len(kk) - 1)
+    span = t[kk[right]] - t[kk[left]]
+    w = np.where(span > 0, (t[rows] - t[kk[left]]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
+    if not emission:
+        return (1.0 - w) * v[left] + w * v[right]
+    T4 = (1.0 - w) * v[left] ** 4 + w * v[right] ** 4
+    return np.where(w > 0.0, T4**0.25, v[left])
+
+
+@contextlib.contextmanager
+def first_pass_steps(solver, on: bool = True, step_s: float | None = None):
+    """Within: ``solver`` (a thermal.ColumnSolver) takes a first pass's coarse steps, sub-steps up to
+    ``step_s`` [s] (default :data:`FIRST_PASS_STEP_S`) and no adaptive refinement; its settings are
+    restored after. Nothing changes when ``on`` is false or the step is 0 (every sample)."""
+    step = FIRST_PASS_STEP_S if step_s is None else float(step_s)
+    if not on or step <= 0:
+        yield solver
+        return
+    dt_max, adapt_K = solver.dt_max, solver.adapt_K
+    solver.dt_max, solver.adapt_K = max(dt_max, step), 0.0
+    try:
+        yield solver
+    finally:
+        solver.dt_max, solver.adapt_K = dt_max, adapt_K
+
+
+def held_window(solve, times_s, solar, step_s: float | None = None) -> Window:
+    """One hold of a periodic start's first pass over the samples ``times_s`` (n,) [s] with sunlight rows
+    ``solar`` (n, m) [W m-2]: ``solve(times, solar_rows)`` conducts the columns with their IR held (a
+    backend's ``solve(..., hold=True)``, which steps coarsely: :func:`first_pass_steps`) to the samples of
+    :func:`hold_samples` only; the :class:`Window` of every sample, its surface temperatures between the
+    stepped samples filled in by :func:`between` (emission linear in time) and the held IR repeated."""
+    sub = hold_samples(times_s, step_s)
+    w = solve(np.asarray(times_s)[sub], solar[sub])
+    n = len(times_s)
+    if len(sub) == n:
+        return w
+    T = between(times_s, sub, w.T, np.arange(n), emission=True)
+    return Window(T, held_ir(np.asarray(w.ir), n, True), w.end, w.acc, w.active)
 
 
 def window_samples(block: int) -> int:
@@ -140,13 +215,16 @@ class LocalColumns:
             whose IR changed so little since ``prev`` that their temperatures cannot move by more than
             ``skip_K`` (:func:`active_columns`) keep ``prev``'s results instead of being conducted again.
         hold : ``E`` is one row (1, nf) whose IR ``F E`` is held over every sample (a first pass's hold,
-            :meth:`SpinUp.held`: one one-vector product); ``ir0`` is then ignored.
+            :meth:`SpinUp.held`: one one-vector product), conducted with the first pass's coarse steps
+            (:func:`first_pass_steps`; ``times_s`` are then the samples of :func:`hold_samples`);
+            ``ir0`` is then ignored.
         """
         ir = held_ir(radiosity.ir_of_emission(self.F, E), len(times_s), hold)
         if ir0 is not None and not hold:
             ir[0] = ir0
         a = radiosity.absorbed_flux(solar, ir, self.albedo, self.emissivity, self.solar_is_absorbed)
-        return conduct(self.solver, state, times_s, a, ir, prev, skip_K, self.emissivity)
+        with first_pass_steps(self.solver, hold):
+            return conduct(self.solver, state, times_s, a, ir, prev, skip_K, self.emissivity)
 
     def ir_rows(self, T) -> np.ndarray:
         """The IR [W m-2] (n, nf) of surface temperature rows ``T`` (n, nf) [K]: one product."""
@@ -256,8 +334,8 @@ def relax(
 class SpinUp:
     """The start of the record by waveform relaxation: the periodic state over the spin-up window, each pass
     through it driven by the previous pass's emission (the lagged spin-up of :mod:`crater_thermal.simulate`:
-    the same first pass, each facet's IR held :data:`FIRST_PASS_HOLD_S` at a time, :meth:`held`), or one
-    relaxed pass (fixed spin-up, :meth:`coupled`).
+    the same first pass, each facet's IR held :data:`FIRST_PASS_HOLD_S` at a time and stepped
+    :data:`FIRST_PASS_STEP_S` at a time, :meth:`held`), or one relaxed pass (fixed spin-up, :meth:`coupled`).
 
     Parameters
     ----------
@@ -338,7 +416,8 @@ class SpinUp:
         """The first pass of a periodic start: every column conducted for :data:`FIRST_PASS_HOLD_S` with
         each facet's IR held at ``F e(T)`` of the temperatures at the hold's start, then one one-vector
         product of the emission reached gives the next hold's IR (:func:`hold_spans`, the same holds as
-        :mod:`crater_thermal.simulate`'s lagged start); its temperatures are the next pass's input."""
+        :mod:`crater_thermal.simulate`'s lagged start), in steps of up to :data:`FIRST_PASS_STEP_S`
+        (:func:`held_window`, on a cluster too); its temperatures are the next pass's input."""
         self.passes += 1
         self.columns_run.append(self.columns.n_facets)
         self.next_ready = False
@@ -364,7 +443,8 @@ class SpinUp:
             T, ir = np.empty((b1 - b0 + 1, self.columns.n_facets)), np.empty((b1 - b0 + 1, self.columns.n_facets))
             for k, k1 in holds:
                 E = radiosity.emitted(surface, self.eps)[None, :]
-                win = self.columns.solve(state, self.t[k : k1 + 1], sol[k - b0 : k1 - b0 + 1], E, hold=True)
+                solve = functools.partial(self.columns.solve, state, E=E, hold=True)
+                win = held_window(solve, self.t[k : k1 + 1], sol[k - b0 : k1 - b0 + 1])
                 T[k - b0 : k1 - b0 + 1], ir[k - b0 : k1 - b0 + 1] = win.T, win.ir
                 state, acc, surface = win.end, acc + win.acc, np.asarray(win.T[-1], float)
             self.holds += len(holds)

@@ -1,11 +1,14 @@
 """The periodic start of a relaxed or distributed run (:class:`crater_thermal.waveform.SpinUp`, issue 22): its
-first pass holds each facet's IR a day at a time, as the local lagged start's does.
+first pass holds each facet's IR a day at a time and steps 12 h at a time, as the local lagged start's does
+(both with the default ``waveform.FIRST_PASS_STEP_S``).
 
 References: the local lagged start of :mod:`crater_thermal.simulate` (a separate implementation of the same
-passes), the local coupled start (the other fixed point, the coupling stepped), the relaxed start with the
-first pass it had before (relaxed window by window to 0.05 K: its pass count is the "before"), and, for the
-distributed start, the single-process relaxed run (a real scheduler and two worker processes started with
-dask's own command line on 127.0.0.1)."""
+passes; of the first pass's coarse steps the two share only the choice of samples and the filling between
+them, ``waveform.hold_samples`` and ``waveform.between``, tested against hand-worked samples and
+``np.interp`` in ``test_simulate``), the local coupled start (the other fixed point, the coupling
+stepped), the relaxed start with the first pass it had before (relaxed window by window to 0.05 K: its
+pass count is the "before"), and, for the distributed start, the single-process relaxed run (a real
+scheduler and two worker processes started with dask's own command line on 127.0.0.1)."""
 
 from __future__ import annotations
 
@@ -18,7 +21,8 @@ import numpy as np
 import pytest
 from test_simulate import small_case
 
-from crater_thermal import cluster_run, config, io, runner, simulate, waveform
+from crater_thermal import cluster_run, config, io, runner, waveform
+from crater_thermal.kernels.conduction import ACC_NSTEPS
 
 distributed = pytest.importorskip("distributed")
 
@@ -54,15 +58,33 @@ def _start(ds) -> np.ndarray:
 
 
 def _spy_spinups(monkeypatch) -> list:
+    """The SpinUps made from now on; each records ``held_substeps``, the conduction sub-steps of every
+    column in its held (first) pass (the pass's accumulators, gathered from the workers on a cluster)."""
     made = []
 
     class Spy(waveform.SpinUp):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
+            self.held_substeps = None
             made.append(self)
+
+        def held(self, on_step=None):
+            super().held(on_step)
+            self.held_substeps = self.solver.acc[:, ACC_NSTEPS].copy()
 
     monkeypatch.setattr(waveform, "SpinUp", Spy)
     return made
+
+
+def _coarse_steps(spin) -> int:
+    """The first pass's conduction steps when it steps 12 h at a time (one sub-step each): the 12-hour
+    intervals of its holds, counted from the spin-up window's times (4-hour samples)."""
+    t = spin.t
+    return sum(
+        int(np.ceil((t[k1] - t[k]) / 43200.0 - 1e-9))
+        for b0, b1 in spin._blocks()
+        for k, k1 in waveform.hold_spans(t, b0, b1)
+    )
 
 
 def _columns_run(ds) -> list[int]:
@@ -72,9 +94,11 @@ def _columns_run(ds) -> list[int]:
 def test_relaxed_start_is_the_local_lagged_start(tmp_path, monkeypatch):
     """The relaxed run's periodic start (this process) against three references on a 300-facet crater:
 
-    * the local lagged start (:mod:`crater_thermal.simulate`): the same passes (the same holds, then each
-      pass driven by the IR of the previous one's temperatures, the same converged columns skipped) in
-      another implementation, so the same columns run in every pass and the same start to round-off
+    * the local lagged start (:mod:`crater_thermal.simulate`): the same passes (the same holds stepped 12 h
+      at a time, then each pass driven by the IR of the previous one's temperatures, the same converged
+      columns skipped) in another implementation (the local one takes the IR products on the stepped
+      samples and interpolates them; the relaxed one forms them from the filled-in temperatures, whose
+      emission is linear in time), so the same columns run in every pass and the same start to round-off
       amplified by the shooting (1e-4 K);
     * the local coupled start: another fixed point (the IR of the step's predictor instead of that of the
       periodic temperatures), measured <= 0.05 K apart on 1,500-4,000-facet craters (test_simulate);
@@ -86,6 +110,8 @@ def test_relaxed_start_is_the_local_lagged_start(tmp_path, monkeypatch):
     relaxed = _run(_case(tmp_path, "relaxed"), tmp_path / "relaxed.nc")
     spin = made[-1]
     assert spin.holds == 30 and spin.iterations == []  # a lunation held a day at a time, nothing relaxed
+    # the held pass stepped 12 h at a time, one sub-step each (every 4-hour sample: 177 or more)
+    assert np.all(spin.held_substeps == _coarse_steps(spin)) and _coarse_steps(spin) < 60
     assert "holding each facet's IR 1 d at a time (30 holds;" in relaxed.attrs["start_method"]
 
     def the_old_first_pass(self, on_step=None):
@@ -96,11 +122,8 @@ def test_relaxed_start_is_the_local_lagged_start(tmp_path, monkeypatch):
         m.setattr(waveform.SpinUp, "held", the_old_first_pass)
         before = _run(_case(tmp_path, "before"), tmp_path / "before.nc")
     assert made[-1].iterations and made[-1].holds == 0  # the old seed did run
-    with monkeypatch.context() as m:
-        # the local start's first pass at every sample (its default steps 12 h, FIRST_PASS_STEP_S; the
-        # relaxed start's first pass steps every sample), so that both run the same passes
-        m.setattr(simulate, "FIRST_PASS_STEP_S", 0.0)
-        lagged = _run(_case(tmp_path, "lagged", relaxed=False), tmp_path / "lagged.nc")
+    # both first passes with their default steps (12 h, waveform.FIRST_PASS_STEP_S)
+    lagged = _run(_case(tmp_path, "lagged", relaxed=False), tmp_path / "lagged.nc")
     coupled = _run(_case(tmp_path, "coupled", relaxed=False, spinup_ir="coupled"), tmp_path / "coupled.nc")
 
     runs = _columns_run(relaxed)
@@ -143,6 +166,7 @@ def test_distributed_start_holds_on_the_workers_and_equals_the_relaxed_one(
     ds = _run(path, tmp_path / "run.nc", columns=cluster_run.distributed_columns(address, chunk_facets=100))
     spin = made[-1]
     assert spin.remote_pass and not spin.remote_lost and spin.holds == 30
+    assert np.all(spin.held_substeps == _coarse_steps(spin))  # the workers' holds stepped 12 h at a time
     assert ds.attrs["spinup_iterations"] == ref.attrs["spinup_iterations"]
     # the same converged columns skipped on the workers as in one process
     assert _columns_run(ds) == _columns_run(ref) and min(_columns_run(ds)) < 300, _columns_run(ds)
@@ -167,6 +191,7 @@ def test_a_held_pass_lost_on_the_workers_runs_through_the_client(local_relaxed, 
     ds = _run(path, tmp_path / "run.nc", columns=cluster_run.distributed_columns(address, chunk_facets=100))
     spin = made[-1]
     assert calls == [1] and spin.remote_lost and not spin.remote_pass and spin.holds == 30
+    assert np.all(spin.held_substeps == _coarse_steps(spin))  # through ``solve``: stepped 12 h at a time too
     assert set(_columns_run(ds)) == {300}
     assert ds.attrs["spinup_iterations"] == ref.attrs["spinup_iterations"]
     _close_to(ds, ref)

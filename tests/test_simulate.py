@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crater_thermal import config, io, radiosity, runner, simulate, thermal
+from crater_thermal import config, io, radiosity, runner, simulate, thermal, waveform
 from crater_thermal.constants import SIGMA
 from crater_thermal.materials import DensityExtrapolationWarning
 
@@ -428,8 +428,44 @@ def test_coarse_first_lagged_pass_leaves_the_periodic_state(tmp_path, monkeypatc
     path = small_case(tmp_path, name="coarse", facets=400, end="2019-01-16", extra_period='spinup_ir = "lagged"')
     case = config.load_case(path)
     coarse = io.open_run(runner.run_case(case, tmp_path / "coarse.nc", progress=False))
-    monkeypatch.setattr(simulate, "FIRST_PASS_STEP_S", 0.0)  # every sample of the spin-up window
+    monkeypatch.setattr(waveform, "FIRST_PASS_STEP_S", 0.0)  # every sample of the spin-up window
     fine = io.open_run(runner.run_case(case, tmp_path / "fine.nc", progress=False))
     dT = coarse["surface_temperature"].values - fine["surface_temperature"].values
     assert np.abs(dT).max() <= 3e-3
     assert int(coarse.attrs["spinup_iterations"]) <= int(fine.attrs["spinup_iterations"]) + 1
+
+
+def test_first_pass_samples_and_filling():
+    """The coarse first pass's pieces shared by both lagged starts (:mod:`crater_thermal.waveform`):
+
+    * the samples a hold steps to, worked out by hand: 4-hour samples over a day at 12-hour steps give
+      0, 3, 6; uneven samples (0, 4, 8, 14, 20, 24 h) give 0, 2 (8 h: 14 h would be 14 h away), 4 (20 h
+      is 12 h after 8 h), 5 (the end); a step of 0 gives every sample;
+    * the rows between them against ``np.interp`` column by column (linear; and T^4 linear in time with
+      ``emission``), the stepped samples' own temperatures kept exactly, and the property the two starts
+      rely on: the IR of the filled temperatures, ``F e(T)``, equals the stepped samples' IR interpolated
+      linearly (the local start's), to round-off, for a random non-negative F.
+    """
+    h = 3600.0
+    t = np.arange(7) * 4 * h
+    assert waveform.hold_samples(t, 12 * h).tolist() == [0, 3, 6]
+    assert waveform.hold_samples(t, 0.0).tolist() == list(range(7))
+    uneven = np.array([0.0, 4, 8, 14, 20, 24]) * h
+    assert waveform.hold_samples(uneven, 12 * h).tolist() == [0, 2, 4, 5]
+    assert waveform.hold_samples(t[:1], 12 * h).tolist() == [0]
+
+    rng = np.random.default_rng(3)
+    known = np.array([0, 2, 4, 5])
+    Tk = rng.uniform(40.0, 380.0, (len(known), 9))
+    rows = np.arange(6)
+    lin = waveform.between(uneven, known, Tk, rows)
+    filled = waveform.between(uneven, known, Tk, rows, emission=True)
+    for j in range(Tk.shape[1]):
+        assert np.allclose(lin[:, j], np.interp(uneven, uneven[known], Tk[:, j]), rtol=0, atol=1e-12)
+        assert np.allclose(filled[:, j] ** 4, np.interp(uneven, uneven[known], Tk[:, j] ** 4), rtol=1e-13, atol=0)
+    assert np.array_equal(filled[known], Tk)
+    F = rng.uniform(0.0, 0.02, (9, 9))
+    eps = 0.95
+    ir_filled = radiosity.ir_of_emission(F, radiosity.emitted(filled, eps))
+    ir_known = radiosity.ir_of_emission(F, radiosity.emitted(Tk, eps))
+    assert np.allclose(ir_filled, waveform.between(uneven, known, ir_known, rows), rtol=1e-12, atol=1e-12)
