@@ -10,7 +10,8 @@ modes alternate (old, new, old, new, ...: ``--pairs``) so that both see the same
 With ``--workers N`` the runs are on a local dask cluster of N one-thread workers (``run --workers``;
 the cluster's start is outside the spin-up's seconds).
 
-Recorded per run: the spin-up's seconds (the run's ``conduction_spinup``), its passes (the periodic
+Recorded per run: the spin-up's seconds (the run's ``conduction_spinup``), the first (held) pass's
+seconds (``held_pass_s``, one per call of ``waveform.SpinUp.held``), its passes (the periodic
 start's ``spinup_iterations``), the rounds of the backend's ``solve`` during it (each a client<->worker
 exchange on a cluster: the former first pass relaxed window by window; in this process the held pass
 makes one per hold), the right-hand sides of the IR products they made (and in this process those made
@@ -105,6 +106,17 @@ def child(tree: Path, facets: int, work: Path, out_json: Path, workers: int = 0)
             return next_inputs(self, *args, **kwargs)
 
         backend.next_inputs = counted_next
+    held = waveform.SpinUp.held
+    held_s = []
+
+    def held_timed(self, *args, **kwargs):  # the first (held) pass's seconds
+        t0 = time.perf_counter()
+        try:
+            return held(self, *args, **kwargs)
+        finally:
+            held_s.append(time.perf_counter() - t0)
+
+    waveform.SpinUp.held = held_timed
     spin_up = runner._spin_up_relaxed
     at_spin = {}
 
@@ -133,6 +145,7 @@ def child(tree: Path, facets: int, work: Path, out_json: Path, workers: int = 0)
             "facets": int(ds.sizes["facet"]),
             "wall_s": wall,
             "spinup_s": float(timing["conduction_spinup"]),
+            "held_pass_s": held_s,
             "passes": int(ds.attrs["spinup_iterations"]),
             "start_method": str(ds.attrs["start_method"]),
             "spinup_solve_rounds": at_spin["rounds"],
@@ -182,6 +195,7 @@ def main() -> None:
     summary = {
         m: {
             "spinup_s": [r["spinup_s"] for r in runs if r["mode"] == m],
+            "held_pass_s": [r.get("held_pass_s") for r in runs if r["mode"] == m],
             "passes": sorted({r["passes"] for r in runs if r["mode"] == m}),
             "spinup_solve_rounds": sorted({r["spinup_solve_rounds"] for r in runs if r["mode"] == m}),
             "spinup_product_rhs": sorted({r["spinup_product_rhs"] for r in runs if r["mode"] == m}),

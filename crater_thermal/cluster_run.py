@@ -313,7 +313,8 @@ class DaskColumns:
         """The first pass of the periodic start (:meth:`waveform.SpinUp.held`) kept on the workers, submitted
         whole: per hold (:func:`waveform.hold_spans`), each chunk's task forms its rows' IR from the surface
         temperatures every chunk reached at the hold's start (worker to worker: one float per facet) and
-        conducts its columns through the hold with that IR; the holds of a block are joined into the
+        conducts its columns through the hold with that IR, in the first pass's coarse steps
+        (:func:`waveform.held_window`, as in one process); the holds of a block are joined into the
         block's window, whose temperatures drive the next (lagged) pass on the workers. Only the end
         states, accumulators and last IR come back (as :meth:`_lagged_pass`).
 
