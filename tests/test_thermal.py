@@ -11,6 +11,9 @@ from crater_thermal import reference
 from crater_thermal import thermal as th
 from crater_thermal.constants import LUNAR_DAY, SIGMA, YEAR
 from crater_thermal.errors import ConfigError, ProfileError, SolverError
+from crater_thermal.kernels import conduction as _kern
+
+_LANES = _kern.LANES
 
 FLUX_STEP = 14_400.0  # thesis flux step [s]
 
@@ -397,8 +400,12 @@ def test_redo_columns_failure_names_the_solver_column():
         s.redo_columns(np.array([1]), start.copy(), np.full(1, 10.0), np.full(1, 10.0), 14400.0)
 
 
-# 80 columns: 5 batches of LANES, enough for the kernel's threaded path (from 2 batches per thread)
-@pytest.mark.parametrize("labels", [["1300/1800"] * 80, ["1300/1800", "rock", "1100/1900", "1300/1800"] * 20])
+# 5 batches of LANES columns: enough for the kernel's threaded path (from 2 batches per thread), the last
+# batch partly filled
+@pytest.mark.parametrize(
+    "labels",
+    [["1300/1800"] * (4 * _LANES + 7), (["1300/1800", "rock", "1100/1900", "1300/1800"] * _LANES)[: 4 * _LANES + 7]],
+)
 def test_columns_alike_or_not_match_each_column_alone(labels):
     """Alike columns (one profile) share one batch of coefficients in the kernel; any mix keeps them per
     column. Either way every column equals the same column solved alone, bit for bit, through a series
@@ -411,10 +418,41 @@ def test_columns_alike_or_not_match_each_column_alone(labels):
     T_many = many.run_series(t, Q)
     for k in range(5):
         many.advance(Q[k], Q[k + 1], FLUX_STEP)
-    for j in (0, 1, 2, 17, len(labels) - 1):
+    for j in (0, 1, 2, 17, _LANES + 1, len(labels) - 1):
         one = th.ColumnSolver([labels[j]])
         one.set_uniform(150.0)
         np.testing.assert_array_equal(one.run_series(t, Q[:, j : j + 1])[:, 0], T_many[:, j])
         for k in range(5):
             one.advance(Q[k, j : j + 1], Q[k + 1, j : j + 1], FLUX_STEP)
         np.testing.assert_array_equal(one.T[0], many.T[j])
+
+
+def test_surface_roots_of_all_lanes_at_once_equal_each_lane_alone():
+    """The kernel solves the surface equation alpha x + a4 x^4 = rhs of all its lanes in one interleaved
+    Newton iteration. Each lane's root must equal the one-lane iteration's bit for bit (a column never
+    depends on its batch), and both must be the polynomial's positive real root from numpy's companion
+    matrix eigenvalues (an independent method) to 1e-10 relative (eigenvalue round-off of a quartic whose
+    coefficients span ~12 decades). Guesses include zero, negative, far above and far below the root."""
+    rng = np.random.default_rng(7)
+    n = 3 * _LANES + 5
+    a4 = 0.95 * SIGMA * rng.choice([0.5, 1.0, 2.0], n)
+    alpha = 10.0 ** rng.uniform(-1.0, 3.0, n)  # C/tau + conductance [W m-2 K-1]
+    root = rng.uniform(20.0, 420.0, n)  # [K]
+    rhs = alpha * root + a4 * root**4
+    guess = root * rng.choice([0.2, 0.98, 1.0, 1.03, 5.0], n)
+    guess[:4] = [0.0, -50.0, 1e4, 1e-3]
+    x = np.zeros(n)
+    act = np.full(n, 2, np.int64)
+    st = np.zeros(n, np.int64)
+    for a in np.unique(a4):  # one a4 per call, as in the kernel
+        m = a4 == a
+        xm, am, sm = np.zeros(m.sum()), np.full(m.sum(), 2, np.int64), np.zeros(m.sum(), np.int64)
+        _kern._newton_lanes(alpha[m], a, rhs[m], guess[m], xm, am, sm)
+        x[m], act[m], st[m] = xm, am, sm
+    assert np.all(st == _kern.OK) and np.all(act == 3)
+    for j in range(n):
+        s1 = np.zeros(1, np.int64)
+        assert _kern._newton(alpha[j], a4[j], rhs[j], guess[j], s1, 0) == x[j]
+        r = np.roots([a4[j], 0.0, 0.0, alpha[j], -rhs[j]])
+        r = r[(np.abs(r.imag) < 1e-9 * np.abs(r)) & (r.real > 0)].real
+        assert len(r) == 1 and x[j] == pytest.approx(r[0], rel=1e-10)

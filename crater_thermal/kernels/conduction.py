@@ -52,7 +52,7 @@ def _cpoly(T, ccoef, ctmin):
 
 #: Columns advanced together in one thread (interleaved so that the serial Thomas recurrences
 #: of different columns overlap and the inner loops vectorise).
-LANES = 16
+LANES = 32
 #: Number of parts a sub-step flagged by the adaptive refinement is split into.
 N_REFINE = 4
 
@@ -97,7 +97,7 @@ def _props(T, m, b0, b3, e0, e1, anyrock, ccoef, ctmin, rdz, K, Cc):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q, st, alt_add, alt_used):
+def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q, st, alt_add, alt_used, act):
     """Solve (Cc/tau + theta L) X + a4 X0^4 e_0 = R for X (in place), lane by lane; L is the
     conduction operator with conductances K (no-flux ends: boundary fluxes are in R).
 
@@ -124,31 +124,93 @@ def _solve(X, R, K, Cc, rtau, theta, a4, tguess, p, q, st, alt_add, alt_used):
             inv = 1.0 / (Cc[i, j] * rtau + ku + kd * (1.0 - q[i + 1, j]))
             p[i, j] = (R[i, j] + kd * p[i + 1, j]) * inv
             q[i, j] = ku * inv
+    # the surface equation per lane: alpha x + a4 x^4 = rhs, alpha in p[0], rhs in q[0] (rows free here)
+    alpha = p[0]
+    rhs = q[0]
     for j in range(nl):
+        act[j] = 0
         if st[j] != OK:
             continue
+        act[j] = 1
         k0 = theta * K[0, j]
-        alpha = Cc[0, j] * rtau + k0 * (1.0 - q[1, j])
-        rhs = R[0, j] + k0 * p[1, j]
-        a4j = a4
-        if alt_add.shape[0] > 0 and a4 > 0.0:
-            alt_used[j] = 0
-            if rhs <= 0.0 or _newton(alpha, a4, rhs, tguess[j], st, j) < 0.5 * tguess[j]:
-                a4j = 2.0 * a4
-                rhs += alt_add[j]
-                alt_used[j] = 1
-                st[j] = OK
-        if a4j == 0.0:
-            x = rhs / alpha
-        else:
-            x = _newton(alpha, a4j, rhs, tguess[j], st, j)
-        if not (x > 0.0 and x < _T_MAX):
-            st[j] = NONFINITE
-            x = 1.0
-        X[0, j] = x
+        alpha[j] = Cc[0, j] * rtau + k0 * (1.0 - q[1, j])
+        rhs[j] = R[0, j] + k0 * p[1, j]
+        if a4 == 0.0:
+            X[0, j] = rhs[j] / alpha[j]
+        elif alt_add.shape[0] == 0 or rhs[j] > 0.0:
+            act[j] = 2
+    if a4 != 0.0:
+        # every lane's Newton iteration at once (independent chains overlap: each lane's iterates are
+        # those of _newton alone)
+        _newton_lanes(alpha, a4, rhs, tguess, X[0], act, st)
+        if alt_add.shape[0] > 0:
+            # TR stage: the trapezoidal root, or the implicit fallback where it has none or is too cold
+            for j in range(nl):
+                if act[j] == 0:
+                    continue
+                alt_used[j] = 0
+                if rhs[j] <= 0.0 or X[0, j] < 0.5 * tguess[j]:
+                    alt_used[j] = 1
+                    st[j] = OK
+                    X[0, j] = _newton(alpha[j], 2.0 * a4, rhs[j] + alt_add[j], tguess[j], st, j)
+    for j in range(nl):
+        if act[j] != 0:
+            x = X[0, j]
+            if not (x > 0.0 and x < _T_MAX):
+                st[j] = NONFINITE
+                X[0, j] = 1.0
     for i in range(1, nz):
         for j in range(nl):
             X[i, j] = p[i, j] + q[i, j] * X[i - 1, j]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _newton_start(alpha, a4, rhs, tguess):
+    """Newton's start for alpha x + a4 x^4 = rhs: the guess, raised to the lower bound
+    min(rhs / alpha, (rhs / a4)^1/4) of the root where it lies below it (1 if not positive)."""
+    x = tguess
+    xl = rhs / alpha
+    # the bound's quartic root (a pow) only where the guess may lie below it: x < xr <=> a4 x^4 < rhs
+    if x < xl and (x <= 0.0 or a4 * (x * x) * (x * x) < rhs):
+        xr = (rhs / a4) ** 0.25 if rhs > 0.0 else 0.0
+        if xr < xl:
+            xl = xr
+        if x < xl:
+            x = xl
+    if not (x > 0.0):
+        x = 1.0
+    return x
+
+
+@njit(cache=True, error_model="numpy")
+def _newton_lanes(alpha, a4, rhs, tguess, x, act, st):
+    """:func:`_newton` for every lane with ``act[j] == 2`` at once, the lanes' iterations interleaved (each
+    lane's iterates are exactly those of :func:`_newton`); roots into ``x``, ``act[j]`` set to 3; lanes not
+    converged get ``st[j] = NEWTON_FAILED``."""
+    nl = x.shape[0]
+    left = 0
+    for j in range(nl):
+        if act[j] == 2:
+            x[j] = _newton_start(alpha[j], a4, rhs[j], tguess[j])
+            left += 1
+    for _ in range(_NEWTON_MAXIT):
+        if left == 0:
+            break
+        for j in range(nl):
+            if act[j] == 2:
+                xj = x[j]
+                x3 = xj * xj * xj
+                f = alpha[j] * xj + a4 * x3 * xj - rhs[j]
+                dx = f / (alpha[j] + 4.0 * a4 * x3)
+                xj -= dx
+                x[j] = xj
+                if abs(dx) <= _NEWTON_RTOL * abs(xj) + 1e-300:
+                    act[j] = 3
+                    left -= 1
+    for j in range(nl):
+        if act[j] == 2:
+            st[j] = NEWTON_FAILED
+            act[j] = 3
 
 
 @njit(cache=True, error_model="numpy")
@@ -158,15 +220,7 @@ def _newton(alpha, a4, rhs, tguess, st, j):
     f(x) = alpha x + a4 x^4 - rhs is increasing and convex for x > 0: Newton from a point right
     of the root decreases monotonically onto it; the root lies above min(rhs/alpha, (rhs/a4)^1/4).
     """
-    x = tguess
-    xl = rhs / alpha
-    xr = (rhs / a4) ** 0.25 if rhs > 0.0 else 0.0
-    if xr < xl:
-        xl = xr
-    if x < xl:
-        x = xl
-    if not (x > 0.0):
-        x = 1.0
+    x = _newton_start(alpha, a4, rhs, tguess)
     for _ in range(_NEWTON_MAXIT):
         x3 = x * x * x
         f = alpha * x + a4 * x3 * x - rhs
@@ -207,6 +261,7 @@ def _step(
     e_emit,
     alt_add,
     alt_used,
+    act,
 ):
     """One time step of a batch of columns (T: (nz, LANES)) in place; absorbed flux qa (LANES,)
     at the start, qb at the end. Adds the step's absorbed / emitted energy [J m-2] (with the
@@ -230,7 +285,7 @@ def _step(
             Tg[0, j] = T[0, j]
             R[0, j] += qb[j]
             R[n1, j] += G
-        _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q, st, alt_add[:0], alt_used)
+        _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q, st, alt_add[:0], alt_used, act)
         for j in range(nl):
             e_abs[j] += dt * qb[j]
             e_emit[j] += dt * es * T[0, j] ** 4
@@ -255,7 +310,7 @@ def _step(
         R[n1, j] += G
         e_abs[j] += dt * (TRB_QW0 * (qa[j] + qg) + TRB_QW1 * qb[j])
         alt_add[j] = 0.5 * em0
-    _solve(Tg, R, K, Cc, rtau, 0.5, 0.5 * es, T[0], p, q, st, alt_add, alt_used)
+    _solve(Tg, R, K, Cc, rtau, 0.5, 0.5 * es, T[0], p, q, st, alt_add, alt_used, act)
     for j in range(nl):
         tg = Tg[0, j]
         emg = es * tg * tg * tg * tg
@@ -279,7 +334,7 @@ def _step(
     for j in range(nl):
         R[0, j] += qb[j]
         R[n1, j] += G
-    _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q, st, alt_add[:0], alt_used)
+    _solve(T, R, K, Cc, rtau, 1.0, es, Tg[0], p, q, st, alt_add[:0], alt_used, act)
     for j in range(nl):
         t1 = T[0, j]
         e_emit[j] += dt * es * TRB_QW1 * t1 * t1 * t1 * t1
@@ -365,7 +420,8 @@ def _run_batch(
     a_h = w1[9]
     nsteps = w1[10]
     a_time = w1[11]
-    wi = np.zeros((5, nl), np.int64)
+    wi = np.zeros((6, nl), np.int64)
+    act = wi[5]
     alt_used = wi[0]
     st_s = wi[1]
     refine = wi[2]
@@ -434,6 +490,7 @@ def _run_batch(
                 e_emit,
                 alt_add,
                 alt_used,
+                act,
             )
             if adapt:
                 # adaptive refinement, decided per column (so that a column's result never
@@ -485,6 +542,7 @@ def _run_batch(
                             e_emit[j : j + 1],
                             alt_add[j : j + 1],
                             alt_used[j : j + 1],
+                            act[j : j + 1],
                         )
                         t0 = Tb[0, j]
                         hs += dt / N_REFINE * 4.0 * es * t0 * t0 * t0
