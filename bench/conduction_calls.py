@@ -6,9 +6,11 @@ Run:  PYTHONPATH=$PWD python bench/conduction_calls.py --old-tree DIR [--columns
 ``DIR`` holds another version of the repository (``git archive COMMIT | tar -x -C DIR``). Each
 measurement is a fresh process with that version first on ``PYTHONPATH`` (``--one``): ``--columns``
 nominal regolith columns at their equilibrium under a steady absorbed flux of 5 W m-2 (+1 % noise:
-no sunrise, so no adaptive refinement), 100 four-hour steps as ``ColumnSolver.advance`` calls (one
+no sunrise, so no adaptive refinement; or with ``--forcing diurnal`` half the columns sunlit, a 300 W m-2
+peak cosine over the 29.53-day lunar day at random phases, the other half at 2 W m-2: sunrises and sunsets,
+so the default adaptive refinement works as in a crater), 100 four-hour steps as ``ColumnSolver.advance`` calls (one
 step each: the coupled step) and as one ``run_series`` call, after a warm-up (numba compilation or
-cache load). The processes alternate old, new, old, new ... Writes ``bench/results/conduction_calls.json``
+cache load). The processes alternate old, new, old, new ... Writes ``bench/results/conduction_calls.json`` (``--out`` to name another file)
 (ms per step, per run and the medians) and prints it as the last stdout line.
 """
 
@@ -27,14 +29,20 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 
 
-def one(n: int) -> dict:
+def one(n: int, forcing: str = "steady") -> dict:
     from crater_thermal import thermal
 
     s = thermal.ColumnSolver(["1300/1800"] * n)
-    s.set_equilibrium(np.full((2, n), 5.0))
     rng = np.random.default_rng(0)
-    a = 5.0 + 0.05 * rng.random((101, n))
     t = np.arange(101) * 14400.0
+    if forcing == "diurnal":
+        phase = 2.0 * np.pi * rng.random(n)
+        lit = rng.random(n) < 0.5
+        a = 2.0 + lit * np.maximum(0.0, 300.0 * np.cos(2.0 * np.pi * t[:, None] / (29.53 * 86400.0) + phase))
+        s.set_equilibrium(np.broadcast_to(a.mean(axis=0), (2, n)))
+    else:
+        a = 5.0 + 0.05 * rng.random((101, n))
+        s.set_equilibrium(np.full((2, n), 5.0))
     s.run_series(t[:3], a[:3], record=False)
     s.advance(a[0], a[1], 14400.0)
     x = s.state()
@@ -54,10 +62,12 @@ def main() -> None:
     ap.add_argument("--old-label", default="old")
     ap.add_argument("--columns", type=int, default=10_000)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--forcing", choices=("steady", "diurnal"), default="steady")
+    ap.add_argument("--out", default="conduction_calls.json", help="file name under bench/results/")
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(args.columns)))
+        print(json.dumps(one(args.columns, args.forcing)))
         return
     if not args.old_tree:
         raise SystemExit("--old-tree DIR is required (a copy of the version to compare with)")
@@ -67,6 +77,7 @@ def main() -> None:
         for which in ("old", "new"):
             env = dict(os.environ, PYTHONPATH=str(trees[which]))
             cmd = [sys.executable, str(HERE / "conduction_calls.py"), "--one", "--columns", str(args.columns)]
+            cmd += ["--forcing", args.forcing]
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
             if proc.returncode != 0:
                 raise SystemExit(f"{which}: failed: {proc.stderr[-2000:]}")
@@ -83,12 +94,13 @@ def main() -> None:
     result = {
         "benchmark": "conduction_calls",
         "columns": args.columns,
+        "forcing": args.forcing,
         "old": args.old_label,
         "median_ms_per_step": med,
         "old_over_new": {k: round(med["old"][k] / med["new"][k], 3) for k in med["old"]},
         "runs": runs,
     }
-    (HERE / "results" / "conduction_calls.json").write_text(json.dumps(result, indent=1) + "\n")
+    (HERE / "results" / args.out).write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result))
 
 

@@ -340,6 +340,137 @@ def _step(
         e_emit[j] += dt * es * TRB_QW1 * t1 * t1 * t1 * t1
 
 
+#: Scratch of :func:`_refine`: (nz, nr) arrays (temperatures, 5 coefficients, 6 work arrays) and (nr,) vectors.
+_REFINE_ARRAYS = 12
+_REFINE_VECTORS = 8
+
+
+@njit(cache=True, error_model="numpy")
+def _refine(
+    ridx,
+    Tb,
+    Ts,
+    mb,
+    b0b,
+    b3b,
+    e0b,
+    e1b,
+    anyrock,
+    ccoef,
+    ctmin,
+    rdz,
+    es,
+    G,
+    scheme,
+    dt,
+    qa,
+    qb,
+    st,
+    st_s,
+    e_abs,
+    ea_s,
+    e_emit,
+    ee_s,
+    a_h,
+    nsteps,
+    rbuf,
+    r1,
+    ri,
+):
+    """Redo one sub-step of the batch's lanes ``ridx`` in :data:`N_REFINE` equal parts, from their state
+    before it (``Ts``, ``ea_s``, ``ee_s``, ``st_s``), gathered into one sub-batch of ``len(ridx)`` lanes
+    (contiguous, so that the parts vectorise over the flagged lanes); results scattered back into ``Tb``,
+    ``e_abs``, ``e_emit``, ``st``, ``a_h`` and ``nsteps``. ``rbuf``, ``r1``, ``ri``: scratch of at least
+    :data:`_REFINE_ARRAYS` * nz * nr floats, (:data:`_REFINE_VECTORS`, nr) floats and (3, nr) ints."""
+    nz = Tb.shape[0]
+    nr = ridx.shape[0]
+    nk = b0b.shape[0]  # link rows
+    sz = nz * nr
+    Tr = rbuf[0:sz].reshape((nz, nr))
+    mr = rbuf[sz : 2 * sz].reshape((nz, nr))
+    b0r = rbuf[2 * sz : 2 * sz + nk * nr].reshape((nk, nr))
+    b3r = rbuf[3 * sz : 3 * sz + nk * nr].reshape((nk, nr))
+    e0r = rbuf[4 * sz : 4 * sz + nk * nr].reshape((nk, nr))
+    e1r = rbuf[5 * sz : 5 * sz + nk * nr].reshape((nk, nr))
+    Kr = rbuf[6 * sz : 7 * sz].reshape((nz, nr))
+    Cr = rbuf[7 * sz : 8 * sz].reshape((nz, nr))
+    Rr = rbuf[8 * sz : 9 * sz].reshape((nz, nr))
+    Tgr = rbuf[9 * sz : 10 * sz].reshape((nz, nr))
+    pr = rbuf[10 * sz : 11 * sz].reshape((nz, nr))
+    qr = rbuf[11 * sz : 12 * sz].reshape((nz, nr))
+    q2a = r1[0, :nr]
+    q2b = r1[1, :nr]
+    ear = r1[2, :nr]
+    eer = r1[3, :nr]
+    aar = r1[4, :nr]
+    hs = r1[5, :nr]
+    str_ = ri[0, :nr]
+    aur = ri[1, :nr]
+    actr = ri[2, :nr]
+    for c in range(nr):
+        j = ridx[c]
+        for i in range(nz):
+            Tr[i, c] = Ts[i, j]
+            mr[i, c] = mb[i, j]
+        for i in range(nk):
+            b0r[i, c] = b0b[i, j]
+            b3r[i, c] = b3b[i, j]
+            e0r[i, c] = e0b[i, j]
+            e1r[i, c] = e1b[i, j]
+        ear[c] = ea_s[j]
+        eer[c] = ee_s[j]
+        str_[c] = st_s[j]
+        aur[c] = 0
+        hs[c] = 0.0
+    for r in range(N_REFINE):
+        for c in range(nr):
+            j = ridx[c]
+            q2a[c] = qa[j] + (qb[j] - qa[j]) * (r / N_REFINE)
+            q2b[c] = qa[j] + (qb[j] - qa[j]) * ((r + 1) / N_REFINE)
+        _step(
+            Tr,
+            mr,
+            b0r,
+            b3r,
+            e0r,
+            e1r,
+            anyrock,
+            ccoef,
+            ctmin,
+            rdz,
+            es,
+            G,
+            scheme,
+            dt / N_REFINE,
+            q2a,
+            q2b,
+            Kr,
+            Cr,
+            Rr,
+            Tgr,
+            pr,
+            qr,
+            str_,
+            ear,
+            eer,
+            aar,
+            aur,
+            actr,
+        )
+        for c in range(nr):
+            t0 = Tr[0, c]
+            hs[c] += dt / N_REFINE * 4.0 * es * t0 * t0 * t0
+    for c in range(nr):
+        j = ridx[c]
+        for i in range(nz):
+            Tb[i, j] = Tr[i, c]
+        e_abs[j] = ear[c]
+        e_emit[j] = eer[c]
+        st[j] = str_[c]
+        a_h[j] += hs[c]
+        nsteps[j] += N_REFINE
+
+
 def interleave(a: np.ndarray) -> np.ndarray:
     """(ncol, k) per-column coefficients as (nb, k, LANES), C-contiguous, batch bi holding columns
     bi*LANES ... (the layout :func:`run_columns` reads); the last batch is padded with copies of the last
@@ -407,21 +538,23 @@ def _run_batch(
     p = w2[4]
     q = w2[5]
     Ts = w2[6]
-    w1 = np.zeros((12, nl))
+    w1 = np.zeros((10, nl))
     qa = w1[0]
     qb = w1[1]
     alt_add = w1[2]
     ea_s = w1[3]
     ee_s = w1[4]
-    q2a = w1[5]
-    q2b = w1[6]
-    e_abs = w1[7]
-    e_emit = w1[8]
-    a_h = w1[9]
-    nsteps = w1[10]
-    a_time = w1[11]
-    wi = np.zeros((6, nl), np.int64)
+    e_abs = w1[5]
+    e_emit = w1[6]
+    a_h = w1[7]
+    nsteps = w1[8]
+    a_time = w1[9]
+    wi = np.zeros((7, nl), np.int64)
     act = wi[5]
+    ridx = wi[6]
+    rbuf = np.empty(0)  # the adaptive refinement's scratch (made when first needed: see _refine)
+    r1 = np.empty((0, 0))
+    ri = np.empty((0, 0), np.int64)
     alt_used = wi[0]
     st_s = wi[1]
     refine = wi[2]
@@ -501,57 +634,53 @@ def _run_batch(
                 for j in range(nl):
                     d = abs(Tg[0, j] - (Ts[0, j] + TRB_GAMMA * (Tb[0, j] - Ts[0, j])))
                     refine[j] = 1 if (d > adapt_K and st[j] == OK) else 0
+            nr = 0
             for j in range(nl):
                 if refine[j]:
-                    # rewind this column and redo its sub-step alone (a one-lane view), so the
-                    # other columns of the batch pay nothing
-                    for i in range(nz):
-                        Tb[i, j] = Ts[i, j]
-                    e_abs[j] = ea_s[j]
-                    e_emit[j] = ee_s[j]
-                    st[j] = st_s[j]
-                    hs = 0.0
-                    for r in range(N_REFINE):
-                        q2a[j] = qa[j] + (qb[j] - qa[j]) * (r / N_REFINE)
-                        q2b[j] = qa[j] + (qb[j] - qa[j]) * ((r + 1) / N_REFINE)
-                        _step(
-                            Tb[:, j : j + 1],
-                            mb[:, j : j + 1],
-                            b0b[:, j : j + 1],
-                            b3b[:, j : j + 1],
-                            e0b[:, j : j + 1],
-                            e1b[:, j : j + 1],
-                            anyrock,
-                            ccoef,
-                            ctmin,
-                            rdz,
-                            es,
-                            G,
-                            scheme,
-                            dt / N_REFINE,
-                            q2a[j : j + 1],
-                            q2b[j : j + 1],
-                            K[:, j : j + 1],
-                            Cc[:, j : j + 1],
-                            R[:, j : j + 1],
-                            Tg[:, j : j + 1],
-                            p[:, j : j + 1],
-                            q[:, j : j + 1],
-                            st[j : j + 1],
-                            e_abs[j : j + 1],
-                            e_emit[j : j + 1],
-                            alt_add[j : j + 1],
-                            alt_used[j : j + 1],
-                            act[j : j + 1],
-                        )
-                        t0 = Tb[0, j]
-                        hs += dt / N_REFINE * 4.0 * es * t0 * t0 * t0
-                    a_h[j] += hs
-                    nsteps[j] += N_REFINE
+                    ridx[nr] = j
+                    nr += 1
                 else:
                     t0 = Tb[0, j]
                     a_h[j] += dt * 4.0 * es * t0 * t0 * t0
                     nsteps[j] += 1
+            if nr > 0:
+                if rbuf.shape[0] == 0:  # the refinement's scratch, made at the batch's first refined sub-step
+                    rbuf = np.empty(_REFINE_ARRAYS * nz * nl)
+                    r1 = np.empty((_REFINE_VECTORS, nl))
+                    ri = np.empty((3, nl), np.int64)
+                # rewind the flagged columns and redo their sub-step together, gathered into a sub-batch
+                # of nr lanes (each lane's arithmetic is the same as alone: no result depends on the batch)
+                _refine(
+                    ridx[:nr],
+                    Tb,
+                    Ts,
+                    mb,
+                    b0b,
+                    b3b,
+                    e0b,
+                    e1b,
+                    anyrock,
+                    ccoef,
+                    ctmin,
+                    rdz,
+                    es,
+                    G,
+                    scheme,
+                    dt,
+                    qa,
+                    qb,
+                    st,
+                    st_s,
+                    e_abs,
+                    ea_s,
+                    e_emit,
+                    ee_s,
+                    a_h,
+                    nsteps,
+                    rbuf,
+                    r1,
+                    ri,
+                )
             for j in range(nl):
                 a_time[j] += dt
         bad = False
