@@ -10,7 +10,8 @@ no sunrise, so no adaptive refinement; or with ``--forcing diurnal`` half the co
 peak cosine over the 29.53-day lunar day at random phases, the other half at 2 W m-2: sunrises and sunsets,
 so the default adaptive refinement works as in a crater), 100 four-hour steps as ``ColumnSolver.advance`` calls (one
 step each: the coupled step) and as one ``run_series`` call, after a warm-up (numba compilation or
-cache load). The processes alternate old, new, old, new ... Writes ``bench/results/conduction_calls.json`` (``--out`` to name another file)
+cache load). The processes alternate old, new, old, new ... Writes ``bench/results/conduction_calls.json``
+(``--out`` to name another file)
 (ms per step, per run and the medians) and prints it as the last stdout line.
 """
 

@@ -63,7 +63,8 @@ plus the cross
 approximation and its recompression (O(entries * rank)).  Products run in numba
 (:mod:`crater_thermal.kernels.vfoperator`), one pass over the stored entries per product, for any
 number of right-hand sides at once, split between :data:`PRODUCT_THREADS` threads (rows of the sparse
-part and runs of low-rank blocks balanced by stored entries, each thread adding into its own array).
+part and runs of low-rank blocks balanced by stored entries, each thread adding into its own array), with
+several right-hand sides in :data:`PRODUCT_DTYPE` arithmetic.
 """
 
 from __future__ import annotations
@@ -125,6 +126,12 @@ PRODUCT_THREADS = max(1, min(os.cpu_count() or 1, 8))
 #: pool's threads are kept, so a split costs little; the threshold was set by timing products on the
 #: generator crater at 5k and 10k facets (docs/performance.md).
 PARALLEL_MIN_WORK = 500_000
+#: Arithmetic of the products with several right-hand sides (the stored values are float32 either way;
+#: inputs and results stay float64; one right-hand side is always float64). float32: 1.57x faster with 64
+#: right-hand sides at 30k facets, each facet within 3.2e-6 of its float64 product (docs/performance.md),
+#: far below the operator's own error (its tolerance 1e-3; ~1e-4 measured against the exact matrix).
+#: np.float64 gives the float64 products.
+PRODUCT_DTYPE = np.float32
 #: Part of the cache key of a compressed operator: bump it when the numbers change.
 ALGORITHM_VERSION = "c2"
 
@@ -271,6 +278,8 @@ class CompressedViewFactors(ViewFactorOperator):
         self._max_rank = int(self.rank.max()) if len(self.rank) else 1
         self._split: list | None = None
         self._entries = 0
+        #: arithmetic of this operator's products (:data:`PRODUCT_DTYPE`)
+        self.product_dtype = PRODUCT_DTYPE
 
     @property
     def nbytes(self) -> int:
@@ -330,15 +339,15 @@ class CompressedViewFactors(ViewFactorOperator):
         lr = (self.r0[b], self.r1[b], self.c0[b], self.c1[b], self.rank[b], self.uoff[b], self.voff[b], self.U, self.V)
         Y = np.zeros_like(X)
         if X.shape[1] == 1:
-            x1, y1 = np.ascontiguousarray(X[:, 0]), np.zeros(X.shape[0])
+            x1, y1 = np.ascontiguousarray(X[:, 0]), np.zeros(X.shape[0], X.dtype)
             kv.sym_sparse_matvec1(self.indptr, self.indices, self.data, x1, y1, i0, i1)
             if b1 > b0:
-                kv.lowrank_matvec1(*lr, x1, y1, np.empty(2 * self._max_rank))
+                kv.lowrank_matvec1(*lr, x1, y1, np.empty(2 * self._max_rank, X.dtype))
             Y[:, 0] = y1
         else:
             kv.sym_sparse_matvec(self.indptr, self.indices, self.data, X, Y, i0, i1)
             if b1 > b0:
-                kv.lowrank_matvec(*lr, X, Y, np.empty((2 * self._max_rank, X.shape[1])))
+                kv.lowrank_matvec(*lr, X, Y, np.empty((2 * self._max_rank, X.shape[1]), X.dtype))
         return Y
 
     def _apply_G(self, X: np.ndarray) -> np.ndarray:
@@ -346,6 +355,9 @@ class CompressedViewFactors(ViewFactorOperator):
         so the parts of :meth:`_parts` run on threads and their sums are added."""
         if self.scale is not None:
             X = X * self.scale[:, None]
+        # several right-hand sides in the products' arithmetic (PRODUCT_DTYPE); one in float64 (float32 was
+        # no faster there: 0.95x at 30k facets, bench/operator_products.py)
+        X = np.ascontiguousarray(X, self.product_dtype if X.shape[1] > 1 else np.float64)
         parts = self._parts(X.shape[1])
         if len(parts) == 1:
             Y = self._apply_part(X, parts[0])
@@ -354,6 +366,7 @@ class CompressedViewFactors(ViewFactorOperator):
             Y = Ys[0]
             for other in Ys[1:]:
                 Y += other
+        Y = Y.astype(np.float64, copy=False)
         if self.scale is not None:
             Y *= self.scale[:, None]
         return Y
@@ -797,7 +810,9 @@ def compressed_view_factors(
         "rowsum_estimate_s": plan.rowsum_estimate_s,
     }
     op = CompressedViewFactors(plan.tree.perm, np.asarray(mesh.areas), sparse, packed, None, plan.tolerance, stats)
+    op.product_dtype = np.float64  # the rescale from float64 row sums, as the workers' row blocks sum them
     scale, excess = rowsum_scale(op.row_sums()[plan.tree.perm])
+    op.product_dtype = PRODUCT_DTYPE
     if scale is not None:
         op.scale = scale
         op.rowsum_excess = excess

@@ -30,7 +30,7 @@ def _close(got, ref):
     np.testing.assert_allclose(got, ref, rtol=0, atol=ROUNDOFF * np.abs(ref).max())
 
 
-def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
+def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path, monkeypatch):
     """An inward sphere of 800 facets (every facet sees most others; row sums above 1, so the rescale of
     all row sums applies) in 3 chunks on 2 workers: ``F x``, ``F X`` and ``F^T y`` from the workers' rows
     equal the whole operator's; this process holds only the facet order and areas. Then one worker is
@@ -38,6 +38,7 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
     are run again, seen in the scheduler's task stream) and the products are unchanged."""
     mesh = geometry.sphere_mesh(800)
     whole = vfoperator.compressed_view_factors(mesh)
+    monkeypatch.setattr(whole, "product_dtype", np.float64)  # the workers' row blocks multiply in float64
     assert whole.scale is not None and whole.stats["lowrank_blocks"] > 0  # the rescale and far blocks
     rng = np.random.default_rng(3)
     x, X, y = rng.random(mesh.n_facets), rng.random((mesh.n_facets, 4)), rng.random(mesh.n_facets)

@@ -44,7 +44,7 @@ def terrain5k():
     return m, tr, exact, comp
 
 
-def test_compressed_products_match_exact(terrain5k):
+def test_compressed_products_match_exact(terrain5k, monkeypatch):
     m, tr, exact, comp = terrain5k
     assert comp.shape == exact.shape == (m.n_facets, m.n_facets)
     # physical fields: radiative equilibrium of the terrain under a low Sun (shadowed crater floor,
@@ -56,7 +56,9 @@ def test_compressed_products_match_exact(terrain5k):
     for x in (emitted, scattered, np.ones(m.n_facets)):
         # issue 13: relative error of F x at most 1e-3 for physical x (measured ~1e-5 at the default tolerance)
         assert _rel(comp @ x, exact @ x) <= 1e-3
-    # several right-hand sides at once give the same as one by one
+    # several right-hand sides at once give the same as one by one (in float64 arithmetic: the float32
+    # products' rounding is checked in test_float32_products_match_float64)
+    monkeypatch.setattr(comp, "product_dtype", np.float64)
     X = np.column_stack([emitted, scattered])
     np.testing.assert_allclose(comp @ X, np.column_stack([comp @ emitted, comp @ scattered]), rtol=1e-12)
     # the operator is much smaller than the exact matrix already at 5k facets
@@ -67,6 +69,7 @@ def test_threaded_products_equal_one_thread(terrain5k, monkeypatch):
     # the product is split between threads (sparse rows and low-rank blocks, each thread into its own
     # array); the sum equals the one-thread product up to the order of additions (1e-15 relative)
     _, _, _, comp = terrain5k
+    monkeypatch.setattr(comp, "product_dtype", np.float64)  # summation order only shows in float32 rounding
     X = np.random.default_rng(5).random((comp.shape[0], 3))
     monkeypatch.setattr(vo, "PARALLEL_MIN_WORK", 1 << 62)
     one = [comp @ X, comp @ X[:, 0], comp.rmatvec(X)]
@@ -80,8 +83,9 @@ def test_threaded_products_equal_one_thread(terrain5k, monkeypatch):
     comp._split = None
 
 
-def test_compressed_reciprocity_and_row_sums(terrain5k):
+def test_compressed_reciprocity_and_row_sums(terrain5k, monkeypatch):
     m, _, exact, comp = terrain5k
+    monkeypatch.setattr(comp, "product_dtype", np.float64)  # the float64 products (float32: below)
     rng = np.random.default_rng(3)
     cols = rng.choice(m.n_facets, 40, replace=False)
     E = np.zeros((m.n_facets, len(cols)))
@@ -335,7 +339,7 @@ def test_row_relative_bad_mode():
         vo.compressed_view_factors(m, tolerance_mode="rows")
 
 
-def test_row_blocks_built_alone_equal_the_whole_operator(tmp_path):
+def test_row_blocks_built_alone_equal_the_whole_operator(tmp_path, monkeypatch):
     """A distributed run's workers build their own rows from the mesh (``CompressedPlan.row_block``: the
     blocks that meet them, nothing else), then the rescale of every row sum. Reference: the whole
     operator (``compressed_view_factors``), saved and loaded on the same rows (``load_row_block``): the
@@ -344,6 +348,8 @@ def test_row_blocks_built_alone_equal_the_whole_operator(tmp_path):
     inward sphere (row sums above 1: the rescale), the row-relative tolerance (Monte-Carlo row sums that
     every block must draw alike)."""
     from crater_thermal.geometry import sphere_mesh
+
+    monkeypatch.setattr(vo, "PRODUCT_DTYPE", np.float64)  # the row blocks' products are float64
 
     cases = [
         (terrain_mesh(1500, rough_m=20.0), {}),
@@ -377,3 +383,42 @@ def test_row_blocks_built_alone_equal_the_whole_operator(tmp_path):
         assert whole.stats["rays"] <= rays <= len(blocks) * whole.stats["rays"]
     with pytest.raises(ConfigError, match="outside"):
         plan.row_block(0, n + 1)
+
+
+def test_float32_products_match_float64(terrain5k, monkeypatch):
+    """The compressed operator multiplies several right-hand sides in float32 arithmetic
+    (``PRODUCT_DTYPE``) on float32 copies of the inputs; one right-hand side stays float64 (equal).
+    Reference: the same stored entries multiplied in float64. Each facet's result may differ
+    by the float32 rounding of its sum (unit round-off 6e-8 times the ~sqrt of the terms summed, here a
+    few thousand): bound 2e-5 of the facet's own value for the physical inputs (positive terms) and of
+    the column's largest for random signed combinations, 50x below the operator's own 1e-3 tolerance;
+    one and several right-hand sides, one and two threads, and the transpose product alike."""
+    m, tr, exact, comp = terrain5k
+    assert comp.product_dtype == vo.PRODUCT_DTYPE == np.float32
+    sun = illumination.sun_direction_from_angles(10.0, 200.0)
+    res = radiosity.steady_state(m, exact.matrix, tr, sun, AU)
+    emitted = 0.95 * SIGMA * res["surface_temperature"] ** 4
+    scattered = 0.12 * res["solar_incident"]
+    X = np.column_stack([emitted, scattered, np.ones(m.n_facets)])
+    rng = np.random.default_rng(11)
+    signed = rng.standard_normal((m.n_facets, 2))
+    got = {}
+    for dtype in (np.float32, np.float64):
+        monkeypatch.setattr(comp, "product_dtype", dtype)
+        for threads in (1, 2):
+            monkeypatch.setattr(vo, "PRODUCT_THREADS", threads)
+            comp._split = None
+            got[dtype, threads] = (comp @ X, comp @ emitted, comp.rmatvec(X), comp @ signed)
+    comp._split = None
+    worst = 0.0
+    for threads in (1, 2):
+        f32, f64 = got[np.float32, threads], got[np.float64, 1]
+        for a, b in zip(f32[:3], f64[:3]):
+            b2 = b.reshape(len(b), -1)
+            lit = b2 > 1e-6 * b2.max(axis=0)
+            rel = np.abs(a.reshape(b2.shape) - b2)[lit] / b2[lit]
+            worst = max(worst, float(rel.max()))
+        assert worst <= 2e-5
+        np.testing.assert_allclose(f32[3], f64[3], rtol=0, atol=2e-5 * np.abs(f64[3]).max())
+    assert got[np.float32, 1][0].dtype == np.float64  # results stay float64
+    np.testing.assert_array_equal(got[np.float32, 1][1], got[np.float64, 1][1])  # one right-hand side: float64

@@ -79,12 +79,13 @@ def keep_visible(n, blocked, need, pi_, pj_, gg):
 @njit(nogil=True, cache=True)
 def sym_sparse_matvec(indptr, indices, data, x, y, i0, i1):
     """``y += (S + S^T) x`` over the rows i0..i1-1 of the strictly upper-triangular CSR ``S``
-    (x, y: (n, k) float64). Row ranges split the product between threads (each with its own y)."""
+    (x, y: (n, k), float64 or float32: the arithmetic is in their type, the float32 values promoted for
+    float64). Row ranges split the product between threads (each with its own y)."""
     k = x.shape[1]
     for i in range(i0, i1):
         for q in range(indptr[i], indptr[i + 1]):
             j = indices[q]
-            g = np.float64(data[q])
+            g = data[q]
             for c in range(k):
                 y[i, c] += g * x[j, c]
                 y[j, c] += g * x[i, c]
@@ -95,8 +96,8 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
     """``y += sum_b (U_b V_b^T) x[c] (into rows r) + (V_b U_b^T) x[r] (into columns c)``.
 
     Block b covers rows r0[b]..r1[b]-1 and columns c0[b]..c1[b]-1; ``U_b`` is (m, rank) row-major at
-    ``U[uoff[b]:]``, ``V_b`` (n, rank) at ``V[voff[b]:]`` (float32).  x, y: (n, k) float64; tmp: a
-    work array of at least (2 * max rank, k).
+    ``U[uoff[b]:]``, ``V_b`` (n, rank) at ``V[voff[b]:]`` (float32).  x, y: (n, k), float64 or float32
+    (the arithmetic in their type); tmp: a work array of their type, at least (2 * max rank, k).
     """
     k = x.shape[1]
     for b in range(r0.shape[0]):
@@ -114,28 +115,28 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
             j = c0[b] + jj
             base = vo + jj * r
             for q in range(r):
-                v = np.float64(V[base + q])
+                v = V[base + q]
                 for c in range(k):
                     tmp[q, c] += v * x[j, c]
         for ii in range(m):
             i = r0[b] + ii
             base = uo + ii * r
             for q in range(r):
-                u = np.float64(U[base + q])
+                u = U[base + q]
                 for c in range(k):
                     tmp[r + q, c] += u * x[i, c]
         for ii in range(m):
             i = r0[b] + ii
             base = uo + ii * r
             for q in range(r):
-                u = np.float64(U[base + q])
+                u = U[base + q]
                 for c in range(k):
                     y[i, c] += u * tmp[q, c]
         for jj in range(nn):
             j = c0[b] + jj
             base = vo + jj * r
             for q in range(r):
-                v = np.float64(V[base + q])
+                v = V[base + q]
                 for c in range(k):
                     y[j, c] += v * tmp[r + q, c]
 
@@ -192,13 +193,13 @@ def aca_full(R, budget, rmax, U, V):
 
 @njit(nogil=True, cache=True)
 def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
-    """One right-hand side of :func:`sym_sparse_matvec`: rows i0..i1-1 (x, y: (n,) float64)."""
+    """One right-hand side of :func:`sym_sparse_matvec`: rows i0..i1-1 (x, y: (n,) float64 or float32)."""
     for i in range(i0, i1):
         xi = x[i]
         acc = 0.0
         for q in range(indptr[i], indptr[i + 1]):
             j = indices[q]
-            g = np.float64(data[q])
+            g = data[q]
             acc += g * x[j]
             y[j] += g * xi
         y[i] += acc
@@ -206,7 +207,8 @@ def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
 
 @njit(nogil=True, cache=True)
 def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
-    """One right-hand side of :func:`lowrank_matvec` (x, y: (n,) float64; tmp: (2 * max rank,))."""
+    """One right-hand side of :func:`lowrank_matvec` (x, y: (n,) float64 or float32; tmp: (2 * max rank,) of
+    their type)."""
     for b in range(r0.shape[0]):
         r = rank[b]
         uo = uoff[b]
@@ -225,7 +227,7 @@ def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
             base = uo + ii * r
             acc = 0.0
             for q in range(r):
-                u = np.float64(U[base + q])
+                u = U[base + q]
                 acc += u * tmp[q]
                 tmp[r + q] += u * xi
             y[i] += acc

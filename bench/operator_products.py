@@ -1,0 +1,96 @@
+"""Benchmark: products of the compressed view-factor operator in float32 against float64 arithmetic (issue 24).
+
+Run:  PYTHONPATH=$PWD python bench/operator_products.py [--size 30000] [--repeat 4]
+
+Builds the scale crater of ``bench/scale.py`` (10 km, 5 km flat surround, 86 S, ``--size`` facets, cold cache)
+and its compressed operator, then times products ``F X`` of an emission-like X (eps sigma T^4 of T drawn in
+40-340 K) with 8 and 64 right-hand sides (the lagged windows' and scattering's way; one right-hand side, the
+coupled step's, is always float64: float32 was no faster there, 0.95x, ``operator_products_30000_one_rhs.json``,
+measured before that choice),
+float64 and float32 arithmetic (``CompressedViewFactors.product_dtype``) alternating in this one process,
+``--repeat`` times each. Accuracy of float32 against float64 on the same X: per facet relative difference
+(facets above 1e-6 of the column's largest), its largest and median. Writes
+``bench/results/operator_products_<size>.json``; the last stdout line is the same JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=30_000)
+    ap.add_argument("--repeat", type=int, default=4)
+    args = ap.parse_args()
+    spec = importlib.util.spec_from_file_location("scale", HERE / "scale.py")
+    scale = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scale)
+    from crater_thermal import config, simulate, vfoperator
+
+    with tempfile.TemporaryDirectory(prefix="products_") as tmp:
+        os.environ["CRATER_THERMAL_CACHE"] = str(Path(tmp) / "cache")
+        path = Path(tmp) / "case.toml"
+        path.write_text(
+            scale.CASE.format(
+                facets=args.size,
+                diameter_km=10.0,
+                surround_km=5.0,
+                lat_deg=-86.0,
+                chunk_mb=256,
+                extra="",
+                end="2019-01-03T00:00",
+                spinup='spinup = "periodic"\nspinup_years = 1.0',
+            )
+        )
+        case = config.load_case(path)
+        mesh, _, F = simulate.case_geometry(case, simulate.Timer())
+    if not isinstance(F, vfoperator.CompressedViewFactors):
+        raise SystemExit(f"{args.size} facets gave a {type(F).__name__}; use >= 10,000 facets (compressed operator)")
+    rng = np.random.default_rng(1)
+    X = 0.95 * 5.670374419e-8 * (40.0 + 300.0 * rng.random((mesh.n_facets, 64))) ** 4
+    result = {"benchmark": "operator_products", "facets": mesh.n_facets, "operator_mb": F.nbytes / 1e6, "cases": {}}
+    for k in (8, 64):
+        x = X[:, :k]
+        out, times = {}, {"float64": [], "float32": []}
+        for dtype in (np.float64, np.float32):  # warm-up: numba compilation or cache load, the thread pool
+            F.product_dtype = dtype
+            out[dtype] = F @ x
+        for _ in range(args.repeat):
+            for name, dtype in (("float64", np.float64), ("float32", np.float32)):
+                F.product_dtype = dtype
+                t0 = time.perf_counter()
+                F @ x
+                times[name].append(time.perf_counter() - t0)
+        ref = out[np.float64].reshape(mesh.n_facets, -1)
+        got = out[np.float32].reshape(ref.shape)
+        lit = ref > 1e-6 * ref.max(axis=0)
+        rel = np.abs(got - ref)[lit] / ref[lit]
+        med = {n: float(np.median(t)) for n, t in times.items()}
+        result["cases"][str(k)] = {
+            "right_hand_sides": k,
+            "seconds": times,
+            "median_s": med,
+            "float64_over_float32": med["float64"] / med["float32"],
+            "max_rel_diff": float(rel.max()),
+            "median_rel_diff": float(np.median(rel)),
+        }
+        print(json.dumps({"k": k, **{a: b for a, b in result["cases"][str(k)].items() if a != "seconds"}}), flush=True)
+    F.product_dtype = vfoperator.PRODUCT_DTYPE
+    result["loadavg"] = os.getloadavg()
+    (HERE / "results" / f"operator_products_{args.size}.json").write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
