@@ -8,8 +8,10 @@ and its compressed operator, then times products ``F X`` of an emission-like X (
 coupled step's, is always float64: float32 was no faster there, 0.95x, ``operator_products_30000_one_rhs.json``,
 measured before that choice),
 float64 and float32 arithmetic (``CompressedViewFactors.product_dtype``) alternating in this one process,
-``--repeat`` times each. Accuracy of float32 against float64 on the same X: per facet relative difference
-(facets above 1e-6 of the column's largest), its largest and median. Writes
+``--repeat`` times each; and with one right-hand side (float64), the kernels as shipped (reassociated sums,
+``kernels.vfoperator.ONE_RHS_FASTMATH``) against their source compiled without those flags, alternating,
+5 x ``--repeat`` times each (``one_rhs_fastmath`` in the JSON). Accuracy of float32 against float64 on the
+same X: per facet relative difference (facets above 1e-6 of the column's largest), its largest and median. Writes
 ``bench/results/operator_products_<size>.json``; the last stdout line is the same JSON.
 """
 
@@ -26,6 +28,46 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+
+
+def one_rhs_fastmath(F, x, repeat: int) -> dict:
+    """One right-hand side (the coupled step's product, float64): the kernels as shipped (LLVM flags
+    ``kernels.vfoperator.ONE_RHS_FASTMATH``) against the same Python source compiled without them, alternating
+    in this process; the largest relative difference of the products (facets above 1e-6 of the largest)."""
+    from numba import njit
+
+    from crater_thermal.kernels import vfoperator as kv
+
+    names = ("sym_sparse_matvec1", "lowrank_matvec1")
+    shipped = {name: getattr(kv, name) for name in names}
+    plain = {name: njit(nogil=True)(shipped[name].py_func) for name in names}
+    out, times = {}, {"plain": [], "fastmath": []}
+    try:
+        for label, kernels in (("plain", plain), ("fastmath", shipped)):  # warm-up: compilation, the pool
+            for name in names:
+                setattr(kv, name, kernels[name])
+            out[label] = F @ x
+        for _ in range(repeat):
+            for label, kernels in (("plain", plain), ("fastmath", shipped)):
+                for name in names:
+                    setattr(kv, name, kernels[name])
+                t0 = time.perf_counter()
+                F @ x
+                times[label].append(time.perf_counter() - t0)
+    finally:
+        for name in names:
+            setattr(kv, name, shipped[name])
+    ref = out["plain"]
+    lit = ref > 1e-6 * ref.max()
+    med = {n: float(np.median(t)) for n, t in times.items()}
+    return {
+        "right_hand_sides": 1,
+        "flags": sorted(kv.ONE_RHS_FASTMATH),
+        "seconds": times,
+        "median_s": med,
+        "plain_over_fastmath": med["plain"] / med["fastmath"],
+        "max_rel_diff": float((np.abs(out["fastmath"] - ref)[lit] / ref[lit]).max()),
+    }
 
 
 def main() -> None:
@@ -87,6 +129,8 @@ def main() -> None:
         }
         print(json.dumps({"k": k, **{a: b for a, b in result["cases"][str(k)].items() if a != "seconds"}}), flush=True)
     F.product_dtype = vfoperator.PRODUCT_DTYPE
+    result["one_rhs_fastmath"] = one_rhs_fastmath(F, X[:, 0], args.repeat * 5)
+    print(json.dumps({"k": 1, **{a: b for a, b in result["one_rhs_fastmath"].items() if a != "seconds"}}), flush=True)
     result["loadavg"] = os.getloadavg()
     (HERE / "results" / f"operator_products_{args.size}.json").write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result))

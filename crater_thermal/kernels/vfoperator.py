@@ -15,6 +15,12 @@ import math
 import numpy as np
 from numba import njit
 
+#: LLVM flags of the one-right-hand-side product kernels (the coupled step's product, one per time step):
+#: sums may be reassociated and multiply-adds fused, so that their reductions are unrolled and vectorized.
+#: Their results then differ from the plain order's in the last bits only (a few 1e-16 relative); no flag
+#: that assumes away NaN or infinity is set. Measured in ``bench/operator_products.py`` (docs/performance.md).
+ONE_RHS_FASTMATH = {"reassoc", "contract"}
+
 
 @njit(nogil=True, cache=True)
 def far_block_rays(r0, r1, c0, c1, C, N, P, A, cos_cut, o32, d32, pos, val):
@@ -191,7 +197,7 @@ def aca_full(R, budget, rmax, U, V):
     return r
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, fastmath=ONE_RHS_FASTMATH)
 def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
     """One right-hand side of :func:`sym_sparse_matvec`: rows i0..i1-1 (x, y: (n,) float64 or float32)."""
     for i in range(i0, i1):
@@ -205,7 +211,7 @@ def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
         y[i] += acc
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, fastmath=ONE_RHS_FASTMATH)
 def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
     """One right-hand side of :func:`lowrank_matvec` (x, y: (n,) float64 or float32; tmp: (2 * max rank,) of
     their type)."""
