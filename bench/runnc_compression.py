@@ -1,13 +1,15 @@
 """Benchmark: how run.nc's (time, facet) series are compressed (issue 24): level, shuffle, chunk shape, dtype.
 
-Run:  PYTHONPATH=$PWD python bench/runnc_compression.py RUN.nc [--tile 4]
+Run:  PYTHONPATH=$PWD python bench/runnc_compression.py RUN.nc [--tile 4] [--filters] [--out JSON]
 
 Reads the four (time, facet) series of a real run (``solar_incident``, ``ir_incident``, ``solar_direct``,
 ``surface_temperature``), optionally side by side ``--tile`` times along facet (a wider block; the copies
 are offset by a small per-copy noise so that zlib cannot match them), and writes them with netCDF4 in
 each setting, in one process (ratios within one run; the machine is shared). Per setting: write time,
 file size, and the time to read one facet's whole series and one time sample of every facet (how
-replay and report read). Writes ``bench/results/runnc_compression.json``.
+replay and report read). ``--filters`` adds float32 with the zstd and blosc_lz4 filters (HDF5 plugins that
+netCDF4's wheels carry; a reader without them cannot read such a file). Writes
+``bench/results/runnc_compression.json`` (``--out``).
 """
 
 from __future__ import annotations
@@ -31,6 +33,11 @@ def main(argv=None) -> dict:
     ap.add_argument("run")
     ap.add_argument("--tile", type=int, default=4)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "runnc_compression.json"))
+    ap.add_argument(
+        "--filters",
+        action="store_true",
+        help="also float32 with HDF5 plugin filters (zstd, blosc_lz4: in netCDF4's wheels; readers need the plugins)",
+    )
     args = ap.parse_args(argv)
     rng = np.random.default_rng(0)
     data = {}
@@ -47,8 +54,11 @@ def main(argv=None) -> dict:
     settings = [(d, lv, sh, ch) for d, lv, sh, ch in settings if d == "f4" or (lv == 1 and ch == (24, 1 << 20))]
     # the writer before issue 24: float32, level 1, no shuffle, 24 rows x (1 MB of float64) facets
     settings = [("f4", 0, False, (24, 1 << 20)), ("f4", 1, False, (24, 1 << 19))] + settings
+    settings = [(*s, "zlib") for s in settings]
+    if args.filters:
+        settings += [("f4", 1, True, (24, 4 << 20), name) for name in ("zstd", "blosc_lz4")]
     with tempfile.TemporaryDirectory() as tmp:
-        for i, (dtype, level, shuffle, (rows, target)) in enumerate(settings):
+        for i, (dtype, level, shuffle, (rows, target), filt) in enumerate(settings):
             path = Path(tmp) / f"s{i}.nc"
             item = np.dtype(dtype).itemsize
             chunk = (min(rows, nt), max(1, min(nf, target // (item * rows))))
@@ -57,15 +67,19 @@ def main(argv=None) -> dict:
                 nc.createDimension("time", nt)
                 nc.createDimension("facet", nf)
                 for name, x in data.items():
+                    if filt == "zlib":
+                        how = {"zlib": level > 0, "complevel": max(level, 1), "shuffle": shuffle}
+                    elif filt.startswith("blosc"):  # blosc's own byte shuffle
+                        how = {"compression": filt, "complevel": level, "blosc_shuffle": 1 if shuffle else 0}
+                    else:
+                        how = {"compression": filt, "complevel": level, "shuffle": shuffle}
                     v = nc.createVariable(
                         name,
                         dtype,
                         ("time", "facet"),
-                        zlib=level > 0,
-                        complevel=max(level, 1),
-                        shuffle=shuffle,
                         chunksizes=chunk,
                         fill_value=np.dtype(dtype).type(np.nan),
+                        **how,
                     )
                     for a in range(0, nt, 120):  # streamed blocks as a run writes them
                         v[a : a + 120] = x[a : a + 120].astype(dtype)
@@ -80,6 +94,7 @@ def main(argv=None) -> dict:
                 err = float(np.abs(np.asarray(nc["surface_temperature"][:], float) - data["surface_temperature"]).max())
             assert np.isfinite(col).all() and np.isfinite(row).all()
             res = {
+                "filter": filt,
                 "dtype": dtype,
                 "complevel": level,
                 "shuffle": shuffle,
