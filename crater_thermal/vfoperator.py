@@ -1223,6 +1223,9 @@ class RowBlock:
     """
 
     def __init__(self, n, facets, near, a=None, b=None, areas=None, perm=None, scale=None, lowrank=None):
+        if perm is not None and near.dtype != np.float32:
+            # a compressed operator's near entries are float32 as stored: kept so (exactly), half the bytes
+            near = sp.csr_matrix((near.data.astype(np.float32), near.indices, near.indptr), shape=near.shape)
         self.n, self.facets, self.near = int(n), np.asarray(facets, np.int64), near
         self.a, self.b, self.areas, self.perm, self.scale, self.lowrank = a, b, areas, perm, scale, lowrank
         self.stats: dict = {}
@@ -1249,7 +1252,10 @@ class RowBlock:
         return int(total)
 
     def apply(self, X: np.ndarray) -> np.ndarray:
-        """``(F @ X)[facets]``: X (n, k) over all facets in facet order -> (len(facets), k)."""
+        """``(F @ X)[facets]``: X (n, k) over all facets in facet order -> (len(facets), k) float64.
+
+        As the whole compressed operator computes them: several right-hand sides in
+        :data:`PRODUCT_DTYPE` arithmetic, one in float64 (an exact matrix's rows: float64)."""
         X = np.asarray(X, np.float64)
         if X.ndim != 2 or X.shape[0] != self.n:
             raise ConfigError(f"row block product: operand has shape {X.shape}; expected ({self.n}, k)")
@@ -1260,11 +1266,15 @@ class RowBlock:
         Xc = np.ascontiguousarray(X[self.perm])
         if self.scale is not None:
             Xc *= self.scale[:, None]
-        Y = np.asarray(self.near @ Xc)
+        Xc = np.ascontiguousarray(Xc, PRODUCT_DTYPE if X.shape[1] > 1 else np.float64)
+        Y = np.zeros((self.b - self.a, Xc.shape[1]), Xc.dtype)
+        kv.csr_matmat(self.near.indptr, self.near.indices, self.near.data, Xc, Y)
         if len(self.lowrank[4]):
             full = np.zeros_like(Xc)
-            kv.lowrank_matvec(*self.lowrank, Xc, full, np.empty((2 * int(self.lowrank[4].max()), Xc.shape[1])))
+            tmp = np.empty((2 * int(self.lowrank[4].max()), Xc.shape[1]), Xc.dtype)
+            kv.lowrank_matvec(*self.lowrank, Xc, full, tmp)
             Y += full[self.a : self.b]
+        Y = Y.astype(np.float64, copy=False)
         if self.scale is not None:
             Y *= self.scale[self.a : self.b, None]
         return Y / self.areas[:, None]

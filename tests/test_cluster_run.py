@@ -107,9 +107,8 @@ def test_relaxed_run_saves_the_exchange_of_its_temperatures(local_run):
 
 def test_row_blocks_equal_the_whole_operator(tmp_path, monkeypatch):
     """Each worker's rows of the exact and the compressed operator (saved, then loaded row block by row
-    block from the files) give the whole operator's product on those rows, to round-off (both in float64
-    arithmetic: the row blocks' products are float64; the whole operator's float32 products are checked
-    against float64 in tests/test_vfoperator.py)."""
+    block from the files) give the whole operator's product on those rows, to round-off (both pinned to
+    float64 arithmetic here; their float32 products are checked against float64 in tests/test_vfoperator.py)."""
     monkeypatch.setattr(vfoperator, "PRODUCT_DTYPE", np.float64)
     mesh = simulate.case_mesh(config.load_case(small_case(tmp_path, facets=1500)))
     X = np.random.default_rng(1).random((mesh.n_facets, 3)) * 400.0

@@ -1,5 +1,7 @@
 """The compressed view-factor operator against the exact sparse matrix (issue 13, item 2)."""
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -349,7 +351,7 @@ def test_row_blocks_built_alone_equal_the_whole_operator(tmp_path, monkeypatch):
     every block must draw alike)."""
     from crater_thermal.geometry import sphere_mesh
 
-    monkeypatch.setattr(vo, "PRODUCT_DTYPE", np.float64)  # the row blocks' products are float64
+    monkeypatch.setattr(vo, "PRODUCT_DTYPE", np.float64)  # both in float64 (float32: the test below)
 
     cases = [
         (terrain_mesh(1500, rough_m=20.0), {}),
@@ -422,3 +424,32 @@ def test_float32_products_match_float64(terrain5k, monkeypatch):
         np.testing.assert_allclose(f32[3], f64[3], rtol=0, atol=2e-5 * np.abs(f64[3]).max())
     assert got[np.float32, 1][0].dtype == np.float64  # results stay float64
     np.testing.assert_array_equal(got[np.float32, 1][1], got[np.float64, 1][1])  # one right-hand side: float64
+
+
+def test_row_block_products_in_float32_match_the_whole_operator(terrain5k, tmp_path):
+    """A distributed run's row blocks multiply as the whole operator does: several right-hand sides in
+    ``PRODUCT_DTYPE`` (float32) arithmetic, one in float64, their near entries kept as the float32 they
+    are stored as. Reference: the whole operator's float64 product of the same entries. Bounds as in
+    :func:`test_float32_products_match_float64` (2e-5 of each facet's value; the row blocks sum in another
+    order); one right-hand side to round-off (1e-12: one missing entry would show)."""
+    m, tr, exact, comp = terrain5k
+    assert vo.PRODUCT_DTYPE == np.float32
+    sun = illumination.sun_direction_from_angles(10.0, 200.0)
+    res = radiosity.steady_state(m, exact.matrix, tr, sun, AU)
+    X = np.column_stack([0.95 * SIGMA * res["surface_temperature"] ** 4, 0.12 * res["solar_incident"]])
+    comp64 = copy.copy(comp)  # the same stored entries, multiplied in float64
+    comp64.product_dtype = np.float64
+    ref = comp64 @ X
+    vo.save_operator(comp, tmp_path / "op")
+    n = m.n_facets
+    for a in range(0, n, 1700):
+        block = vo.load_row_block(tmp_path / "op", a, min(n, a + 1700))
+        assert block.near.dtype == np.float32
+        got = block.apply(X)
+        assert got.dtype == np.float64
+        want = ref[block.facets]
+        lit = want > 1e-6 * want.max(axis=0)
+        assert (np.abs(got - want)[lit] / want[lit]).max() <= 2e-5
+        assert np.abs(got - want).max() > 0.0  # float32 arithmetic indeed (not float64 by accident)
+        one = block.apply(X[:, :1])
+        np.testing.assert_allclose(one[:, 0], want[:, 0], rtol=0, atol=1e-12 * np.abs(want[:, 0]).max())

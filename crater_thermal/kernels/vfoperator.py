@@ -197,6 +197,20 @@ def aca_full(R, budget, rmax, U, V):
     return r
 
 
+@njit(nogil=True, cache=True)
+def csr_matmat(indptr, indices, data, X, Y):
+    """``Y += A X`` for a general CSR matrix A (rows ``len(indptr) - 1``; float32 values) and X (n, k),
+    Y (rows, k) of one type (float64 or float32): the sums are made in that type, row by row in the
+    stored order (a distributed run's row block of the operator, :class:`crater_thermal.vfoperator.RowBlock`)."""
+    k = X.shape[1]
+    for i in range(len(indptr) - 1):
+        for q in range(indptr[i], indptr[i + 1]):
+            j = indices[q]
+            g = data[q]
+            for c in range(k):
+                Y[i, c] += g * X[j, c]
+
+
 @njit(nogil=True, cache=True, fastmath=ONE_RHS_FASTMATH)
 def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
     """One right-hand side of :func:`sym_sparse_matvec`: rows i0..i1-1 (x, y: (n,) float64 or float32)."""
