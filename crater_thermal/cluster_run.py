@@ -26,7 +26,8 @@ worker reads at the same path. The sunlight (direct and scattered) goes into the
 
 Then the time loop, window by window (the recorded period in windows of
 :func:`crater_thermal.waveform.window_samples` samples, the spin-up window in blocks): per relaxation
-iteration the client sends the window's emitted flux (samples x facets, float64, one copy per worker) and
+iteration the client sends the window's emitted flux (samples x facets, in the products' type: float32,
+one copy per worker) and
 each chunk's start state and sunlight; each task forms its rows' IR from the emission and its rows of the
 operator, conducts its columns through the window on one thread, and returns their temperatures, IR and
 end state. The client checks convergence, keeps the state, writes the rows into the store and the
@@ -400,8 +401,8 @@ class DaskColumns:
             self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
             self._solar = client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in self.chunks], hash=False)
         # one copy, on one worker; the others fetch it from there (a broadcast scatter waits on a worker
-        # that died mid-replication: measured, 30 s retries until the end)
-        E_f = client.scatter(np.ascontiguousarray(E, np.float64), hash=False)
+        # that died mid-replication: measured, 30 s retries until the end); in the products' type
+        E_f = client.scatter(_operand(E, len(E)), hash=False)
         last = self._last or [None] * len(self.chunks)
         futures = [
             client.submit(
@@ -427,6 +428,13 @@ class DaskColumns:
         parts = client.gather([client.submit(_surface, f, pure=False, retries=RETRIES) for f in futures])
         self._last = futures
         return _RemoteWindow(self, futures, parts, len(times_s))
+
+
+def _operand(X: np.ndarray, k: int) -> np.ndarray:
+    """An operand sent to the workers for products with ``k`` right-hand sides, in the type the row blocks
+    multiply it in (:meth:`crater_thermal.vfoperator.RowBlock.apply`: ``vfoperator.PRODUCT_DTYPE`` for
+    several, float64 for one): float32 halves the bytes sent and held per worker."""
+    return np.ascontiguousarray(X, vfoperator.PRODUCT_DTYPE if k > 1 else np.float64)
 
 
 def _surface(w):
@@ -694,7 +702,7 @@ class ClusterOperator(vfoperator.ViewFactorOperator):
         client = self.client
         for attempt in range(RESENDS + 1):
             try:
-                X_f = client.scatter(np.ascontiguousarray(X, np.float64), hash=False)
+                X_f = client.scatter(_operand(X, X.shape[1]), hash=False)
                 parts = client.gather(
                     [client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows]
                 )

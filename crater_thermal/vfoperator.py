@@ -1256,17 +1256,19 @@ class RowBlock:
 
         As the whole compressed operator computes them: several right-hand sides in
         :data:`PRODUCT_DTYPE` arithmetic, one in float64 (an exact matrix's rows: float64)."""
-        X = np.asarray(X, np.float64)
+        X = np.asarray(X)
         if X.ndim != 2 or X.shape[0] != self.n:
             raise ConfigError(f"row block product: operand has shape {X.shape}; expected ({self.n}, k)")
         if self.perm is None:  # exact matrix: its rows
-            return np.asarray(self.near @ X)
+            return np.asarray(self.near @ np.asarray(X, np.float64))
         from crater_thermal.kernels import vfoperator as kv
 
-        Xc = np.ascontiguousarray(X[self.perm])
+        # in the products' type from the gather on (a float32 operand, as a cluster sends it, is never
+        # copied to float64: a window's emission of every facet is the largest array a worker holds)
+        dtype = PRODUCT_DTYPE if X.shape[1] > 1 else np.float64
+        Xc = np.ascontiguousarray(X[self.perm], dtype)
         if self.scale is not None:
-            Xc *= self.scale[:, None]
-        Xc = np.ascontiguousarray(Xc, PRODUCT_DTYPE if X.shape[1] > 1 else np.float64)
+            Xc *= self.scale.astype(dtype)[:, None]
         Y = np.zeros((self.b - self.a, Xc.shape[1]), Xc.dtype)
         kv.csr_matmat(self.near.indptr, self.near.indices, self.near.data, Xc, Y)
         if len(self.lowrank[4]):
