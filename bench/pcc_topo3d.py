@@ -13,12 +13,15 @@ columns; ours: 12,800 facet columns), and the same per CPU second (user + system
 PCC is not vendored: build it yourself (gfortran; ``shadows``, ``fieldofviews`` and ``cratersQ_moon`` set up
 for RUN 3) and pass a script that runs the three from scratch with ``--pcc-script``.  Runs alternate (ours,
 PCC, ours, ...) ``--repeat`` times in this one process, so both see the same machine load; the minimum and the
-median of each are reported.  Without ``--pcc-script`` only our side is timed.
+median of each are reported.  Without ``--pcc-script`` only our side is timed.  ``--compression blosc_lz4``
+also times our run with that ``[output] compression`` (run.nc's series written with the blosc filter instead
+of zlib), alternating with the default one (``ours_blosc_lz4`` and ``ratio_wall_blosc_lz4`` in the JSON).
 
 Also, once, an in-process run for our stage split (``simulate.Timer``).
 
 Prints one JSON object on its last stdout line and writes bench/results/pcc_topo3d.json (``--out``).
-Usage: ``python bench/pcc_topo3d.py [--pcc-script /path/run3.sh] [--repeat 1] [--out PATH]``.
+Usage: ``python bench/pcc_topo3d.py [--pcc-script /path/run3.sh] [--repeat 1] [--compression blosc_lz4]
+[--out PATH]``.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from crater_thermal import (  # noqa: E402
+    choices,
     config,
     geometry,
     runner,  # noqa: E402
@@ -90,6 +94,12 @@ def main() -> None:
     ap.add_argument("--pcc-script", type=Path, default=None, help="script that runs PCC RUN 3 from scratch")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "pcc_topo3d.json")
+    ap.add_argument(
+        "--compression",
+        choices=[c for c in choices.OUTPUT_COMPRESSIONS if c != "zlib"],
+        default=None,
+        help="also time our run with this [output] compression, alternating with the default (ours_<name>)",
+    )
     args = ap.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="pcc_topo3d_") as tmpdir:
@@ -100,6 +110,10 @@ def main() -> None:
         (tmp / "case.toml").write_text(CASE.format(end=end))
         exe = str(Path(sys.executable).with_name("crater-thermal"))
         ours_cmd = [exe, "run", "case.toml", "-o", "run.nc", "--overwrite", "--quiet"]
+        if args.compression:
+            (tmp / "case_c.toml").write_text(CASE.format(end=end) + f'[output]\ncompression = "{args.compression}"\n')
+        alt_cmd = [exe, "run", "case_c.toml", "-o", "run_c.nc", "--overwrite", "--quiet"]
+        alt_wall, alt_cpu = [], []
 
         def cold(i: int) -> dict:
             # a fresh horizon-map cache for every run: each pays every stage, as PCC does
@@ -112,6 +126,10 @@ def main() -> None:
             w, c = _timed(ours_cmd, tmp, cold(i))
             ours_wall.append(w)
             ours_cpu.append(c)
+            if args.compression:
+                w, c = _timed(alt_cmd, tmp, cold(1000 + i))
+                alt_wall.append(w)
+                alt_cpu.append(c)
             if args.pcc_script is not None:
                 w, c = _timed(["bash", str(args.pcc_script)], tmp)
                 pcc_wall.append(w)
@@ -139,6 +157,13 @@ def main() -> None:
         },
         "load_average": os.getloadavg()[0],
     }
+    if alt_wall:
+        res[f"ours_{args.compression}"] = {
+            "wall_s": _summary(alt_wall),
+            "cpu_s": _summary(alt_cpu),
+            "column_lunar_days_per_s": round(n * LUNAR_DAYS / min(alt_wall), 1),
+            "default_over_this_wall": round(min(ours_wall) / min(alt_wall), 3),
+        }
     if pcc_wall:
         pcc_rate = PCC_PIXELS * LUNAR_DAYS / min(pcc_wall)
         res["pcc"] = {
@@ -150,6 +175,10 @@ def main() -> None:
         }
         res["ratio_wall"] = round(res["ours"]["column_lunar_days_per_s"] / pcc_rate, 2)
         res["ratio_cpu"] = round((n / min(ours_cpu)) / (PCC_PIXELS / min(pcc_cpu)), 2)
+        if alt_wall:
+            res[f"ratio_wall_{args.compression}"] = round(
+                res[f"ours_{args.compression}"]["column_lunar_days_per_s"] / pcc_rate, 2
+            )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1) + "\n")
     print(json.dumps(res))

@@ -710,6 +710,16 @@ SCHEMA: Tuple[Key, ...] = (
         lo=0.01,
         hi=1e6,
     ),
+    K(
+        "output",
+        "compression",
+        "choice",
+        "zlib",
+        "lossless compression of run.nc's (time, facet) series: zlib (readable by every netCDF-4 tool) or "
+        "blosc_lz4 (7-8x faster to write, ~9 % larger; needs the HDF5 blosc plugin to read: netCDF4's pip "
+        "wheels carry it, h5py needs hdf5plugin, NCO and MATLAB a plugin path); docs/model.md",
+        choices=choices.OUTPUT_COMPRESSIONS,
+    ),
 )
 del K
 

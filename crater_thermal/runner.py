@@ -171,6 +171,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
             f"uses {coupling} (a run on a dask cluster is relaxed): resume it as it was started"
         )
     nominal = thermal.parse_profile(case.surface.nominal_profile)  # before any ray is traced
+    io.check_compression(case.output.compression)  # before hours of work, not when run.nc is written
     timer = timer or simulate.Timer()
     mesh, tracer = simulate.case_scene(case, timer)
     spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
@@ -576,7 +577,12 @@ def _write_run(case, fc, store, block, out_path, nominal, spin_info, incidence, 
             for name, dim, n, _, _ in series
         }
         with io.stream_dataset(
-            ds, out_path, variables, overwrite=overwrite, time_rows=min(simulate.TIME_CHUNK, block)
+            ds,
+            out_path,
+            variables,
+            overwrite=overwrite,
+            time_rows=min(simulate.TIME_CHUNK, block),
+            compression=case.output.compression,
         ) as write:
             n_blocks = sum(-(-n // block) for _, _, n, _, _ in series)
             with simulate.stage(progress, f"write {out_path.name}") as report:

@@ -13,6 +13,7 @@ import pytest
 
 from crater_thermal import config, io, radiosity, runner, simulate, thermal, waveform
 from crater_thermal.constants import SIGMA
+from crater_thermal.errors import ConfigError
 from crater_thermal.materials import DensityExtrapolationWarning
 
 REPO = Path(__file__).resolve().parents[1]
@@ -469,3 +470,29 @@ def test_first_pass_samples_and_filling():
     ir_filled = radiosity.ir_of_emission(F, radiosity.emitted(filled, eps))
     ir_known = radiosity.ir_of_emission(F, radiosity.emitted(Tk, eps))
     assert np.allclose(ir_filled, waveform.between(uneven, known, ir_known, rows), rtol=1e-12, atol=1e-12)
+
+
+def test_blosc_compressed_run_equals_zlib_run(small_run, tmp_path):
+    """``[output] compression = "blosc_lz4"`` (issue 24: run.nc's writer keeps pace) changes only how the
+    series are stored: the same case gives the same numbers bit for bit (lossless; the reference is the
+    default zlib run of the module's fixture), its (time, facet) series carry the blosc filter, a replay
+    reads the file, and an unknown value is refused when the case is read."""
+    import netCDF4
+
+    case, ref = small_run
+    path = small_case(tmp_path)
+    path.write_text(path.read_text().replace("[output]\n", '[output]\ncompression = "blosc_lz4"\n'))
+    blosc_case = config.load_case(path)
+    assert blosc_case.output.compression == "blosc_lz4" and case.output.compression == "zlib"
+    out = runner.run_case(blosc_case, tmp_path / "run.nc", progress=False)
+    with netCDF4.Dataset(out) as nc, netCDF4.Dataset(ref.encoding["source"]) as nc_ref:
+        assert nc["surface_temperature"].filters().get("blosc")
+        assert nc_ref["surface_temperature"].filters().get("zlib")
+    ds = io.open_run(out)
+    for name in ("solar_incident", "ir_incident", "solar_direct", "surface_temperature"):
+        np.testing.assert_array_equal(ds[name].values, ref[name].values)
+    T, _ = simulate.replay_fluxes(ds, runner.resolve_profiles(["1300/1800"]), tol_K=1e-4, progress=False)
+    assert np.abs(T[0] - ds["surface_temperature"].values).max() <= 0.01
+    path.write_text(path.read_text().replace('"blosc_lz4"', '"lz77"'))
+    with pytest.raises(ConfigError, match="compression"):
+        config.load_case(path)
