@@ -83,18 +83,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="products_") as tmp:
         os.environ["CRATER_THERMAL_CACHE"] = str(Path(tmp) / "cache")
         path = Path(tmp) / "case.toml"
-        path.write_text(
-            scale.CASE.format(
-                facets=args.size,
-                diameter_km=10.0,
-                surround_km=5.0,
-                lat_deg=-86.0,
-                chunk_mb=256,
-                extra="",
-                end="2019-01-03T00:00",
-                spinup='spinup = "periodic"\nspinup_years = 1.0',
-            )
-        )
+        path.write_text(scale.case_text(args.size, "2019-01-03T00:00"))
         case = config.load_case(path)
         mesh, _, F = simulate.case_geometry(case, simulate.Timer())
     if not isinstance(F, vfoperator.CompressedViewFactors):

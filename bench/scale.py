@@ -93,6 +93,25 @@ checkpoint_interval_steps = 0
 """
 
 
+#: The periodic start over the year before the record that every scale run uses.
+PERIODIC_SPINUP = 'spinup = "periodic"\nspinup_years = 1.0'
+
+
+def case_text(facets: int, end: str, spinup: str = PERIODIC_SPINUP, chunk_mb: float = 256.0) -> str:
+    """The scale crater's case file (10 km crater, 5 km flat surround, 86 S, the defaults) at ``facets``
+    facets, recorded from 2019-01-01 to ``end`` (ISO) after ``spinup`` (TOML lines of ``[period]``)."""
+    return CASE.format(
+        facets=facets,
+        diameter_km=10.0,
+        surround_km=5.0,
+        lat_deg=-86.0,
+        chunk_mb=chunk_mb,
+        extra="",
+        end=end,
+        spinup=spinup,
+    )
+
+
 def _status_kb(key: str) -> float:
     """A ``/proc/self/status`` memory field [kB] (nan where there is no procfs)."""
     try:

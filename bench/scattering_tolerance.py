@@ -34,18 +34,7 @@ HERE = Path(__file__).resolve().parent
 
 def _case(tmp: Path, scale, size: int) -> Path:
     path = tmp / "case.toml"
-    path.write_text(
-        scale.CASE.format(
-            facets=size,
-            diameter_km=10.0,
-            surround_km=5.0,
-            lat_deg=-86.0,
-            chunk_mb=256,
-            extra="",
-            end="2019-12-31T20:00",
-            spinup='spinup = "periodic"\nspinup_years = 1.0',
-        )
-    )
+    path.write_text(scale.case_text(size, "2019-12-31T20:00"))
     return path
 
 

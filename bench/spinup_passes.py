@@ -56,18 +56,7 @@ def one(size: int) -> dict:
         tmp = Path(tmp)
         os.environ["CRATER_THERMAL_CACHE"] = str(tmp / "cache")
         case = tmp / "case.toml"
-        case.write_text(
-            scale.CASE.format(
-                facets=size,
-                diameter_km=10.0,
-                surround_km=5.0,
-                lat_deg=-86.0,
-                chunk_mb=256,
-                extra="",
-                end="2019-01-03T00:00",
-                spinup='spinup = "periodic"\nspinup_years = 1.0',
-            )
-        )
+        case.write_text(scale.case_text(size, "2019-01-03T00:00"))
         timer = simulate.Timer()
         load0 = os.getloadavg()
         t0 = time.perf_counter()
