@@ -990,7 +990,7 @@ class CompressedPlan:
         # near part: rows a..b-1 of S + S^T, S the entries above the diagonal (float32 as stored)
         rows_, cols_, vals_ = [], [], []
         for i, j, g in coo:
-            g = g.astype(np.float32).astype(np.float64)
+            g = g.astype(np.float32)
             up = (i >= a) & (i < b)
             down = (j >= a) & (j < b)
             rows_ += [i[up] - a, j[down] - a]
@@ -1172,7 +1172,7 @@ def load_row_block(folder, a: int, b: int) -> "RowBlock":
     indptr, indices, data = arr("indptr"), arr("indices"), arr("data")
     lo, hi = int(indptr[a]), int(indptr[b])
     upper = sp.csr_matrix(
-        (np.array(data[lo:hi], np.float64), np.array(indices[lo:hi]), np.array(indptr[a : b + 1]) - lo),
+        (np.array(data[lo:hi], np.float32), np.array(indices[lo:hi]), np.array(indptr[a : b + 1]) - lo),
         shape=(b - a, n),
     )
     # entries (i, j) of S with j in a..b-1 are entries (j, i) of S^T: one pass over the columns, in pieces
@@ -1185,7 +1185,7 @@ def load_row_block(folder, a: int, b: int) -> "RowBlock":
         if hit.size:
             rows_t.append(j[hit] - a)
             cols_t.append(row_of[q0 + hit])
-            vals_t.append(np.asarray(data[q0 : q0 + step])[hit].astype(np.float64))
+            vals_t.append(np.asarray(data[q0 : q0 + step], np.float32)[hit])
     del row_of
     near = upper
     if rows_t:
@@ -1224,7 +1224,8 @@ class RowBlock:
 
     def __init__(self, n, facets, near, a=None, b=None, areas=None, perm=None, scale=None, lowrank=None):
         if perm is not None and near.dtype != np.float32:
-            # a compressed operator's near entries are float32 as stored: kept so (exactly), half the bytes
+            # a compressed operator's near entries are float32 as stored (both builders keep them so; an
+            # empty block or another caller's float64 matrix is converted here, exactly)
             near = sp.csr_matrix((near.data.astype(np.float32), near.indices, near.indptr), shape=near.shape)
         self.n, self.facets, self.near = int(n), np.asarray(facets, np.int64), near
         self.a, self.b, self.areas, self.perm, self.scale, self.lowrank = a, b, areas, perm, scale, lowrank
