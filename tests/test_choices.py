@@ -2,7 +2,18 @@
 
 from __future__ import annotations
 
-from crater_thermal import choices, config, ephemeris, illumination, materials, profiles, radiosity, thermal, vfoperator
+from crater_thermal import (
+    choices,
+    config,
+    ephemeris,
+    illumination,
+    io,
+    materials,
+    profiles,
+    radiosity,
+    thermal,
+    vfoperator,
+)
 
 _MINIMAL = """
 [crater]
@@ -24,6 +35,7 @@ def test_owning_modules_implement_exactly_the_declared_names():
     assert config.loads_case(_MINIMAL).radiation.tolerance == vfoperator.DEFAULT_TOLERANCE
     assert ephemeris.MOON_FRAMES is choices.MOON_FRAMES and ephemeris.SUN_CORRECTIONS is choices.SUN_CORRECTIONS
     assert ephemeris.ephemeris_range("de421") == choices.ephemeris_span("de421")
+    assert tuple(io.SERIES_COMPRESSION) == choices.OUTPUT_COMPRESSIONS
 
 
 def test_thermal_uses_the_base_profile_parser():
