@@ -9,7 +9,9 @@ Exit codes, never a traceback:
   :class:`~crater_thermal.errors.InternalError` (including a failed solver) or any other unexpected
   exception; ``CRATER_THERMAL_TRACEBACK=1`` shows the traceback instead;
 * 130 / 143 (``error: interrupted (SIGINT|SIGTERM) ...``, one line): stopped by Ctrl-C or SIGTERM; no
-  output is damaged, and where a checkpoint is kept the line says how to resume.
+  output is damaged, and where a checkpoint is kept the line says how to resume. A signal that arrives
+  after the command's output was renamed into place (only its clean-up was left) says so: that output is
+  complete.
 
 Help text is printed as plain text (no rich markup), so units in brackets (``[km]``) are shown as written.
 """
@@ -57,6 +59,30 @@ def fail(message: str) -> None:
     raise typer.Exit(code=2)
 
 
+#: The outputs of the running command with what they were before it (see :func:`_watch`).
+_WATCHED: list = []
+
+
+def _identity(path: Path):
+    """What tells a replaced file from the one before: (inode, mtime [ns], size), or None when absent."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+
+def _watch(*paths) -> None:
+    """Note the outputs a command writes, as they are before it, so that an interruption that arrives after
+    one was renamed into place (every writer renames a finished temporary) does not claim nothing was written."""
+    _WATCHED.extend((Path(p), _identity(Path(p))) for p in paths)
+
+
+def _written_outputs() -> list:
+    """The watched outputs the command has replaced or created (each complete: writes are atomic renames)."""
+    return [str(p) for p, before in _WATCHED if (now := _identity(p)) is not None and now != before]
+
+
 @app.command()
 def version() -> None:
     """Print the crater_thermal version."""
@@ -87,6 +113,7 @@ def mesh_crater(
     """Idealized simple crater (thesis Table 7.1) as a triangle mesh."""
     from crater_thermal import geometry
 
+    _watch(output)
     m = geometry.crater_mesh(diameter_km=diameter_km, n_facets=facets, surround_km=surround_km, wall=wall)
     geometry.save_mesh(m, output, overwrite=overwrite)
     typer.echo(f"wrote {output}: {m.n_facets} facets, hash {m.hash}")
@@ -103,6 +130,7 @@ def mesh_bowl(
     """Spherical-cap bowl (Ingersoll et al. 1992) as a triangle mesh."""
     from crater_thermal import geometry
 
+    _watch(output)
     m = geometry.bowl_mesh(depth_to_diameter=depth_to_diameter, n_facets=facets, diameter_m=diameter_m)
     geometry.save_mesh(m, output, overwrite=overwrite)
     typer.echo(f"wrote {output}: {m.n_facets} facets, hash {m.hash}")
@@ -152,6 +180,7 @@ def mesh_dem(
     Reads GeoTIFF, PDS3, GMT/COARDS netCDF (.grd) and any GDAL raster; --crs, --xy-units, --z-units and
     --height-kind say what a file does not (e.g. a .grd in km without a CRS).
     """
+    _watch(output)
     from crater_thermal import geometry, io, terrain
     from crater_thermal.errors import OutputExistsError
 
@@ -220,6 +249,7 @@ def dem_synth(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing outputs."),
 ) -> None:
     """A synthetic polar site (rough terrain with craters) as a lunar polar-stereographic DEM."""
+    _watch(output)
     from crater_thermal import terrain
 
     craters = [_parse_crater(c) for c in crater]
@@ -279,6 +309,7 @@ def steady(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
 ) -> None:
     """Radiative equilibrium (no conduction) of a mesh under a fixed Sun at 1 au."""
+    _watch(output)
     from crater_thermal import steady as steady_mod
 
     path, res = steady_mod.steady_file(
@@ -340,6 +371,7 @@ def run(
     from crater_thermal.errors import Interrupted
     from crater_thermal.progress import reporter
 
+    _watch(output)
     try:
         api.run(
             case,
@@ -401,6 +433,7 @@ def replay(
     ),
 ) -> None:
     """Replay saved fluxes against other density profiles (the IR stays the saved nominal one)."""
+    _watch(output)
     from crater_thermal import api, cluster
     from crater_thermal.errors import Interrupted
     from crater_thermal.progress import reporter
@@ -531,6 +564,7 @@ def report(
     progress: Optional[bool] = typer.Option(None, "--progress/--quiet", help=_PROGRESS_HELP),
 ) -> None:
     """Report of a run and its replay: figures as thesis 7.4-7.9, detection statistics, report.html, summary.json."""
+    _watch(out / "report.html")
     from crater_thermal import api
     from crater_thermal import instrument as ins
     from crater_thermal.errors import ConfigError
@@ -694,6 +728,7 @@ def export(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUTPUT."),
 ) -> None:
     """Rasterize a per-facet quantity to a GeoTIFF (DEM's CRS, or a crater-centred lunar CRS) for QGIS."""
+    _watch(output)
     from crater_thermal import api
 
     api.export_map(
@@ -769,6 +804,7 @@ def invert(
     posterior file holds, per footprint, the posterior mass on the nodes, its marginals, P(loose), MAP,
     mean, sd, the 90 % credible region and a sentence on the degeneracies.
     """
+    _watch(output)
     from crater_thermal import api
 
     if model_error != "auto":
@@ -865,6 +901,9 @@ def _install_signal_handlers() -> None:
 
 
 def _interrupted(code: int, name: str, hint: str = "") -> None:
+    written = _written_outputs()
+    if written:  # the signal came after the work: the output is whole, only the clean-up was cut short
+        hint = f"{', '.join(written)} had been written in full before it (only the clean-up after was cut short)"
     tail = f"; {hint}" if hint else "; no output was written or changed"
     print(f"error: interrupted ({name}){tail}", file=sys.stderr)
     sys.exit(code)

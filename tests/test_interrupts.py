@@ -119,8 +119,11 @@ def test_run_interrupted_by_term_and_int_locked_meanwhile_and_rerun_refused(tmp_
     * a second run to the same output while the first works is refused at once (lock);
     * SIGTERM: exit 143, one line naming --resume, the old output byte for byte, the lock released;
     * a plain re-run refuses (names --resume and --overwrite) and keeps the checkpoint;
-    * a --resume interrupted by SIGINT: exit 130, the checkpoint still there."""
-    case = write_case(tmp_path)
+    * a --resume interrupted by SIGINT: exit 130, the checkpoint still there.
+
+    Three years of 150 facets (a whole year is ~1.5 s of work): the resumed run is signalled once it has
+    written a checkpoint of its own (it is then inside its record), with seconds of work still ahead."""
+    case = write_case(tmp_path, end="2021-12-31")
     out = tmp_path / "run.nc"
     out.write_bytes(b"an earlier result the user keeps")
     before = digest(out)
@@ -151,9 +154,10 @@ def test_run_interrupted_by_term_and_int_locked_meanwhile_and_rerun_refused(tmp_
     assert "--resume" in line and "--overwrite" in line and str(ckpt) in line
     assert ckpt.exists() and digest(out) == before
 
+    stamp = ckpt.stat().st_mtime_ns
     resumed = start("run", case, "-o", out, "--resume")
     wait_for(lambda: lock.exists() and json.loads(lock.read_text() or "{}").get("pid") == resumed.pid, resumed)
-    time.sleep(1.0)  # into the work
+    wait_for(lambda: ckpt.exists() and ckpt.stat().st_mtime_ns != stamp, resumed)  # into its record
     resumed.send_signal(signal.SIGINT)
     _, err = resumed.communicate(timeout=120)
     assert resumed.returncode == 130, err
@@ -369,3 +373,43 @@ def test_swallowed_interrupt_still_prevents_the_commit(tmp_path, monkeypatch):
     assert info.value.exit_code == 130
     assert out.read_text() == "the earlier result"
     assert [p.name for p in tmp_path.iterdir()] == ["result.txt"]
+
+
+def test_a_signal_after_the_output_is_in_place_says_it_was_written(tmp_path, monkeypatch, capsys):
+    """A signal that arrives once the run's output was renamed into place (only the checkpoint's and the
+    scratch store's removal left, or the lock's release) exits 130 but does not claim that nothing was
+    written: the line names the output, which is complete. A run's work is simulated by a stand-in that
+    replaces the output (as the real writers do, by renaming a finished temporary) and is then interrupted."""
+    from crater_thermal import api, cli
+    from crater_thermal.errors import Interrupted
+
+    case = write_case(tmp_path, name="c", facets=60, end="2019-01-03")
+    out = tmp_path / "run.nc"
+    out.write_bytes(b"an earlier result")
+
+    def finished_then_interrupted(case_path, output, **kw):
+        tmp = Path(str(output) + ".tmp")
+        tmp.write_bytes(b"the new, complete result")
+        os.replace(tmp, output)
+        raise Interrupted(signal.SIGINT)
+
+    monkeypatch.setattr(cli, "_install_signal_handlers", lambda: None)  # keep pytest's own handlers
+    monkeypatch.setattr(cli, "_WATCHED", [])
+    monkeypatch.setattr(api, "run", finished_then_interrupted)
+    with pytest.raises(SystemExit) as ended:
+        cli.main(["run", str(case), "-o", str(out), "--overwrite"])
+    assert ended.value.code == 130
+    line = one_line(capsys.readouterr().err)
+    assert line.startswith("error: interrupted (SIGINT)") and f"{out} had been written in full" in line
+    assert "no output was written" not in line
+
+    # the same interruption before anything was renamed keeps the usual line
+    def interrupted(case_path, output, **kw):
+        raise Interrupted(signal.SIGINT)
+
+    monkeypatch.setattr(cli, "_WATCHED", [])
+    monkeypatch.setattr(api, "run", interrupted)
+    with pytest.raises(SystemExit) as ended:
+        cli.main(["run", str(case), "-o", str(out), "--overwrite"])
+    assert ended.value.code == 130
+    assert one_line(capsys.readouterr().err).endswith("no output was written or changed")
