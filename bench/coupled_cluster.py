@@ -17,6 +17,11 @@ shared), and the largest temperature differences between the modes (all samples,
 the facets in permanent shadow). Efficiencies: ``relaxed / dask`` wall (the cost of distribution, same
 scheme; 1 = none) and ``stepper / dask`` (against the default single-process run).
 
+The dask mode also records where its time goes: the command's own CPU seconds (it shares the cores with
+the workers), and from the scheduler's task stream each worker's busy seconds per kind of task (the
+function's name) and its idle seconds over the run, so that load imbalance between workers, scheduling
+and the command's work can be told apart.
+
 Usage: ``python bench/coupled_cluster.py [--facets 30000] [--days 365] [--workers 2]
 [--chunk-facets 4000] [--modes stepper relaxed dask] [--out bench/results/coupled_cluster.json]``.
 """
@@ -40,7 +45,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from crater_thermal import cluster_run, config, io, runner, simulate  # noqa: E402
+from crater_thermal import cluster, cluster_run, config, io, runner, simulate  # noqa: E402
 
 
 def _scale_case_template() -> str:
@@ -72,6 +77,48 @@ def write_case(tmp: Path, name: str, facets: int, days: float, scheme: str, spin
     path = tmp / f"{name}.toml"
     path.write_text(text)
     return path
+
+
+def observed_columns(workers: int, chunk_facets: int, seen: dict):
+    """``cluster_run.distributed_columns(workers=...)`` that also keeps the scheduler's task stream of the
+    run in ``seen["tasks"]`` (one record per task: worker, function, compute start and stop)."""
+    import contextlib
+
+    from distributed import get_task_stream
+
+    @contextlib.contextmanager
+    def factory(case, mesh, store):
+        client, cl = cluster.connect(None, workers, "the benchmark's local cluster")
+        try:
+            with get_task_stream(client) as ts:
+                yield cluster_run._Session(client, case, mesh, store, chunk_facets)
+            seen["tasks"] = ts.data
+        finally:
+            client.close()
+            cl.close()
+
+    return factory
+
+
+def task_summary(tasks: list, wall_s: float) -> dict:
+    """Per worker: busy seconds per function (compute only) and in all, and idle seconds of ``wall_s``."""
+    from dask.utils import key_split
+
+    out = {}
+    for t in tasks:
+        w = out.setdefault(t["worker"], {"busy_s": 0.0, "tasks": 0, "by_function_s": {}})
+        name = key_split(t["key"])
+        for part in t.get("startstops", ()):
+            if part.get("action") == "compute":
+                dt = part["stop"] - part["start"]
+                w["busy_s"] += dt
+                w["by_function_s"][name] = w["by_function_s"].get(name, 0.0) + dt
+        w["tasks"] += 1
+    for w in out.values():
+        w["idle_s"] = wall_s - w["busy_s"]
+        w["by_function_s"] = {k: round(v, 2) for k, v in sorted(w["by_function_s"].items(), key=lambda kv: -kv[1])}
+        w["busy_s"], w["idle_s"] = round(w["busy_s"], 2), round(w["idle_s"], 2)
+    return out
 
 
 def main() -> None:
@@ -109,14 +156,16 @@ def main() -> None:
             scheme = "extrapolated" if mode == "stepper" else "relaxed"
             case = config.load_case(write_case(tmp, mode, args.facets, args.days, scheme, spinup))
             columns = None
+            seen = {}
             if mode == "dask":
-                columns = cluster_run.distributed_columns(workers=args.workers, chunk_facets=args.chunk_facets)
+                columns = observed_columns(args.workers, args.chunk_facets, seen)
             timer = simulate.Timer()
             load = LoadSampler()
             load.start()
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), os.times()
             out = runner.run_case(case, tmp / f"{mode}.nc", progress=False, timer=timer, columns=columns)
             wall = time.perf_counter() - t0
+            c1 = os.times()
             load.stop.set()
             with io.open_run(out) as ds:
                 temps[mode] = ds["surface_temperature"].values.astype(float)
@@ -130,7 +179,10 @@ def main() -> None:
                     "periodic_iterations": int(ds.attrs.get("spinup_iterations", -1)),
                     "loadavg_mean": float(np.mean(load.samples)) if load.samples else None,
                     "loadavg_max": float(np.max(load.samples)) if load.samples else None,
+                    "process_cpu_s": round((c1.user - c0.user) + (c1.system - c0.system), 2),
                 }
+                if "tasks" in seen:
+                    entry["workers"] = task_summary(seen["tasks"], wall)
                 if rel:
                     for key in ("spinup_iterations_per_window", "record_iterations_per_window"):
                         its = rel.get(key) or [0]
