@@ -106,11 +106,14 @@ def one_numba_thread():
         numba.set_num_threads(threads)
 
 
-def solve_chunk(flux_path: str, profiles: list, f0: int, f1: int, options: dict):
+def solve_chunk(flux_path: str, profiles: list, f0: int, f1: int, options: dict, stamp=None):
     """Replay facets ``f0:f1`` of the flux store at ``flux_path`` against ``profiles``. Runs on a worker.
 
     The conduction kernels run on one thread (the worker's threads are the parallelism, as dask sets
-    one BLAS/OpenMP thread per worker thread).
+    one BLAS/OpenMP thread per worker thread). ``stamp``: the file's :func:`io.file_stamp` when the
+    command checked it; the task then reads only its facets (:func:`io.open_checked`: no second check of
+    the whole file, which costs every task a read of every facet) and refuses a file changed since.
+    Without it the file is checked here (:func:`io.read_flux_dataset`).
 
     Returns
     -------
@@ -118,7 +121,7 @@ def solve_chunk(flux_path: str, profiles: list, f0: int, f1: int, options: dict)
     info : dict (start, periodic iterations and residuals [K] of the chunk's batches)
     """
     with one_numba_thread():
-        ds = io.read_flux_dataset(flux_path, load=False)
+        ds = io.read_flux_dataset(flux_path, load=False) if stamp is None else io.open_checked(flux_path, stamp)
         try:
             return simulate.replay_fluxes(ds.isel(facet=slice(f0, f1)), profiles, progress=None, **options)
         finally:
@@ -239,6 +242,8 @@ def replay_file(
         options = {"initial_temperature": initial_temperature, "fixed_spinup": bool(fixed_spinup)}
         if property_set is not None:
             options["property_set"] = property_set
+        # the stamp before the check: a change during it is seen by the tasks (a missing file: the check says so)
+        stamp = io.file_stamp(flux_path) if Path(flux_path).is_file() else None
         ds = io.read_flux_dataset(flux_path, load=False)
         try:
             nf, npf = ds.sizes["facet"], len(profiles)
@@ -254,7 +259,8 @@ def replay_file(
             todo = [c for c in chunks if not chunk_path(folder, c[0], c[1]).exists()]
             try:
                 if todo:
-                    _compute(flux_path, profiles, options, todo, folder, fp, scheduler, workers, retries, progress)
+                    run = (flux_path, profiles, options, stamp)
+                    _compute(run, todo, folder, fp, scheduler, workers, retries, progress)
             except BaseException:
                 if not any(folder.glob("chunk_*.npz")):  # nothing finished: nothing to resume
                     shutil.rmtree(folder, ignore_errors=True)
@@ -266,8 +272,10 @@ def replay_file(
     return output
 
 
-def _compute(flux_path, profiles, options, todo, folder, fp, scheduler, workers, retries, progress) -> None:
-    """Solve the chunks ``todo`` on the cluster, saving each result in ``folder`` as it arrives."""
+def _compute(run, todo, folder, fp, scheduler, workers, retries, progress) -> None:
+    """Solve the chunks ``todo`` of ``run`` = (flux path, profiles, options, the flux file's stamp) on the
+    cluster, saving each result in ``folder`` as it arrives."""
+    flux_path, profiles, options, stamp = run
     client, cluster = connect(scheduler, workers)
     try:
         from distributed import KilledWorker, as_completed  # present: connect imported distributed
@@ -280,6 +288,7 @@ def _compute(flux_path, profiles, options, todo, folder, fp, scheduler, workers,
                 f0,
                 f1,
                 options,
+                stamp,
                 key=f"crater-thermal-replay-{fp}-f{i}-p{j}",
                 retries=retries,
                 pure=False,

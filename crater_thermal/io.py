@@ -886,6 +886,31 @@ def read_flux_dataset(path, load: bool = True) -> xr.Dataset:
     return ds
 
 
+def file_stamp(path) -> tuple[int, int]:
+    """``(size [B], modification time [ns])`` of a file: what tells whether it changed since it was checked."""
+    st = os.stat(path)
+    return (int(st.st_size), int(st.st_mtime_ns))
+
+
+def open_checked(path, stamp) -> xr.Dataset:
+    """Open lazily, without reading its values again, a flux dataset that :func:`read_flux_dataset` checked
+    when its :func:`file_stamp` was ``stamp`` (a replay's workers: each task reads its facets only, not the
+    whole file to validate it again).
+
+    Raises :class:`FluxFileError` when the file changed since (size or modification time) or is gone.
+    """
+    try:
+        now = file_stamp(path)
+    except OSError as exc:
+        raise FluxFileError(f"flux file {path} is not readable here: {exc.strerror or exc}") from None
+    if now != tuple(stamp):
+        raise FluxFileError(
+            f"flux file {path} changed after the replay checked it (size or modification time differs): "
+            "leave it unchanged while the replay runs, and run the replay again"
+        )
+    return _open(path, "flux", load=False)
+
+
 def open_written(path) -> xr.Dataset:
     """Open a dataset crater_thermal has just written, lazily and without re-validating its values (a
     100k-facet run is GBs; :func:`open_run` / :func:`open_replay` check files of unknown origin)."""
