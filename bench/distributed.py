@@ -15,8 +15,10 @@ during each phase (the machine is shared: the ratios are honest only at a simila
 (bytes of flux read and of results returned per chunk), the workers' peak memory, and the model of a
 1M-facet grid replay over N machines built from these measured numbers.
 
-The ~20k-facet site variant is not run here: 91 profiles x 20k facets is 40x the 502-facet grid, ~6 h
-per mode on this 2-core machine (see ``site_variant`` in the JSON).
+The ~20k-facet site variant: 91 profiles x 20k facets is 40x the 502-facet grid, ~6 h per mode on this
+2-core machine, so it is run with fewer profiles: ``--run`` a site's run.nc (the synthetic site of
+``bench/site.py`` at 20k facets, run first) with ``--grid 800:900:100`` (3 profiles) and ``--out
+bench/results/distributed_site20k.json`` (docs/cluster.md).
 
 Usage: ``python bench/distributed.py [--run RUN.nc] [--grid 800:2000:100] [--workers 2]
 [--chunk-facets 2000] [--chunk-profiles 2] [--out bench/results/distributed.json]``. Without ``--run``
@@ -221,9 +223,8 @@ def main() -> None:
     result["target_overhead_fraction"] = 0.10
     result["model_1M_facets"] = model_1m(result)
     result["site_variant"] = (
-        "not run: 91 profiles x ~20k facets is ~40x this grid's columns, ~6 h per mode (local and dask) on "
-        "this 2-core shared machine; the chunking along facets it exercises is covered by the tests "
-        "(chunks of 8 facets) and by the model below"
+        "91 profiles x ~20k facets is ~40x the 502-facet grid's columns, ~6 h per mode on this 2-core machine: "
+        "the site is run with --run SITE/run.nc and a 3-profile --grid (bench/results/distributed_site20k.json)"
     )
     result["note"] = (
         "2 cores shared with other agents: both phases ran one after the other, their 1-minute load "

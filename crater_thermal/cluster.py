@@ -2,7 +2,9 @@
 
 Each chunk (a block of facets x a block of profiles) is one dask task, a pure function of the flux
 store's path, the chunk's facet range, its profiles and the options: the worker opens the flux store
-by path (so every worker must be able to read it at that path: a shared filesystem), replays the
+by path (so every worker must be able to read it at that path: a shared filesystem) and reads only its
+facets (the command checked the whole file once; a task refuses a file whose size or modification time
+changed since, :func:`crater_thermal.io.open_checked`), replays the
 chunk's columns with :func:`crater_thermal.simulate.replay_fluxes` and returns the float32 surface
 temperatures to the client. The client saves each chunk as it arrives, atomically, in the chunk
 folder ``OUT.chunks/`` beside the output (workers write nothing), then assembles the chunks into the
