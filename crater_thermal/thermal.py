@@ -773,6 +773,30 @@ class ColumnSolver:
 # ----------------------------------------------------------------------------- periodic state
 
 
+def _newton_step(solver, Tm, h, dt, nst, r, dx, cols) -> None:
+    """The quasi-Newton step ``dx[cols]`` [K] of :func:`periodic_state` for columns ``cols``: the residual
+    ``r`` [K] through ``(I - J)^-1``, J from the linearised one-step operator's modes at ``Tm`` [K]
+    (surface conductance ``h`` [W m-2 K-1], mean sub-step ``dt`` [s], ``nst`` sub-steps per period)."""
+    sc, Q, lam = solver.linear_modes(Tm, h[cols], dt[cols], cols)
+    g = solver.step_gain(lam) ** nst[cols, None]
+    w = np.einsum("nij,ni->nj", Q, sc * r[cols])
+    w /= np.maximum(1.0 - g, 1e-8)
+    dx[cols] = np.einsum("nij,nj->ni", Q, w) / sc
+
+
+def _each(work: Callable, items, threads: int) -> None:
+    """``work(item)`` for every item, on ``threads`` threads (in this thread when 1)."""
+    if threads <= 1:
+        for item in items:
+            work(item)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(threads) as pool:
+        for _ in pool.map(work, items):  # re-raises a chunk's error here
+            pass
+
+
 def periodic_state(
     solver: ColumnSolver,
     period_map: Callable,
@@ -860,16 +884,17 @@ def periodic_state(
             h = np.where(tsum > 0, solver.acc[:, _k.ACC_HDT] / np.where(tsum > 0, tsum, 1.0), 0.0)
             Tm = 0.5 * (x + y)
             dx = np.zeros_like(r)
+            parts = [run[c0 : c0 + chunk] for c0 in range(0, len(run), chunk)]
             # one BLAS thread: LAPACK's threads on thousands of tiny (nz x nz) problems cost 30x the
-            # work on a busy 2-core machine (measured: 17 s instead of 0.5 s for 1000 columns)
+            # work on a busy 2-core machine (measured: 17 s instead of 0.5 s for 1000 columns); the
+            # chunks instead go to numba's number of threads (numpy's eigh releases the GIL: 1.9-2.0x on
+            # 2 cores at 100k columns, bench/periodic_jacobian.py), each column's numbers unchanged
             with threadpool_limits(1, user_api="blas"):
-                for c0 in range(0, len(run), chunk):
-                    cols = run[c0 : c0 + chunk]
-                    sc, Q, lam = solver.linear_modes(Tm, h[cols], dt[cols], cols)
-                    g = solver.step_gain(lam) ** nst[cols, None]
-                    w = np.einsum("nij,ni->nj", Q, sc * r[cols])
-                    w /= np.maximum(1.0 - g, 1e-8)
-                    dx[cols] = np.einsum("nij,nj->ni", Q, w) / sc
+                _each(
+                    lambda cols: _newton_step(solver, Tm, h, dt, nst, r, dx, cols),  # noqa: B023 (used at once)
+                    parts,
+                    min(numba.get_num_threads(), len(parts)),
+                )
         else:
             dx = np.where(skipped[:, None], 0.0, r)
         step = np.where(skipped, step, np.max(np.abs(dx), axis=1))

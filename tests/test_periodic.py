@@ -203,3 +203,33 @@ def test_skip_hook_leaves_converged_columns_and_keeps_the_fixed_point(periodic):
     assert np.abs(s.state() - start_ref).max() <= 0.02
     # the residual reported for a skipped column is that of its last run, within the tolerance
     assert info["residual_K"].max() <= 0.01
+
+
+def test_quasi_newton_steps_on_threads_equal_one_thread():
+    """The periodic start's quasi-Newton step runs its column chunks on numba's threads: the start it finds
+    is the same, bit for bit, as with every chunk in one thread (each column's step is its own), and so is
+    the number of iterations. 64 columns in chunks of 8 (8 chunks, more than the threads)."""
+    import numba
+
+    profs, q = PROFS * 16, np.tile(Q, 16)
+
+    def start(threads):
+        before = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            s = solver(profs)
+            s.set_equilibrium(q)
+
+            def period_map(x):
+                s.set_state(x)
+                s.run_series(T_S, q, record=False)
+                return s.state()
+
+            info = th.periodic_state(s, period_map, tol_K=0.01, chunk=8)
+            return s.state(), info["iterations"]
+        finally:
+            numba.set_num_threads(before)
+
+    one, many = start(1), start(min(2, numba.config.NUMBA_NUM_THREADS))
+    assert one[1] == many[1]
+    np.testing.assert_array_equal(one[0], many[0])
