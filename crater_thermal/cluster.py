@@ -325,7 +325,10 @@ def _assemble(ds, profiles, chunks, folder, output, overwrite, initial_temperatu
     skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
     variables = {"surface_temperature": (("profile", "time", "facet"), (npf, nt, nf), {"units": "K"}, "f4")}
     iters, resid, start = [], [], None
-    with io.stream_dataset(skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK) as stream:
+    block = max(f1 - f0 for _, _, f0, f1, _, _ in chunks)  # the chunks' facets: whole HDF5 chunks each
+    with io.stream_dataset(
+        skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK, facet_block=block
+    ) as stream:
         for i, j, f0, f1, p0, p1 in chunks:
             with np.load(chunk_path(folder, i, j)) as z:
                 info = json.loads(str(z["info"]))

@@ -428,6 +428,25 @@ def chunk_shape(shape: tuple, time_axis: int, time_rows: int, target_bytes: int 
     return tuple(out)
 
 
+def aligned_width(block: int, width: int) -> int:
+    """A chunk's extent along facets for pieces of ``block`` facets: the largest divisor of ``block`` not
+    above ``width`` (the size-based extent), or ``width`` itself when that divisor is under a quarter of it
+    (a block with no divisor near it: smaller chunks would cost more than the chunks pieces share)."""
+    block, width = int(block), int(width)
+    if block <= width:
+        return block
+    best = max(d for d in range(1, width + 1) if block % d == 0)
+    return best if 4 * best >= width else width
+
+
+def _piece_chunks(shape: tuple, t_axis: int, time_rows: int, itemsize: int, facet_block: int | None) -> tuple:
+    """:func:`chunk_shape`, its facet extent aligned to pieces of ``facet_block`` facets when given."""
+    out = list(chunk_shape(shape, t_axis, time_rows, itemsize=itemsize))
+    if facet_block:
+        out[-1] = aligned_width(facet_block, out[-1])
+    return tuple(out)
+
+
 class _StreamWriter:
     """What :func:`stream_dataset` yields: ``writer(name, key, values)`` stores a block of a large
     variable; ``writer.set_attrs(mapping)`` adds global attributes known only at the end."""
@@ -459,6 +478,7 @@ def stream_dataset(
     overwrite: bool = False,
     time_rows: int = 24,
     compression: str = "zlib",
+    facet_block: int | None = None,
 ) -> Iterator[_StreamWriter]:
     """Write a dataset whose large variables arrive in pieces, never whole in memory; atomic.
 
@@ -466,7 +486,11 @@ def stream_dataset(
     ``name: (dims, shape, attrs[, dtype])`` of ``variables`` becomes a variable (float64 unless
     ``dtype`` says otherwise) chunked along time (``time_rows`` samples) and facet (about 1 MB per
     chunk), compressed as ``compression`` says (:data:`SERIES_COMPRESSION`; ``"zlib"``: like every
-    large variable). Yields a :class:`_StreamWriter`:
+    large variable). ``facet_block``: the pieces are blocks of this many facets from facet 0 (a
+    distributed replay's chunks), so the chunks' facet extent is made a divisor of it
+    (:func:`aligned_width`): each piece then fills whole chunks, each compressed once, instead of
+    HDF5 decompressing and compressing again a chunk that several pieces share. Yields a
+    :class:`_StreamWriter`:
     ``write(name, key, values)`` stores ``values`` at ``var[key]`` (a tuple of slices). The file
     appears at ``path`` only when the block exits without an exception.
     """
@@ -492,7 +516,7 @@ def stream_dataset(
                     dtype,
                     dims,
                     fill_value=dtype.type(np.nan),
-                    chunksizes=chunk_shape(tuple(shape), t_axis, time_rows, itemsize=dtype.itemsize),
+                    chunksizes=_piece_chunks(tuple(shape), t_axis, time_rows, dtype.itemsize, facet_block),
                     **SERIES_COMPRESSION[compression],
                 )
                 var.setncatts(dict(attrs))

@@ -4,6 +4,8 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from crater_thermal import config, io, runner, simulate
 
@@ -145,3 +147,42 @@ def test_memory_bounded_by_budget_not_run_length(tmp_path):
     allowance = 2 * 2**20
     assert peaks[1] < budget_mb * 2**20 + operator + allowance, peaks
     assert peaks[1] < 1.2 * peaks[0] + 2**20, peaks  # 4x the record, (almost) the same peak
+
+
+@settings(max_examples=300, deadline=None)
+@given(block=st.integers(1, 200_000), width=st.integers(1, 20_000))
+def test_aligned_chunk_width_divides_the_pieces_or_keeps_the_size(block, width):
+    """The facet extent of chunks written in pieces of ``block`` facets: a divisor of the block (so that
+    every piece fills whole chunks) no wider than the size-based ``width`` and at least a quarter of it, or,
+    where the block has no such divisor, ``width`` itself. Checked against a brute-force search."""
+    got = io.aligned_width(block, width)
+    divisors = [d for d in range(1, min(block, width) + 1) if block % d == 0]
+    if block <= width:
+        assert got == block
+    elif 4 * max(divisors) >= width:
+        assert got == max(divisors) and block % got == 0 and got <= width
+    else:
+        assert got == width
+
+
+def test_pieces_of_a_facet_block_fill_whole_chunks(tmp_path):
+    """A variable streamed in pieces of 2,000 facets (a distributed replay's chunks) over 20,000 facets is
+    chunked 2,000 facets wide (not the size-based ~10,900, which 6 pieces would share); without pieces the
+    size-based width stays; the values written piece by piece read back equal."""
+    import netCDF4
+    import xarray as xr
+
+    nt, nf = 30, 20_000
+    rng = np.random.default_rng(3)
+    values = rng.uniform(40.0, 300.0, (2, nt, nf)).astype(np.float32)
+    skeleton = xr.Dataset(coords={"facet": np.arange(nf)})
+    spec = {"T": (("profile", "time", "facet"), (2, nt, nf), {"units": "K"}, "f4")}
+    for block, width in ((2000, 2000), (None, io.chunk_shape((2, nt, nf), 1, 24, itemsize=4)[-1])):
+        out = tmp_path / f"pieces_{block}.nc"
+        with io.stream_dataset(skeleton, out, spec, time_rows=24, facet_block=block) as write:
+            for f0 in range(0, nf, 2000):
+                write("T", (slice(0, 2), slice(0, nt), slice(f0, f0 + 2000)), values[:, :, f0 : f0 + 2000])
+        with netCDF4.Dataset(out) as nc:
+            assert nc["T"].chunking() == [1, 24, width]
+            np.testing.assert_array_equal(nc["T"][:], values)
+    assert width > 2000
