@@ -45,7 +45,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from crater_thermal import cluster, cluster_run, config, io, runner, simulate  # noqa: E402
+from crater_thermal import cluster_run, config, io, runner, simulate  # noqa: E402
 
 
 def _scale_case_template() -> str:
@@ -86,16 +86,14 @@ def observed_columns(workers: int, chunk_facets: int, seen: dict):
 
     from distributed import get_task_stream
 
+    columns = cluster_run.distributed_columns(workers=workers, chunk_facets=chunk_facets)
+
     @contextlib.contextmanager
     def factory(case, mesh, store):
-        client, cl = cluster.connect(None, workers, "the benchmark's local cluster")
-        try:
-            with get_task_stream(client) as ts:
-                yield cluster_run._Session(client, case, mesh, store, chunk_facets)
+        with columns(case, mesh, store) as session:
+            with get_task_stream(session.client) as ts:
+                yield session
             seen["tasks"] = ts.data
-        finally:
-            client.close()
-            cl.close()
 
     return factory
 

@@ -130,13 +130,15 @@ def solve_chunk(flux_path: str, profiles: list, f0: int, f1: int, options: dict,
             ds.close()
 
 
-def _fingerprint(flux_path, profiles, options, facet_block, profile_block) -> str:
-    st = os.stat(flux_path)
+def _fingerprint(flux_path, stamp, profiles, options, facet_block, profile_block) -> str:
+    """The chunk folder's fingerprint: the flux file (path, and its :func:`io.file_stamp`), profiles,
+    options and chunking."""
+    size, mtime_ns = stamp
     text = json.dumps(
         [
             str(Path(flux_path).resolve()),
-            st.st_size,
-            st.st_mtime_ns,
+            size,
+            mtime_ns,
             [repr(p) for p in profiles],
             options,
             facet_block,
@@ -256,7 +258,7 @@ def replay_file(
                 for j, p0 in enumerate(range(0, npf, pb))
             ]
             folder = chunk_folder(output)
-            fp = _fingerprint(flux_path, profiles, options, fb, pb)
+            fp = _fingerprint(flux_path, stamp, profiles, options, fb, pb)
             _open_chunk_folder(folder, fp, output, resume, overwrite)
             todo = [c for c in chunks if not chunk_path(folder, c[0], c[1]).exists()]
             try:
