@@ -190,12 +190,15 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
         # a cluster's session is open from the operator (its workers build their rows) to the record's end
         session = None if columns is None else stack.enter_context(columns(case, mesh, store))
         build = getattr(session, "view_factors", None)
-        F = simulate.case_operator(case, mesh, tracer, timer, progress, build=build)
+        need_sunlight = not store.marked("sunlight")
+        F, hmap = simulate.case_operator_and_horizons(
+            case, mesh, tracer, timer, progress, build=build, horizons=need_sunlight
+        )
         fc = simulate.Forcing(
             mesh, F, spin_times, times, sun_dirs, sun_dist, store=store, drive="absorbed" if incidence else "solar"
         )
-        if not store.marked("sunlight"):
-            _sunlight_into_store(case, fc, tracer, store, block, timer, progress)
+        if need_sunlight:
+            _sunlight_into_store(case, fc, tracer, store, block, timer, progress, hmap)
         del tracer
         solver, stepper = _coupled_solver(case, nominal, fc, incidence)
         checkpoints = _Checkpoints(ckpt_path, _case_fingerprint(case), block, solver, stepper, timer, coupling)
@@ -255,10 +258,11 @@ def _read_checkpoint(case, out_path, ckpt_path: Path, resume: bool, overwrite: b
     return ckpt
 
 
-def _sunlight_into_store(case, fc, tracer, store, block: int, timer, progress) -> None:
-    """Direct, scattered (and absorbed) sunlight [W m-2] of every sample, block by block into the store."""
+def _sunlight_into_store(case, fc, tracer, store, block: int, timer, progress, hmap=None) -> None:
+    """Direct, scattered (and absorbed) sunlight [W m-2] of every sample, block by block into the store
+    (``hmap``: the horizon map when already traced)."""
     nf, n_all = fc.mesh.n_facets, len(fc.sun_dirs)
-    sunlight = simulate.case_sunlight(case, fc.mesh, tracer, fc.F, timer, progress)
+    sunlight = simulate.case_sunlight(case, fc.mesh, tracer, fc.F, timer, progress, hmap=hmap)
     with simulate.stage(progress, f"sunlight ({nf} facets)") as report:
         for k0 in range(0, n_all, block):
             k1 = min(n_all, k0 + block)

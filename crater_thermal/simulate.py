@@ -27,7 +27,9 @@ Start of the recorded period
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
@@ -433,6 +435,61 @@ def case_operator(case, mesh, tracer, timer: Timer, progress=None, build=None):
     return F
 
 
+class _Cancelled(Exception):
+    """Raised inside a horizon-map thread whose caller has failed or been interrupted."""
+
+
+def case_operator_and_horizons(case, mesh, tracer, timer: Timer, progress=None, build=None, horizons=True):
+    """:func:`case_operator`, and at the same time, on a second thread, the case's horizon map
+    (``[sun] method = "horizon"`` and ``horizons`` true; None otherwise). Returns ``(F, hmap)``.
+
+    The two are independent and neither keeps both cores busy on its own (its Python parts hold the
+    interpreter between the ray batches), so together they take less wall time than one after the other
+    (docs/performance.md). The timer's "viewfactors" and "horizons" then overlap. Progress: the view
+    factors' stage, then, if the horizon map is still being traced, its own stage. If the view factors
+    fail or the process is interrupted, the horizon map stops at its next batch of facets (nothing of it
+    is cached) and the error goes on.
+    """
+    if not horizons or case.sun.method != "horizon":
+        return case_operator(case, mesh, tracer, timer, progress, build=build), None
+    cancel, lock = threading.Event(), threading.Lock()
+    shown: dict = {"report": None, "last": None}
+
+    def report(done: int, total: int) -> None:
+        if cancel.is_set():
+            raise _Cancelled
+        with lock:
+            shown["last"] = (done, total)
+            if shown["report"] is not None:
+                shown["report"](done, total)
+
+    def trace():
+        with timer("horizons"):
+            return sunlight.horizon_map(case.sun, mesh, tracer, report)
+
+    pool = ThreadPoolExecutor(1, thread_name_prefix="horizons")
+    try:
+        future = pool.submit(trace)
+        F = case_operator(case, mesh, tracer, timer, progress, build=build)
+        if future.done() or not progress:
+            return F, future.result()
+        with stage(progress, f"horizon map ({mesh.n_facets} facets)") as bar:
+            with lock:
+                shown["report"] = bar
+                if bar is not None and shown["last"] is not None:
+                    bar(*shown["last"])
+            try:
+                return F, future.result()
+            finally:
+                with lock:
+                    shown["report"] = None
+    except BaseException:
+        cancel.set()
+        raise
+    finally:
+        pool.shutdown(wait=True)
+
+
 def case_sun(case, timer: Timer):
     """Spin-up and record times (datetime64[ns]) and the Sun's direction and distance [m] over both."""
     step_s = float(case.steps.flux_step_hours) * 3600.0
@@ -456,18 +513,21 @@ def case_sun(case, timer: Timer):
     return spin_times, times, sun_dirs, sun_dist
 
 
-def case_sunlight(case, mesh, tracer, F, timer=None, progress=None) -> sunlight.Sunlight:
-    """The :class:`crater_thermal.sunlight.Sunlight` of a case (its ``[sun]``, ``[surface]``, ``[scattering]``)."""
-    return sunlight.Sunlight(case.sun, case.surface, case.scattering, mesh, tracer, F, timer, progress)
+def case_sunlight(case, mesh, tracer, F, timer=None, progress=None, hmap=None) -> sunlight.Sunlight:
+    """The :class:`crater_thermal.sunlight.Sunlight` of a case (its ``[sun]``, ``[surface]``, ``[scattering]``);
+    ``hmap``: its horizon map when already traced (:func:`case_operator_and_horizons`)."""
+    return sunlight.Sunlight(case.sun, case.surface, case.scattering, mesh, tracer, F, timer, progress, hmap=hmap)
 
 
 def compute_forcing(case, timer: Timer, progress=None) -> Forcing:
     """Mesh, view factors, Sun directions, direct and scattered sunlight for a case's whole window,
     in memory (a run streams them instead: :func:`run_case`)."""
-    mesh, tracer, F = case_geometry(case, timer, progress)
+    mesh, tracer = case_scene(case, timer)
+    F, hmap = case_operator_and_horizons(case, mesh, tracer, timer, progress)
     spin_times, times, sun_dirs, sun_dist = case_sun(case, timer)
+    light = case_sunlight(case, mesh, tracer, F, timer, progress, hmap=hmap)
     with stage(progress, "direct sunlight") as report:
-        direct, solar = case_sunlight(case, mesh, tracer, F, timer, progress)(sun_dirs, sun_dist, timer, report)
+        direct, solar = light(sun_dirs, sun_dist, timer, report)
     return Forcing(mesh, F, spin_times, times, sun_dirs, sun_dist, direct, solar)
 
 

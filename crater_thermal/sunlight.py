@@ -23,6 +23,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from crater_thermal import cache, horizons, illumination, radiosity
+from crater_thermal.errors import MeshError
 
 
 def _stage(progress, description: str):
@@ -47,22 +48,25 @@ class Sunlight:
     timer : optional ``timer(name)`` context factory; the horizon map's build (or cache read) is timed
         as "horizons", each block's direct light as "direct" and scattering as "radiosity".
     progress : optional reporter (:mod:`crater_thermal.progress`) for the horizon map.
+    hmap : horizons.HorizonMap, optional
+        The horizon map of ``mesh`` already traced (:func:`horizon_map`, e.g. on another thread while
+        the view factors were built); traced here when None (method "horizon" only).
     """
 
-    def __init__(self, sun, surface, scattering, mesh, tracer, F, timer: Optional[Callable] = None, progress=None):
+    def __init__(
+        self, sun, surface, scattering, mesh, tracer, F, timer: Optional[Callable] = None, progress=None, hmap=None
+    ):
         timer = timer or _no_timer
         self.sun, self.surface, self.mesh, self.tracer, self.F = sun, surface, mesh, tracer, F
         self.method = sun.method
         self.hmap = self.disk = None
-        if self.method == "horizon":
+        if self.method == "horizon" and hmap is not None:
+            if hmap.mesh_hash != mesh.hash:
+                raise MeshError("Sunlight: the horizon map given was traced on a different mesh")
+            self.hmap = hmap
+        elif self.method == "horizon":
             with timer("horizons"), _stage(progress, f"horizon map ({mesh.n_facets} facets)") as report:
-                self.hmap = horizons.horizon_map(
-                    mesh,
-                    tracer,
-                    n_azimuths=sun.horizon_azimuths or horizons.DEFAULT_N_AZIMUTHS,
-                    cache_dir=cache.folder("horizons"),
-                    progress=report,
-                )
+                self.hmap = horizon_map(sun, mesh, tracer, report)
         elif not sun.point_sun:
             self.disk = illumination.sun_disk(
                 **({"n_rings": sun.n_rings} if sun.n_rings else {}), law=sun.limb_darkening
@@ -123,6 +127,19 @@ class Sunlight:
         with timer("radiosity"):
             solar, absorbed = absorbed_sunlight(self.surface, self.mesh, sun_dirs, direct, scat, self.F)
         return direct, solar, absorbed
+
+
+def horizon_map(sun, mesh, tracer, progress=None) -> horizons.HorizonMap:
+    """The horizon map of ``mesh`` at ``[sun] horizon_azimuths`` (default
+    :data:`crater_thermal.horizons.DEFAULT_N_AZIMUTHS`), read from or written to the cache folder.
+    ``progress``: optional ``(done, total)`` callback (facets traced)."""
+    return horizons.horizon_map(
+        mesh,
+        tracer,
+        n_azimuths=sun.horizon_azimuths or horizons.DEFAULT_N_AZIMUTHS,
+        cache_dir=cache.folder("horizons"),
+        progress=progress,
+    )
 
 
 def _no_timer(name: str):
