@@ -49,6 +49,7 @@ import contextlib
 import hashlib
 import json
 import os
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -56,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from crater_thermal import cluster, geometry, radiosity, raytrace, runner, vfoperator, waveform
-from crater_thermal.errors import ConfigError, CraterThermalError
+from crater_thermal.errors import ConfigError, CraterThermalError, InternalError, SolverError
 
 #: Default facets per chunk (one task per chunk and iteration).
 CHUNK_FACETS = 4000
@@ -78,16 +79,20 @@ def worker_wait_s() -> float:
         return WORKER_WAIT_S
 
 
-_SOLVERS: dict = {}  # per worker process: a column solver per (options, columns), reused across tasks
+_SOLVERS = threading.local()  # per worker thread: a column solver per (options, columns), reused across tasks
 _PLANS: dict = {}  # per worker process: the compressed plan of the latest mesh, while its rows are built
 
 
 def _solver(options: dict, n: int):
+    """A column solver of ``n`` columns with ``options``, kept for the next task of this worker thread (a
+    solver holds its columns' state while it runs: two tasks running at once on a worker of several
+    threads must not share one)."""
     key = (json.dumps(options, sort_keys=True), n)
-    s = _SOLVERS.get(key)
+    solvers = _SOLVERS.__dict__.setdefault("by_key", {})
+    s = solvers.get(key)
     if s is None:
-        _SOLVERS.clear()  # one chunk size at a time: the last chunk may be shorter
-        s = _SOLVERS[key] = runner.column_solver(options["profile"], n, options)
+        solvers.clear()  # one chunk size at a time: the last chunk may be shorter
+        s = solvers[key] = runner.column_solver(options["profile"], n, options)
     return s
 
 
@@ -119,6 +124,28 @@ def solve_chunk(
     """
     with cluster.one_numba_thread():
         return _chunk_window(rows, E, len(facets), ir0, state, times_s, solar, options, prev, skip_K, hold)
+
+
+def solve_chunk_parts(rows, facets, chunks, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K=0.0):
+    """:func:`solve_chunk` with the emitted flux of every facet given whole (``E`` (n, nf)) or as the chunks'
+    parts (a list of (n, m_c) in the order of ``chunks``, a :class:`_Facets`: the previous iteration's
+    :func:`_emission` of each chunk, fetched from the workers that hold them)."""
+    if isinstance(E, (list, tuple)):
+        whole = np.empty((len(E[0]), sum(len(idx) for idx in chunks.idx)), E[0].dtype)
+        for idx, part in zip(chunks.idx, E):
+            whole[:, idx] = part
+        E = whole
+    return solve_chunk(rows, facets, E, state, times_s, solar, ir0, options, prev, skip_K)
+
+
+def _emission(w, emissivity: float) -> np.ndarray:
+    """A chunk window's emitted flux [W m-2] (n, m), in the type the products take it in (:func:`_operand`)."""
+    return _operand(radiosity.emitted(np.asarray(w.T, float), emissivity), len(w.T))
+
+
+def _change(w, prev) -> float:
+    """The largest change of a chunk's surface temperatures [K] between two iterations of a window."""
+    return float(np.max(np.abs(w.T - prev.T))) if w.T.size else 0.0
 
 
 def _chunk_window(
@@ -190,6 +217,72 @@ class DaskColumns:
                 if attempt == RESENDS or not _workers_left(self.client):
                     raise _failed(exc, _RESUME) from None
                 self._last = self._state = None
+
+    def relax_window(self, state, times_s, solar, ir0, emissivity: float, tol_K: float, max_iter: int):
+        """:func:`waveform.relax` of one window kept on the workers (the same iterations and results): after
+        the first iteration, each chunk's next emission and its largest change since the previous iteration
+        are formed where its window is, the chunks fetch each other's emission from the workers, and only
+        one number per chunk comes back per iteration; the surface temperatures come back once, with the
+        converged window. A lost worker sends the window again from its start."""
+        from distributed import KilledWorker
+
+        for attempt in range(RESENDS + 1):
+            try:
+                return self._relax(state, times_s, solar, ir0, float(emissivity), float(tol_K), int(max_iter))
+            except KilledWorker as exc:
+                raise _gave_up(exc, _RESUME) from None
+            except (CraterThermalError, InternalError, MemoryError):  # raised by a task, or not converged
+                raise
+            except Exception as exc:  # an input lost with the worker that held it: the window again
+                if attempt == RESENDS or not _workers_left(self.client):
+                    raise _failed(exc, _RESUME) from None
+                self._last = self._state = None
+
+    def _relax(self, state, times_s, solar, ir0, emissivity: float, tol_K: float, max_iter: int):
+        client, chunks = self.client, self.chunks
+        n = len(times_s)
+        self._last = None
+        self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
+        self._solar = client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in chunks], hash=False)
+        facets = client.scatter(_Facets(chunks), hash=False)
+        T0 = np.asarray(state)[:, 0]
+        E = client.scatter(_operand(np.broadcast_to(radiosity.emitted(T0, emissivity), (n, len(T0))), n), hash=False)
+        skip = waveform.SKIP_FRACTION * tol_K
+        last = [None] * len(chunks)
+        change = np.inf
+        for it in range(1, max_iter + 1):
+            futures = [
+                client.submit(
+                    solve_chunk_parts,
+                    self.row_futures[c],
+                    idx,
+                    facets,
+                    E,
+                    self._state[c],
+                    times_s,
+                    self._solar[c],
+                    None if ir0 is None else ir0[idx],
+                    self.options,
+                    last[c],
+                    skip if last[c] is not None else 0.0,
+                    pure=False,
+                    retries=RETRIES,
+                )
+                for c, idx in enumerate(chunks)
+            ]
+            if it > 1:
+                changes = [client.submit(_change, f, p, pure=False) for f, p in zip(futures, last)]
+                change = float(max(client.gather(changes)))
+                if change <= tol_K:
+                    parts = client.gather([client.submit(_surface, f, pure=False, retries=RETRIES) for f in futures])
+                    self._last = futures
+                    return _RemoteWindow(self, futures, parts, n), it, change
+            last = futures
+            E = [client.submit(_emission, f, emissivity, pure=False) for f in futures]
+        raise SolverError(
+            f"waveform relaxation did not converge in {max_iter} iterations (last change {change:.3g} K > "
+            f"{tol_K} K); shorter windows converge faster"
+        )
 
     def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None, skip=None):
         """:meth:`_lagged_pass`, with dask's failures turned into one-line errors, or into

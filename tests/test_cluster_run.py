@@ -87,6 +87,75 @@ def test_relaxation_matches_the_implicit_exchange(tmp_path):
         assert max(its) <= 10, its  # measured: 5-8 (docs/cluster.md)
 
 
+class _CountingClient:
+    """A dask client that records what each ``gather`` brings back to this process (element counts)."""
+
+    def __init__(self, client):
+        self._client, self.gathered = client, []
+
+    def __getattr__(self, name):
+        return getattr(self._client, name)
+
+    def gather(self, futures, *args, **kwargs):
+        out = self._client.gather(futures, *args, **kwargs)
+        sizes = [sum(np.size(x) for x in (r if isinstance(r, tuple) else (r,))) for r in out]
+        self.gathered.append(sum(sizes))
+        return out
+
+
+def test_a_window_relaxed_on_the_workers_equals_the_local_relaxation(tmp_path, monkeypatch):
+    """Two windows (48 and 24 samples, a sunrise on the walls in each) of a 300-facet crater relaxed by the
+    columns of this process and by a cluster's (two one-thread workers in this process, so that the
+    patched product type holds there too, and two tasks run at once in one process as on a worker of
+    several threads; three chunks holding their rows of the exact matrix): the same iterations, the same
+    temperatures, IR and end state to the products' round-off (both pinned to float64), and per
+    iteration one number per chunk comes back to the client; the temperatures come back once, with the
+    converged window."""
+    monkeypatch.setattr(vfoperator, "PRODUCT_DTYPE", np.float64)
+    case = config.load_case(small_case(tmp_path, facets=300, end="2019-01-13", spinup="fixed", spinup_days=0.0))
+    fc = simulate.compute_forcing(case, simulate.Timer())
+    _, solar = fc.split(fc.solar)
+    t = simulate.seconds_since(fc.times, fc.times[0])
+    assert len(t) > 72
+    nf = fc.mesh.n_facets
+    settings = runner.column_settings(case)
+    solver = runner.column_solver("1300/1800", nf, settings)
+    solver.set_equilibrium(solar)
+    x0 = solver.state()
+    local = waveform.LocalColumns(runner.column_solver("1300/1800", nf, settings), fc.F, 0.12, 0.98)
+    folder = tmp_path / "operator"
+    vfoperator.save_operator(fc.F, folder)
+    order = vfoperator.row_order(fc.F)
+    bounds = [(0, 100), (100, 200), (200, nf)]
+    options = {
+        "profile": "1300/1800",
+        **settings,
+        "albedo": 0.12,
+        "solar_is_absorbed": False,
+    }
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False) as cl:
+        with distributed.Client(cl) as raw:
+            client = _CountingClient(raw)
+            rows = [raw.submit(cluster_run.load_rows, str(folder), a, b) for a, b in bounds]
+            chunks = [order[a:b] for a, b in bounds]
+            remote = cluster_run.DaskColumns(client, chunks, rows, options, nf, 2)
+            state_l = state_r = x0
+            ir_l = ir_r = None
+            for w0, w1 in ((0, 48), (48, 72)):
+                got_l = waveform.relax(local, state_l, t[w0 : w1 + 1], solar[w0 : w1 + 1], ir_l, 0.98)
+                client.gathered.clear()
+                got_r = waveform.relax(remote, state_r, t[w0 : w1 + 1], solar[w0 : w1 + 1], ir_r, 0.98)
+                (wl, it_l, ch_l), (wr, it_r, ch_r) = got_l, got_r
+                # iterations 2..n: one change per chunk each; then the converged window's temperatures
+                assert client.gathered[:-1] == [len(chunks)] * (it_r - 1)
+                assert client.gathered[-1] >= (w1 - w0 + 1) * nf
+                assert it_r == it_l >= 2 and abs(ch_r - ch_l) <= 1e-9
+                np.testing.assert_allclose(wr.T, wl.T, rtol=0, atol=1e-9)
+                np.testing.assert_allclose(wr.ir, wl.ir, rtol=0, atol=1e-9)
+                np.testing.assert_allclose(wr.end, wl.end, rtol=0, atol=1e-9)
+                state_l, ir_l, state_r, ir_r = wl.end, wl.ir[-1], wr.end, wr.ir[-1]
+
+
 def test_relaxed_run_saves_the_exchange_of_its_temperatures(local_run):
     """A relaxed run's saved IR is F e(T) of its saved temperatures (exact matrix built here, not the
     run's compressed operator) at every sample, to what the 1e-3 K stopping rule leaves: the IR changes by
