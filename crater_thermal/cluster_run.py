@@ -126,7 +126,9 @@ def solve_chunk(
         return _chunk_window(rows, E, len(facets), ir0, state, times_s, solar, options, prev, skip_K, hold)
 
 
-def solve_chunk_parts(rows, facets, chunks, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K=0.0):
+def solve_chunk_parts(
+    rows, facets, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K=0.0, hold=False, chunks=None
+):
     """:func:`solve_chunk` with the emitted flux of every facet given whole (``E`` (n, nf)) or as the chunks'
     parts (a list of (n, m_c) in the order of ``chunks``, a :class:`_Facets`: the previous iteration's
     :func:`_emission` of each chunk, fetched from the workers that hold them)."""
@@ -135,7 +137,7 @@ def solve_chunk_parts(rows, facets, chunks, E, state, times_s, solar, ir0, optio
         for idx, part in zip(chunks.idx, E):
             whole[:, idx] = part
         E = whole
-    return solve_chunk(rows, facets, E, state, times_s, solar, ir0, options, prev, skip_K)
+    return solve_chunk(rows, facets, E, state, times_s, solar, ir0, options, prev, skip_K, hold)
 
 
 def _emission(w, emissivity: float) -> np.ndarray:
@@ -251,25 +253,7 @@ class DaskColumns:
         last = [None] * len(chunks)
         change = np.inf
         for it in range(1, max_iter + 1):
-            futures = [
-                client.submit(
-                    solve_chunk_parts,
-                    self.row_futures[c],
-                    idx,
-                    facets,
-                    E,
-                    self._state[c],
-                    times_s,
-                    self._solar[c],
-                    None if ir0 is None else ir0[idx],
-                    self.options,
-                    last[c],
-                    skip if last[c] is not None else 0.0,
-                    pure=False,
-                    retries=RETRIES,
-                )
-                for c, idx in enumerate(chunks)
-            ]
+            futures = self._iteration(solve_chunk_parts, E, times_s, ir0, last, skip, False, facets)
             if it > 1:
                 changes = [client.submit(_change, f, p, pure=False) for f, p in zip(futures, last)]
                 change = float(max(client.gather(changes)))
@@ -488,6 +472,30 @@ class DaskColumns:
         """Release the spin-up's data on the workers."""
         self._pass = self._surfaces = self._spin = self._chunks_f = self._next = None
 
+    def _iteration(self, task, E, times_s, ir0, last, skip_K: float, *tail) -> list:
+        """One iteration's tasks, one per chunk: ``task(rows, facets, E, state, times_s, solar, ir0, options,
+        prev, skip_K, *tail)`` with the window's start state and sunlight already on the workers and ``last``
+        the chunks' previous iterates (or None each)."""
+        return [
+            self.client.submit(
+                task,
+                self.row_futures[c],
+                idx,
+                E,
+                self._state[c],
+                times_s,
+                self._solar[c],
+                None if ir0 is None else ir0[idx],
+                self.options,
+                last[c],
+                skip_K if last[c] is not None else 0.0,
+                *tail,
+                pure=False,
+                retries=RETRIES,
+            )
+            for c, idx in enumerate(self.chunks)
+        ]
+
     def _round(self, state, times_s, solar, E, ir0, skip_K, hold=False):
         client = self.client
         if self._state is None:  # a new window (or a resent one): its start state and sunlight, once
@@ -496,26 +504,7 @@ class DaskColumns:
         # one copy, on one worker; the others fetch it from there (a broadcast scatter waits on a worker
         # that died mid-replication: measured, 30 s retries until the end); in the products' type
         E_f = client.scatter(_operand(E, len(E)), hash=False)
-        last = self._last or [None] * len(self.chunks)
-        futures = [
-            client.submit(
-                solve_chunk,
-                self.row_futures[c],
-                idx,
-                E_f,
-                self._state[c],
-                times_s,
-                self._solar[c],
-                None if ir0 is None else ir0[idx],
-                self.options,
-                last[c],
-                skip_K if last[c] is not None else 0.0,
-                hold,
-                pure=False,
-                retries=RETRIES,
-            )
-            for c, idx in enumerate(self.chunks)
-        ]
+        futures = self._iteration(solve_chunk, E_f, times_s, ir0, self._last or [None] * len(self.chunks), skip_K, hold)
         # only the temperatures and the active counts come back each iteration (for the next emission and
         # the convergence test); IR, end states and accumulators stay on the workers until asked for
         parts = client.gather([client.submit(_surface, f, pure=False, retries=RETRIES) for f in futures])
