@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from crater_thermal import cluster, geometry, radiosity, raytrace, runner, vfoperator, waveform
-from crater_thermal.errors import ConfigError, CraterThermalError, InternalError, SolverError
+from crater_thermal.errors import ConfigError, CraterThermalError, InternalError
 
 #: Default facets per chunk (one task per chunk and iteration).
 CHUNK_FACETS = 4000
@@ -133,11 +133,17 @@ def solve_chunk_parts(
     parts (a list of (n, m_c) in the order of ``chunks``, a :class:`_Facets`: the previous iteration's
     :func:`_emission` of each chunk, fetched from the workers that hold them)."""
     if isinstance(E, (list, tuple)):
-        whole = np.empty((len(E[0]), sum(len(idx) for idx in chunks.idx)), E[0].dtype)
-        for idx, part in zip(chunks.idx, E):
-            whole[:, idx] = part
-        E = whole
+        E = _joined_columns(E, chunks)
     return solve_chunk(rows, facets, E, state, times_s, solar, ir0, options, prev, skip_K, hold)
+
+
+def _joined_columns(parts, chunks) -> np.ndarray:
+    """The chunks' column blocks ``parts`` (each (n, m_c), in the order of ``chunks``, a :class:`_Facets`)
+    as one (n, nf) array of every facet, in their type."""
+    whole = np.empty((len(parts[0]), sum(len(idx) for idx in chunks.idx)), parts[0].dtype)
+    for idx, part in zip(chunks.idx, parts):
+        whole[:, idx] = part
+    return whole
 
 
 def _emission(w, emissivity: float) -> np.ndarray:
@@ -244,8 +250,7 @@ class DaskColumns:
         client, chunks = self.client, self.chunks
         n = len(times_s)
         self._last = None
-        self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in chunks], hash=False)
-        self._solar = client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in chunks], hash=False)
+        self._send_window(state, solar)
         facets = client.scatter(_Facets(chunks), hash=False)
         T0 = np.asarray(state)[:, 0]
         E = client.scatter(_operand(np.broadcast_to(radiosity.emitted(T0, emissivity), (n, len(T0))), n), hash=False)
@@ -263,10 +268,7 @@ class DaskColumns:
                     return _RemoteWindow(self, futures, parts, n), it, change
             last = futures
             E = [client.submit(_emission, f, emissivity, pure=False) for f in futures]
-        raise SolverError(
-            f"waveform relaxation did not converge in {max_iter} iterations (last change {change:.3g} K > "
-            f"{tol_K} K); shorter windows converge faster"
-        )
+        raise waveform.not_converged(max_iter, change, tol_K)
 
     def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None, skip=None):
         """:meth:`_lagged_pass`, with dask's failures turned into one-line errors, or into
@@ -472,6 +474,11 @@ class DaskColumns:
         """Release the spin-up's data on the workers."""
         self._pass = self._surfaces = self._spin = self._chunks_f = self._next = None
 
+    def _send_window(self, state, solar) -> None:
+        """A window's start state (nf, nz) [K] and sunlight rows (n, nf) [W m-2] to the workers, per chunk."""
+        self._state = self.client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
+        self._solar = self.client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in self.chunks], hash=False)
+
     def _iteration(self, task, E, times_s, ir0, last, skip_K: float, *tail) -> list:
         """One iteration's tasks, one per chunk: ``task(rows, facets, E, state, times_s, solar, ir0, options,
         prev, skip_K, *tail)`` with the window's start state and sunlight already on the workers and ``last``
@@ -499,8 +506,7 @@ class DaskColumns:
     def _round(self, state, times_s, solar, E, ir0, skip_K, hold=False):
         client = self.client
         if self._state is None:  # a new window (or a resent one): its start state and sunlight, once
-            self._state = client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
-            self._solar = client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in self.chunks], hash=False)
+            self._send_window(state, solar)
         # one copy, on one worker; the others fetch it from there (a broadcast scatter waits on a worker
         # that died mid-replication: measured, 30 s retries until the end); in the products' type
         E_f = client.scatter(_operand(E, len(E)), hash=False)
@@ -529,9 +535,7 @@ def _next_ir(rows, chunks, surfaces, w, options: dict):
     temperatures [K] of the latest pass (``surfaces``: their ``(T, active)`` parts), with its change from
     the chunk's latest input (``w``: its window of the block) and the chunk's coldest surface temperature
     [K]: ``(ir, the largest absolute change per column, min T per column)``."""
-    T = np.empty((len(w.T), sum(len(idx) for idx in chunks.idx)))
-    for idx, (t_part, _) in zip(chunks.idx, surfaces):
-        T[:, idx] = t_part
+    T = _joined_columns([np.asarray(t_part, float) for t_part, _ in surfaces], chunks)
     E = radiosity.emitted(T, options["emissivity"])
     with cluster.one_numba_thread():
         ir = np.zeros_like(w.ir) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)

@@ -328,7 +328,12 @@ def relax(
                 return w, it, change
         prev = w
         E = radiosity.emitted(np.asarray(w.T, float), emissivity)
-    raise SolverError(
+    raise not_converged(max_iter, change, tol_K)
+
+
+def not_converged(max_iter: int, change: float, tol_K: float) -> SolverError:
+    """The error of a relaxation that did not converge in ``max_iter`` iterations (last change [K] > tol_K)."""
+    return SolverError(
         f"waveform relaxation did not converge in {max_iter} iterations (last change {change:.3g} K > {tol_K} K); "
         "shorter windows converge faster"
     )
