@@ -332,9 +332,9 @@ def _assemble(ds, profiles, chunks, folder, output, overwrite, initial_temperatu
         skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK, facet_block=block
     ) as stream:
         for i, j, f0, f1, p0, p1 in chunks:
-            with np.load(chunk_path(folder, i, j)) as z:
-                info = json.loads(str(z["info"]))
-                stream("surface_temperature", (slice(p0, p1), slice(0, nt), slice(f0, f1)), z["T"])
+            z = io.load_npz(chunk_path(folder, i, j))
+            info = json.loads(str(z["info"]))
+            stream("surface_temperature", (slice(p0, p1), slice(0, nt), slice(f0, f1)), z["T"])
             start = info["start"]
             iters += info["periodic_iterations"]
             resid += info["periodic_residual_K"]

@@ -56,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_thermal import cluster, geometry, radiosity, raytrace, runner, vfoperator, waveform
+from crater_thermal import cluster, geometry, io, radiosity, raytrace, runner, vfoperator, waveform
 from crater_thermal.errors import ConfigError, CraterThermalError, InternalError
 
 #: Default facets per chunk (one task per chunk and iteration).
@@ -694,7 +694,7 @@ def _plan(mesh_folder: str, settings: dict):
     if plan is None:
         _PLANS.clear()
         folder = Path(mesh_folder)
-        mesh = geometry.Mesh(np.load(folder / "vertices.npy"), np.load(folder / "faces.npy"))
+        mesh = geometry.Mesh(io.load_npy(folder / "vertices.npy"), io.load_npy(folder / "faces.npy"))
         if mesh.hash != settings["mesh_hash"]:
             raise ConfigError(
                 f"the mesh in {folder} is not the run's (hash {mesh.hash}, expected {settings['mesh_hash']}): "

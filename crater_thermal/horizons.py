@@ -247,13 +247,45 @@ def _cache_file(cache_dir, mesh_hash: str, n_az: int, tol_deg: float, offset_key
 
 def _load(path: Path, mesh_hash: str, n_az: int, nf: int) -> Optional[np.ndarray]:
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["mesh_hash"]) != mesh_hash or str(z["version"]) != HORIZON_VERSION:
-                return None
-            elev = np.asarray(z["elevation"], dtype=np.float32)
+        z = io.load_npz(path)
+        if str(z["mesh_hash"]) != mesh_hash or str(z["version"]) != HORIZON_VERSION:
+            return None
+        elev = np.asarray(z["elevation"], dtype=np.float32)
     except (OSError, KeyError, ValueError):
         return None
     return elev if elev.shape == (n_az, nf) else None
+
+
+def _cache_path(mesh, tracer, n_az: int, tol: float, cache_dir) -> Optional[Path]:
+    if cache_dir is None:
+        return None
+    offsets = np.asarray(tracer.offsets, dtype=float)
+    offset_key = f"o{float(np.median(offsets / np.asarray(mesh.facet_size))):.3g}"
+    return _cache_file(cache_dir, mesh.hash, n_az, tol, offset_key)
+
+
+def _cached(path: Optional[Path], mesh, n_az: int, tol: float) -> Optional[HorizonMap]:
+    if path is None or not path.is_file():
+        return None
+    elev = _load(path, mesh.hash, n_az, mesh.n_facets)
+    if elev is None:
+        return None
+    elev.setflags(write=False)
+    return HorizonMap(elev, mesh.hash, tol, 0.0)
+
+
+def cached(
+    mesh, tracer, n_azimuths: int = DEFAULT_N_AZIMUTHS, tolerance_deg: float = DEFAULT_TOLERANCE_DEG, cache_dir=None
+) -> Optional[HorizonMap]:
+    """The map :func:`horizon_map` would read from ``cache_dir`` with these settings, or None (no
+    folder, no file, or a file for another mesh or version). Arguments as :func:`horizon_map`'s
+    (``tolerance_deg`` [deg])."""
+    return _cached(
+        _cache_path(mesh, tracer, int(n_azimuths), float(tolerance_deg), cache_dir),
+        mesh,
+        int(n_azimuths),
+        float(tolerance_deg),
+    )
 
 
 def horizon_map(
@@ -264,6 +296,7 @@ def horizon_map(
     cache_dir=None,
     progress: Optional[ProgressFn] = None,
     chunk_rays: int = CHUNK_RAYS,
+    read_cache: bool = True,
 ) -> HorizonMap:
     """Trace the horizon of every facet at ``n_azimuths`` azimuths.
 
@@ -283,6 +316,11 @@ def horizon_map(
         Called after each batch with the facets done so far and the total.
     chunk_rays : int
         Rays traced per batch (memory control).
+    read_cache : bool
+        False: trace even if the cache holds a map (it is still written). A map traced on a second
+        thread is asked for this way after the calling thread has looked in the cache (:func:`cached`):
+        reading a cached ``.npz`` parses its header with ``ast.literal_eval``, which CPython 3.11.7 does
+        not allow on two threads at once (gh-106905: "AST constructor recursion depth mismatch").
 
     Returns
     -------
@@ -302,14 +340,11 @@ def horizon_map(
         raise MeshError("horizon_map: the ray tracer was built on a different mesh")
     n_az = int(n_azimuths)
     nf = mesh.n_facets
-    offsets = np.asarray(tracer.offsets, dtype=float)
-    offset_key = f"o{float(np.median(offsets / np.asarray(mesh.facet_size))):.3g}"
-    path = _cache_file(cache_dir, mesh.hash, n_az, tol, offset_key) if cache_dir is not None else None
-    if path is not None and path.is_file():
-        elev = _load(path, mesh.hash, n_az, nf)
-        if elev is not None:
-            elev.setflags(write=False)
-            return HorizonMap(elev, mesh.hash, tol, 0.0)
+    path = _cache_path(mesh, tracer, n_az, tol, cache_dir)
+    if read_cache:
+        found = _cached(path, mesh, n_az, tol)
+        if found is not None:
+            return found
 
     t0 = time.perf_counter()
     elev = np.empty((n_az, nf), dtype=np.float32)

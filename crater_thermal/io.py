@@ -28,6 +28,7 @@ import secrets
 import shutil
 import socket
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -414,6 +415,26 @@ def save_npz_atomic(path: str | os.PathLike, **arrays: Any) -> Path:
     return Path(path)
 
 
+# numpy parses an .npy header with ast.literal_eval, and CPython 3.11.7 (CI's Python) fails when two
+# threads of one process parse at once ("SystemError: AST constructor recursion depth mismatch",
+# CPython gh-106905). Every .npy/.npz read of the package goes through the two functions below, which
+# parse under this lock: a horizon map traced on a second thread, dask workers with several threads.
+_NPY_HEADER_LOCK = threading.Lock()
+
+
+def load_npy(path: str | os.PathLike, mmap_mode: str | None = None) -> np.ndarray:
+    """One ``.npy`` array (no pickles), its header parsed under a process-wide lock (thread-safe on
+    every Python 3.11); ``mmap_mode`` as :func:`numpy.load`'s."""
+    with _NPY_HEADER_LOCK:
+        return np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
+
+
+def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, read into memory (no pickles), thread-safe as :func:`load_npy`."""
+    with _NPY_HEADER_LOCK, np.load(path, allow_pickle=False) as z:
+        return {name: z[name] for name in z.files}
+
+
 # ----------------------------------------------------------------------------- streaming (bounded memory)
 
 
@@ -583,9 +604,9 @@ class SegmentStore:
                 # mapped, so that a read of a few rows (a block's first row, read with the block
                 # before it) loads those rows and not the whole block
                 try:
-                    arr = np.load(f, mmap_mode="r", allow_pickle=False)
+                    arr = load_npy(f, mmap_mode="r")
                 except ValueError:  # e.g. a block of no rows cannot be mapped
-                    arr = np.load(f, allow_pickle=False)
+                    arr = load_npy(f)
             except (OSError, ValueError) as exc:
                 raise FluxFileError(
                     f"scratch store {self.folder}: block {os.path.basename(f)} unreadable ({exc})"

@@ -246,7 +246,7 @@ def _read_checkpoint(case, out_path, ckpt_path: Path, resume: bool, overwrite: b
     ckpt = None
     if resume and ckpt_path.exists():
         try:
-            ckpt = dict(np.load(ckpt_path, allow_pickle=False))
+            ckpt = io.load_npz(ckpt_path)
         except Exception as exc:
             raise FluxFileError(
                 f"checkpoint {ckpt_path} is unreadable ({type(exc).__name__}); run again without --resume"

@@ -452,6 +452,10 @@ def case_operator_and_horizons(case, mesh, tracer, timer: Timer, progress=None, 
     """
     if not horizons or case.sun.method != "horizon":
         return case_operator(case, mesh, tracer, timer, progress, build=build), None
+    with timer("horizons"):  # read here: the second thread must not parse an .npz header (horizons.horizon_map)
+        hmap = sunlight.cached_horizon_map(case.sun, mesh, tracer)
+    if hmap is not None:
+        return case_operator(case, mesh, tracer, timer, progress, build=build), hmap
     cancel, lock = threading.Event(), threading.Lock()
     shown: dict = {"report": None, "last": None}
 
@@ -465,7 +469,7 @@ def case_operator_and_horizons(case, mesh, tracer, timer: Timer, progress=None, 
 
     def trace():
         with timer("horizons"):
-            return sunlight.horizon_map(case.sun, mesh, tracer, report)
+            return sunlight.horizon_map(case.sun, mesh, tracer, report, read_cache=False)
 
     pool = ThreadPoolExecutor(1, thread_name_prefix="horizons")
     try:

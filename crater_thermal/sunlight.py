@@ -129,17 +129,28 @@ class Sunlight:
         return direct, solar, absorbed
 
 
-def horizon_map(sun, mesh, tracer, progress=None) -> horizons.HorizonMap:
+def horizon_map(sun, mesh, tracer, progress=None, read_cache: bool = True) -> horizons.HorizonMap:
     """The horizon map of ``mesh`` at ``[sun] horizon_azimuths`` (default
     :data:`crater_thermal.horizons.DEFAULT_N_AZIMUTHS`), read from or written to the cache folder.
-    ``progress``: optional ``(done, total)`` callback (facets traced)."""
+    ``progress``: optional ``(done, total)`` callback (facets traced); ``read_cache``: False to trace
+    without looking in the cache (see :func:`crater_thermal.horizons.horizon_map`)."""
     return horizons.horizon_map(
         mesh,
         tracer,
-        n_azimuths=sun.horizon_azimuths or horizons.DEFAULT_N_AZIMUTHS,
+        n_azimuths=_n_azimuths(sun),
         cache_dir=cache.folder("horizons"),
         progress=progress,
+        read_cache=read_cache,
     )
+
+
+def cached_horizon_map(sun, mesh, tracer) -> Optional[horizons.HorizonMap]:
+    """The horizon map :func:`horizon_map` would read from the cache folder, or None."""
+    return horizons.cached(mesh, tracer, n_azimuths=_n_azimuths(sun), cache_dir=cache.folder("horizons"))
+
+
+def _n_azimuths(sun) -> int:
+    return sun.horizon_azimuths or horizons.DEFAULT_N_AZIMUTHS
 
 
 def _no_timer(name: str):

@@ -78,6 +78,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from crater_thermal import io
 from crater_thermal.choices import VIEW_FACTOR_METHODS as METHODS
 from crater_thermal.errors import ConfigError, MeshError
 from crater_thermal.geometry import Mesh
@@ -1152,7 +1153,7 @@ def load_row_block(folder, a: int, b: int) -> "RowBlock":
     meta = json.loads((folder / "meta.json").read_text())
 
     def arr(name):
-        return np.load(folder / f"{name}.npy", mmap_mode="r")
+        return io.load_npy(folder / f"{name}.npy", mmap_mode="r")
 
     n = int(meta["n"])
     if not (0 <= a < b <= n):

@@ -173,12 +173,12 @@ def _cache_path(cache_dir, mesh: Mesh) -> Path:
 
 def _load_cached(path: Path, mesh: Mesh):
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["mesh_hash"]) != mesh.hash or str(z["version"]) != _algorithm_key():
-                return None
-            F = sp.csr_matrix((z["data"], z["indices"], z["indptr"]), shape=tuple(z["shape"]))
-            F.rowsum_excess = float(z["rowsum_excess"])
-            return F
+        z = io.load_npz(path)
+        if str(z["mesh_hash"]) != mesh.hash or str(z["version"]) != _algorithm_key():
+            return None
+        F = sp.csr_matrix((z["data"], z["indices"], z["indptr"]), shape=tuple(z["shape"]))
+        F.rowsum_excess = float(z["rowsum_excess"])
+        return F
     except (OSError, KeyError, ValueError):
         return None
 

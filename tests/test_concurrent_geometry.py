@@ -129,3 +129,42 @@ def test_a_horizon_map_outlasting_the_operator_gets_its_own_progress_stage(case,
     mine = [c for c in calls if c[0] == stages[-1]]
     assert mine and mine[-1][1:] == (mesh.n_facets, mesh.n_facets)
     assert not _horizon_threads()
+
+
+def test_a_cached_map_is_read_on_the_calling_thread(case, monkeypatch):
+    """numpy parses an .npz header with ast.literal_eval, which CPython 3.11.7 fails on when two threads
+    parse at once (gh-106905; it broke CI at df264f7): a cached horizon map is read before any thread is
+    started, and the thread, when one traces, never reads the cache."""
+    mesh, tracer = simulate.case_scene(case, simulate.Timer())
+    first = simulate.case_operator_and_horizons(case, mesh, tracer, simulate.Timer())[1]
+    readers = []
+    real_load = horizons._load
+    monkeypatch.setattr(horizons, "_load", lambda *a: readers.append(threading.current_thread().name) or real_load(*a))
+    started = []
+    real_submit = simulate.ThreadPoolExecutor.submit
+    monkeypatch.setattr(
+        simulate.ThreadPoolExecutor, "submit", lambda *a, **k: started.append(1) or real_submit(*a, **k)
+    )
+    again = simulate.case_operator_and_horizons(case, mesh, tracer, simulate.Timer())[1]
+    np.testing.assert_array_equal(again.elevation, first.elevation)
+    assert readers == [threading.main_thread().name] and not started
+    # with the cache emptied the map is traced on the thread, which does not look in the cache
+    for f in simulate.cache.folder("horizons").glob("*.npz"):
+        f.unlink()
+    readers.clear()
+    traced = simulate.case_operator_and_horizons(case, mesh, tracer, simulate.Timer())[1]
+    np.testing.assert_array_equal(traced.elevation, first.elevation)
+    assert started and all(name == threading.main_thread().name for name in readers)
+
+
+def test_no_module_but_io_calls_numpy_load():
+    """Every .npy/.npz read goes through io.load_npy / io.load_npz (their header parsing under one lock)."""
+    import pathlib
+
+    import crater_thermal
+
+    root = pathlib.Path(crater_thermal.__file__).parent
+    offenders = [
+        str(p.relative_to(root)) for p in root.rglob("*.py") if p.name != "io.py" and "np.load(" in p.read_text()
+    ]
+    assert not offenders, offenders
