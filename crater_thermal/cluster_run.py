@@ -191,6 +191,28 @@ def _failed(exc, hint: str = "") -> ConfigError:
     return ConfigError(f"the dask cluster failed the run ({reason}); are any workers left? (see their logs){hint}")
 
 
+def _resending(client, attempt, hint: str = "", forget=None):
+    """``attempt()``, sent again (up to :data:`RESENDS` times) when it fails because an input was lost
+    with the worker that held it (``forget()`` first: what the next attempt must send again). An error
+    raised by a task itself (:class:`CraterThermalError`, :class:`InternalError` such as a solver's or a
+    relaxation that did not converge, MemoryError) is not a lost input and goes on as it is; dask's
+    ``KilledWorker`` and a cluster with no worker left become one-line errors (``hint`` appended)."""
+    from distributed import KilledWorker
+
+    for n in range(RESENDS + 1):
+        try:
+            return attempt()
+        except KilledWorker as exc:
+            raise _gave_up(exc, hint) from None
+        except (CraterThermalError, InternalError, MemoryError):
+            raise
+        except Exception as exc:
+            if n == RESENDS or not _workers_left(client):
+                raise _failed(exc, hint) from None
+            if forget is not None:
+                forget()
+
+
 class DaskColumns:
     """The waveform-relaxation backend (``solve`` as :meth:`waveform.LocalColumns.solve`) on a dask cluster."""
 
@@ -210,21 +232,16 @@ class DaskColumns:
     def solve(self, state, times_s, solar, E, ir0=None, prev=None, skip_K: float = 0.0, hold: bool = False):
         """As :meth:`waveform.LocalColumns.solve`; ``prev`` must be the result of this backend's latest call
         (its chunks' parts stay on the workers and are used there)."""
-        from distributed import KilledWorker
-
         if prev is None:
             self._last = self._state = None
-        for attempt in range(RESENDS + 1):
-            try:
-                return self._round(state, times_s, solar, E, ir0, skip_K if prev is not None else 0.0, hold)
-            except KilledWorker as exc:
-                raise _gave_up(exc, _RESUME) from None
-            except (CraterThermalError, MemoryError):  # raised by a task itself: not a lost input
-                raise
-            except Exception as exc:  # an input lost with the worker that held it: send the iteration again
-                if attempt == RESENDS or not _workers_left(self.client):
-                    raise _failed(exc, _RESUME) from None
-                self._last = self._state = None
+        skip = skip_K if prev is not None else 0.0
+        return _resending(
+            self.client, lambda: self._round(state, times_s, solar, E, ir0, skip, hold), _RESUME, self._forget
+        )
+
+    def _forget(self) -> None:
+        """After a lost input: the next attempt sends the window's start and sunlight again."""
+        self._last = self._state = None
 
     def relax_window(self, state, times_s, solar, ir0, emissivity: float, tol_K: float, max_iter: int):
         """:func:`waveform.relax` of one window kept on the workers (the same iterations and results): after
@@ -232,19 +249,8 @@ class DaskColumns:
         are formed where its window is, the chunks fetch each other's emission from the workers, and only
         one number per chunk comes back per iteration; the surface temperatures come back once, with the
         converged window. A lost worker sends the window again from its start."""
-        from distributed import KilledWorker
-
-        for attempt in range(RESENDS + 1):
-            try:
-                return self._relax(state, times_s, solar, ir0, float(emissivity), float(tol_K), int(max_iter))
-            except KilledWorker as exc:
-                raise _gave_up(exc, _RESUME) from None
-            except (CraterThermalError, InternalError, MemoryError):  # raised by a task, or not converged
-                raise
-            except Exception as exc:  # an input lost with the worker that held it: the window again
-                if attempt == RESENDS or not _workers_left(self.client):
-                    raise _failed(exc, _RESUME) from None
-                self._last = self._state = None
+        args = (state, times_s, solar, ir0, float(emissivity), float(tol_K), int(max_iter))
+        return _resending(self.client, lambda: self._relax(*args), _RESUME, self._forget)
 
     def _relax(self, state, times_s, solar, ir0, emissivity: float, tol_K: float, max_iter: int):
         client, chunks = self.client, self.chunks
@@ -783,26 +789,17 @@ class ClusterOperator(vfoperator.ViewFactorOperator):
         return (self._products(y.reshape(y.shape[0], -1) / a) * a).reshape(y.shape)
 
     def _products(self, X):
-        from distributed import KilledWorker
-
         client = self.client
-        for attempt in range(RESENDS + 1):
-            try:
-                X_f = client.scatter(_operand(X, X.shape[1]), hash=False)
-                parts = client.gather(
-                    [client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows]
-                )
-                out = np.empty_like(X, dtype=np.float64)
-                for (a, b), part in zip(self.bounds, parts):
-                    out[self.order[a:b]] = part
-                return out
-            except KilledWorker as exc:
-                raise _gave_up(exc) from None
-            except (CraterThermalError, MemoryError):
-                raise
-            except Exception as exc:  # the operand lost with the worker that held it: send it again
-                if attempt == RESENDS or not _workers_left(client):
-                    raise _failed(exc) from None
+
+        def attempt():
+            X_f = client.scatter(_operand(X, X.shape[1]), hash=False)
+            parts = client.gather([client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows])
+            out = np.empty_like(X, dtype=np.float64)
+            for (a, b), part in zip(self.bounds, parts):
+                out[self.order[a:b]] = part
+            return out
+
+        return _resending(client, attempt)
 
 
 class _Session:

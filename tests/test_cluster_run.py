@@ -364,3 +364,55 @@ def test_worker_deaths_beyond_dask_allowance_keep_the_checkpoint(local_run, tmp_
         if proc is not None and proc.poll() is None:
             proc.kill()
     assert not out.exists() and ckpt.exists()
+
+
+class _Waiting:
+    """A stand-in for a dask client in :func:`cluster_run._resending`: ``wait_for_workers`` answers at once."""
+
+    def __init__(self, workers: bool):
+        self.workers = workers
+
+    def wait_for_workers(self, n, timeout=None):
+        if not self.workers:
+            raise TimeoutError("no workers")
+
+
+def test_resend_rule_lost_inputs_again_task_errors_at_once():
+    from crater_thermal.errors import SolverError
+
+    calls, forgotten = [], []
+
+    def fails_with(exc, times):
+        def attempt():
+            calls.append(1)
+            if len(calls) <= times:
+                raise exc
+            return "done"
+
+        return attempt
+
+    # a lost input (any other exception): sent again after forget(), up to RESENDS times
+    assert (
+        cluster_run._resending(_Waiting(True), fails_with(OSError("lost"), 2), forget=lambda: forgotten.append(1))
+        == "done"
+    )
+    assert len(calls) == 3 and len(forgotten) == 2
+    calls.clear()
+    with pytest.raises(ConfigError, match="dask cluster failed the run"):
+        cluster_run._resending(_Waiting(True), fails_with(OSError("lost"), 99))
+    assert len(calls) == cluster_run.RESENDS + 1
+    # no worker left: given up at once
+    calls.clear()
+    with pytest.raises(ConfigError, match="are any workers left"):
+        cluster_run._resending(_Waiting(False), fails_with(OSError("lost"), 99))
+    assert len(calls) == 1
+    # a task's own error (a solver's, a user's) is not a lost input: raised as it is, not sent again
+    for exc in (SolverError("column diverged"), ConfigError("bad"), MemoryError()):
+        calls.clear()
+        with pytest.raises(type(exc)):
+            cluster_run._resending(_Waiting(True), fails_with(exc, 99))
+        assert len(calls) == 1
+    # dask's KilledWorker: the one-line error of a task whose workers kept dying
+    calls.clear()
+    with pytest.raises(ConfigError, match="workers that ran it died"):
+        cluster_run._resending(_Waiting(True), fails_with(distributed.KilledWorker("t", "w", 3), 99))
