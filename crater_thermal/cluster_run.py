@@ -81,6 +81,9 @@ def worker_wait_s() -> float:
 
 _SOLVERS = threading.local()  # per worker thread: a column solver per (options, columns), reused across tasks
 _PLANS: dict = {}  # per worker process: the compressed plan of the latest mesh, while its rows are built
+# a worker with several threads: one of them builds the plan while the others wait for it (without the
+# lock each would build its own: right, but the plan's rays traced once per thread)
+_PLANS_LOCK = threading.Lock()
 
 
 def _solver(options: dict, n: int):
@@ -696,21 +699,25 @@ def _plan(mesh_folder: str, settings: dict):
     """The worker's :class:`vfoperator.CompressedPlan` of the saved mesh (built once for all the chunks it
     builds; released by the first window it conducts, :func:`_chunk_window`)."""
     key = (mesh_folder, json.dumps(settings, sort_keys=True))  # the settings name the mesh's hash
-    plan = _PLANS.get(key)
-    if plan is None:
-        _PLANS.clear()
-        folder = Path(mesh_folder)
-        mesh = geometry.Mesh(io.load_npy(folder / "vertices.npy"), io.load_npy(folder / "faces.npy"))
-        if mesh.hash != settings["mesh_hash"]:
-            raise ConfigError(
-                f"the mesh in {folder} is not the run's (hash {mesh.hash}, expected {settings['mesh_hash']}): "
-                "was the run's scratch folder changed by another run? Run again with --overwrite"
-            )
-        tracer = raytrace.RayTracer(mesh, n_threads=1)
-        plan = _PLANS[key] = vfoperator.CompressedPlan(
-            mesh, tracer, settings["tolerance"], tolerance_mode=settings["tolerance_mode"]
-        )
+    with _PLANS_LOCK:
+        plan = _PLANS.get(key)
+        if plan is None:
+            plan = _PLANS[key] = _new_plan(mesh_folder, settings)
     return plan
+
+
+def _new_plan(mesh_folder: str, settings: dict):
+    """The plan of :func:`_plan`, built (the worker's earlier plans released first)."""
+    _PLANS.clear()
+    folder = Path(mesh_folder)
+    mesh = geometry.Mesh(io.load_npy(folder / "vertices.npy"), io.load_npy(folder / "faces.npy"))
+    if mesh.hash != settings["mesh_hash"]:
+        raise ConfigError(
+            f"the mesh in {folder} is not the run's (hash {mesh.hash}, expected {settings['mesh_hash']}): "
+            "was the run's scratch folder changed by another run? Run again with --overwrite"
+        )
+    tracer = raytrace.RayTracer(mesh, n_threads=1)
+    return vfoperator.CompressedPlan(mesh, tracer, settings["tolerance"], tolerance_mode=settings["tolerance_mode"])
 
 
 def _summary(block):

@@ -416,3 +416,32 @@ def test_resend_rule_lost_inputs_again_task_errors_at_once():
     calls.clear()
     with pytest.raises(ConfigError, match="workers that ran it died"):
         cluster_run._resending(_Waiting(True), fails_with(distributed.KilledWorker("t", "w", 3), 99))
+
+
+def test_a_worker_with_several_threads_builds_one_plan(monkeypatch):
+    """Build tasks running at once on one worker's threads share one compressed plan (one built, the
+    others wait for it) instead of each tracing its own."""
+    import threading
+    import time
+
+    built = []
+
+    def slow_plan(folder, settings):
+        built.append(threading.current_thread().name)
+        time.sleep(0.2)
+        return object()
+
+    monkeypatch.setattr(cluster_run, "_new_plan", slow_plan)
+    monkeypatch.setattr(cluster_run, "_PLANS", {})
+    got = []
+    threads = [
+        threading.Thread(target=lambda: got.append(cluster_run._plan("/mesh", {"mesh_hash": "h"}))) for _ in range(4)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(built) == 1 and len(got) == 4 and all(p is got[0] for p in got)
+    # another mesh: a plan of its own
+    other = cluster_run._plan("/other", {"mesh_hash": "k"})
+    assert len(built) == 2 and other is not got[0]
