@@ -418,7 +418,9 @@ def save_npz_atomic(path: str | os.PathLike, **arrays: Any) -> Path:
 # numpy parses an .npy header with ast.literal_eval, and CPython 3.11.7 (CI's Python) fails when two
 # threads of one process parse at once ("SystemError: AST constructor recursion depth mismatch",
 # CPython gh-106905). Every .npy/.npz read of the package goes through the two functions below, which
-# parse under this lock: a horizon map traced on a second thread, dask workers with several threads.
+# parse under this lock (dask workers with several threads; the horizon map's thread reads nothing:
+# simulate.case_operator_and_horizons reads its cache before starting it, as other code on the calling
+# thread may parse too).
 _NPY_HEADER_LOCK = threading.Lock()
 
 
