@@ -664,7 +664,7 @@ class CoupledStepper:
         if self.ir_scheme == "extrapolated" and self._history is not None and self._history_valid():
             _, now, before, dt_before = self._history
             ir_k1 = np.maximum(now + (now - before) * (duration_s / dt_before), 0.0)
-            start = self.solver.state()
+            start = self.solver.snapshot()  # a reused buffer: only the redo below reads it
             a_k1 = self.absorbed(solar_k1, ir_k1)
             T1 = self.solver.advance(a_k, a_k1, duration_s)
             exact = self.ir(T1)

@@ -364,9 +364,11 @@ def test_adaptive_refinement_at_sunset():
     np.testing.assert_allclose(s.run_series(t, Qm)[:, 9], runs["on"], rtol=0, atol=1e-6)
 
 
-def test_redo_columns_is_the_step_with_the_other_forcing():
+@pytest.mark.parametrize("take", ["state", "snapshot"])
+def test_redo_columns_is_the_step_with_the_other_forcing(take):
     """ColumnSolver.redo_columns (the coupled step's second try for some columns): the same state and
-    energy accumulators as one step taken with the new forcing for those columns from the start."""
+    energy accumulators as one step taken with the new forcing for those columns from the start, whether
+    the start is a kept copy (state) or the reused buffer (snapshot)."""
     n = 7
     a0 = np.linspace(0.0, 300.0, n)
     a1, b1 = np.linspace(5.0, 250.0, n), np.linspace(20.0, 40.0, n)
@@ -376,7 +378,7 @@ def test_redo_columns_is_the_step_with_the_other_forcing():
     s, ref = th.ColumnSolver(["1300/1800"] * n), th.ColumnSolver(["1300/1800"] * n)
     for x in (s, ref):
         x.set_uniform(150.0)
-    start = s.state()
+    start = getattr(s, take)()
     s.advance(a0, a1, 14400.0)
     T_cols = s.redo_columns(cols, start, a0[cols], b1[cols], 14400.0)
     ref.advance(a0, ref_end, 14400.0)
@@ -384,6 +386,30 @@ def test_redo_columns_is_the_step_with_the_other_forcing():
     np.testing.assert_array_equal(T_cols, ref.T[cols, 0])
     np.testing.assert_array_equal(s.acc, ref.acc)
     assert s.time_s == ref.time_s
+
+
+def test_snapshot_reuses_one_buffer_and_rewinds_like_state():
+    """snapshot(): the state's values in a buffer that the next snapshot overwrites (no new array per
+    step); set_state of it rewinds the clock and energy accumulators as set_state(state()) does."""
+    s = th.ColumnSolver(["1300/1800"] * 5)
+    s.set_uniform(150.0)
+    first = s.snapshot()
+    T0, acc0, t0 = s.T.copy(), s.acc.copy(), s.time_s
+    np.testing.assert_array_equal(first, T0)
+    s.advance(np.full(5, 300.0), np.full(5, 280.0), 14400.0)
+    assert not np.array_equal(s.T, T0)
+    np.testing.assert_array_equal(first, T0)  # the step did not write into the snapshot
+    second = s.snapshot()
+    assert second is first  # the same buffer, now holding the new state
+    np.testing.assert_array_equal(second, s.T)
+    acc1 = s.acc.copy()
+    s.advance(np.full(5, 280.0), np.full(5, 10.0), 14400.0)
+    s.set_state(second)
+    np.testing.assert_array_equal(s.T, second)
+    assert s.T is not second  # the solver owns its state; the buffer stays the snapshot's
+    assert s.time_s == t0 + 14400.0
+    np.testing.assert_array_equal(s.acc, acc1)  # the first step's energies kept, the second's rewound
+    assert not np.array_equal(acc1, acc0)
 
 
 def test_redo_columns_failure_names_the_solver_column():
