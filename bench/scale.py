@@ -155,6 +155,36 @@ def quasi_newton_pass_s(n_cols: int) -> float:
     return time.perf_counter() - t0
 
 
+def _watch_spinup():
+    """Time each pass through the spin-up window (lagged or coupled) and keep the periodic shooting's
+    diagnostics: returns (list filled with {"kind", "s", "columns"} per pass, dict filled with the last
+    ``thermal.periodic_state`` result). Installed after the warm-up run, so only the measured run fills them."""
+    from crater_thermal import simulate, thermal
+
+    passes: list = []
+    shooting: dict = {}
+    for kind in ("lagged", "coupled"):
+        inner = getattr(simulate._SpinUpWindow, kind)
+
+        def timed(self, report, expected, inner=inner, kind=kind):
+            t0 = time.perf_counter()
+            inner(self, report, expected)
+            cols = self.columns_run[-1] if kind == "lagged" and self.columns_run else None
+            passes.append({"kind": kind, "s": time.perf_counter() - t0, "columns": cols})
+
+        setattr(simulate._SpinUpWindow, kind, timed)
+    periodic_state = thermal.periodic_state
+
+    def keep(*a, **k):
+        out = periodic_state(*a, **k)
+        shooting.clear()
+        shooting.update(out)
+        return out
+
+    simulate.thermal.periodic_state = keep
+    return passes, shooting
+
+
 def run_one(args) -> dict:
     """One size, in this process: build the case, run it, report stage times and memory."""
     from crater_thermal import config, progress, runner, simulate
@@ -216,6 +246,7 @@ def run_one(args) -> dict:
             )
         )
         runner.run_case(config.load_case(warm), tmp / "warm.nc")
+        passes, shooting = _watch_spinup()
         case = config.load_case(case_path)
         timer = StageTimer()
         rss0 = _status_kb("VmRSS") / 1024.0
@@ -241,6 +272,8 @@ def run_one(args) -> dict:
         "stage_peak_mb": timer.peak_mb,
         "peak_memory_mb": peak,
         "periodic_iterations": iterations,
+        "spinup_passes": passes,
+        "residual_history_K": [float(h) for h in shooting.get("history_K", [])],
         "run_nc_mb": size_mb,
         "rss_before_run_mb": rss0,
         "loadavg": [list(load0), list(os.getloadavg())],
@@ -351,6 +384,8 @@ def summarize(results: list, args, failed: list | None = None) -> dict:
         "conduction_step_s": [r.get("conduction_step_s") for r in results],
         "quasi_newton_pass_s": [r.get("quasi_newton_pass_s") for r in results],
         "periodic_iterations": [r["periodic_iterations"] for r in results],
+        "spinup_passes": [r.get("spinup_passes") for r in results],
+        "residual_history_K": [r.get("residual_history_K") for r in results],
         "samples": [r["samples"] for r in results],
         "run_nc_mb": [r["run_nc_mb"] for r in results],
         "rss_before_run_mb": [r["rss_before_run_mb"] for r in results],
