@@ -114,8 +114,15 @@ def between(times_s, known, values, rows, emission: bool = False) -> np.ndarray:
     w = np.where(span > 0, (t[rows] - t[kk[left]]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
     if not emission:
         return (1.0 - w) * v[left] + w * v[right]
-    T4 = (1.0 - w) * v[left] ** 4 + w * v[right] ** 4
-    return np.where(w > 0.0, T4**0.25, v[left])
+    P = v**2
+    P *= P  # T^4 of the m stepped samples once, not of every row twice
+    T4 = (1.0 - w) * P[left]
+    T4 += w * P[right]
+    np.sqrt(T4, out=T4)
+    np.sqrt(T4, out=T4)  # the fourth root (a power of 0.25 costs ~4x more)
+    at = w[:, 0] == 0.0
+    T4[at] = v[left[at]]  # the stepped samples themselves
+    return T4
 
 
 @contextlib.contextmanager
