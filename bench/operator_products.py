@@ -11,7 +11,9 @@ float64 and float32 arithmetic (``CompressedViewFactors.product_dtype``) alterna
 ``--repeat`` times each; and with one right-hand side (float64), the kernels as shipped (reassociated sums,
 ``kernels.vfoperator.ONE_RHS_FASTMATH``) against their source compiled without those flags, alternating,
 5 x ``--repeat`` times each (``one_rhs_fastmath`` in the JSON). Accuracy of float32 against float64 on the
-same X: per facet relative difference (facets above 1e-6 of the column's largest), its largest and median. Writes
+same X: per facet relative difference (facets above 1e-6 of the column's largest), its largest and median.
+``as_shipped``: products of 1, 2, 4 and 8 right-hand sides made as a run makes them, alternating, 3 x
+``--repeat`` times each: the cost of k right-hand sides against one. Writes
 ``bench/results/operator_products_<size>.json``; the last stdout line is the same JSON.
 """
 
@@ -70,6 +72,29 @@ def one_rhs_fastmath(F, x, repeat: int) -> dict:
     }
 
 
+def as_shipped(F, X, repeat: int, counts=(1, 2, 4, 8)) -> dict:
+    """Products with 1, 2, 4 and 8 right-hand sides as a run makes them (one in float64, several in
+    :data:`crater_thermal.vfoperator.PRODUCT_DTYPE`), the counts alternating in this process: what a
+    product of k right-hand sides costs against k products of one (a coupled step's products made two at
+    a time, for example). Median seconds per product and per right-hand side."""
+    times = {str(k): [] for k in counts}
+    for k in counts:  # warm-up
+        F @ (X[:, 0] if k == 1 else X[:, :k])
+    for _ in range(repeat):
+        for k in counts:
+            x = X[:, 0] if k == 1 else X[:, :k]
+            t0 = time.perf_counter()
+            F @ x
+            times[str(k)].append(time.perf_counter() - t0)
+    med = {k: float(np.median(t)) for k, t in times.items()}
+    return {
+        "seconds": times,
+        "median_s": med,
+        "per_rhs_s": {k: med[k] / int(k) for k in med},
+        "over_one": {k: med[k] / med["1"] for k in med},
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=30_000)
@@ -118,6 +143,8 @@ def main() -> None:
         }
         print(json.dumps({"k": k, **{a: b for a, b in result["cases"][str(k)].items() if a != "seconds"}}), flush=True)
     F.product_dtype = vfoperator.PRODUCT_DTYPE
+    result["as_shipped"] = as_shipped(F, X, args.repeat * 3)
+    print(json.dumps({"as_shipped": result["as_shipped"]["median_s"]}), flush=True)
     result["one_rhs_fastmath"] = one_rhs_fastmath(F, X[:, 0], args.repeat * 5)
     print(json.dumps({"k": 1, **{a: b for a, b in result["one_rhs_fastmath"].items() if a != "seconds"}}), flush=True)
     result["loadavg"] = os.getloadavg()
