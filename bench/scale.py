@@ -158,7 +158,8 @@ def quasi_newton_pass_s(n_cols: int) -> float:
 def _watch_spinup():
     """Time each pass through the spin-up window (lagged or coupled) and keep the periodic shooting's
     diagnostics: returns (list filled with {"kind", "s", "columns"} per pass, dict filled with the last
-    ``thermal.periodic_state`` result). Installed after the warm-up run, so only the measured run fills them."""
+    ``thermal.periodic_state`` result). Installed after the warm-up run, so only the measured run fills them;
+    ``bench/spinup_passes.py`` installs it too."""
     from crater_thermal import simulate, thermal
 
     passes: list = []
@@ -169,7 +170,8 @@ def _watch_spinup():
         def timed(self, report, expected, inner=inner, kind=kind):
             t0 = time.perf_counter()
             inner(self, report, expected)
-            cols = self.columns_run[-1] if kind == "lagged" and self.columns_run else None
+            ran = getattr(self, "columns_run", None)  # (older versions, run by bench/spinup_passes.py, lack it)
+            cols = ran[-1] if kind == "lagged" and ran else None
             passes.append({"kind": kind, "s": time.perf_counter() - t0, "columns": cols})
 
         setattr(simulate._SpinUpWindow, kind, timed)

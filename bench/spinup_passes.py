@@ -6,8 +6,9 @@ Run:  PYTHONPATH=$PWD python bench/spinup_passes.py --old-tree DIR [--size 10000
 process (``--one``) with that version first on ``PYTHONPATH``: the generator crater of ``bench/scale.py``
 (10 km, 5 km flat surround, 86 S, N facets, 4 h steps), its periodic start over 2018 as the case's
 defaults choose it (the lagged-IR start from 10,000 facets), then a two-day record; the runs alternate
-old, new, old, new ... so that this shared machine's load falls on both. Per run: the wall time of each
-spin-up pass [s] and the columns it ran (None where the version does not say), the shooting's residual
+old, new, old, new ... so that this shared machine's load falls on both. Per run: the kind (lagged or
+coupled) and wall time of each spin-up pass [s] and the columns it ran (None where the version does not
+say; ``scale._watch_spinup``), the shooting's residual
 history [K], the spin-up stage and the whole run [s], the load average. Per pair: old / new of the spin-up.
 Writes ``bench/results/spinup_passes_<size>.json``; the last stdout line is the same JSON.
 """
@@ -32,26 +33,9 @@ def one(size: int) -> dict:
     spec = importlib.util.spec_from_file_location("scale", HERE / "scale.py")
     scale = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(scale)
-    from crater_thermal import config, runner, simulate, thermal
+    from crater_thermal import config, runner, simulate
 
-    passes = []
-    lagged = simulate._SpinUpWindow.lagged
-
-    def timed(self, report, expected):
-        t0 = time.perf_counter()
-        lagged(self, report, expected)
-        passes.append({"s": time.perf_counter() - t0, "columns": (getattr(self, "columns_run", None) or [None])[-1]})
-
-    simulate._SpinUpWindow.lagged = timed
-    info = {}
-    periodic_state = thermal.periodic_state
-
-    def keep(*a, **k):
-        out = periodic_state(*a, **k)
-        info.update(out)
-        return out
-
-    simulate.thermal.periodic_state = keep
+    passes, info = scale._watch_spinup()
     with tempfile.TemporaryDirectory(prefix="spinup_") as tmp:
         tmp = Path(tmp)
         os.environ["CRATER_THERMAL_CACHE"] = str(tmp / "cache")
