@@ -61,6 +61,10 @@ SERIES_COMPRESSION = {
     "zlib": _ENCODING,
     "blosc_lz4": {"compression": "blosc_lz4", "complevel": 1, "blosc_shuffle": 1},
 }
+#: HDF5's blosc filter fails (``NetCDF: HDF error`` at close) on chunks under 512 bytes (measured with
+#: netCDF4 1.7.5: 128 float32 values pass, 64 fail, for float64 64 pass, 32 fail: a run of a few
+#: facets); a streamed variable whose chunks are smaller than this is written with ``"zlib"`` instead.
+_BLOSC_MIN_CHUNK_BYTES = 1024
 
 
 def check_compression(name: str) -> None:
@@ -470,26 +474,97 @@ def _piece_chunks(shape: tuple, t_axis: int, time_rows: int, itemsize: int, face
     return tuple(out)
 
 
+#: HDF5's filter codes of the byte shuffle and of deflate (zlib), the pipeline of ``"zlib"`` series.
+_H5Z_SHUFFLE, _H5Z_DEFLATE = 2, 1
+#: Most threads that compress a streamed series' chunks at once.
+_MAX_COMPRESS_THREADS = 8
+
+
+def _deflate_level1():
+    """zlib-format deflate at level 1: ISA-L's (``isal``, the same format 3-10x faster) when installed,
+    else the standard library's."""
+    try:
+        from isal import isal_zlib
+
+        return lambda data: isal_zlib.compress(data, 1)
+    except ImportError:  # pragma: no cover - isal has wheels for every platform we install on
+        import zlib
+
+        return lambda data: zlib.compress(data, 1)
+
+
+class _ChunkWriter:
+    """Writes whole chunks of a shuffle + deflate HDF5 dataset: the shuffle (numpy) and the deflate
+    (``isal``/``zlib``, both release the GIL) of a block's chunks run in a thread pool and the bytes go
+    in with HDF5's direct chunk write, instead of the HDF5 library filtering chunk after chunk in one
+    thread (measured: ``bench/runnc_compression.py --writers``). The file is the same as HDF5's own
+    (same chunks, same filters, readable by any netCDF/HDF5 reader); only the deflate's byte stream
+    may differ. A write that does not cover whole chunks goes through HDF5 (``dset[key] = values``)."""
+
+    def __init__(self, dset, pool):
+        self._dset, self._pool = dset, pool
+        self._chunks = tuple(dset.chunks)
+        self._fill = np.asarray(dset.fillvalue, dtype=dset.dtype)
+        self._deflate = _deflate_level1()
+        plist = dset.id.get_create_plist()
+        codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+        self.direct = codes == [_H5Z_SHUFFLE, _H5Z_DEFLATE]
+
+    def _encode(self, block: np.ndarray) -> bytes:
+        if block.shape != self._chunks:  # an edge chunk is stored whole: pad it with the fill value
+            full = np.full(self._chunks, self._fill)
+            full[tuple(slice(0, n) for n in block.shape)] = block
+            block = full
+        width = block.dtype.itemsize
+        shuffled = np.ascontiguousarray(block).view(np.uint8).reshape(-1, width).T.tobytes()
+        return self._deflate(shuffled)
+
+    def write(self, key: tuple, values: np.ndarray) -> None:
+        shape, chunks = self._dset.shape, self._chunks
+        bounds = [k.indices(n)[:2] if isinstance(k, slice) else (k, k + 1) for k, n in zip(key, shape)]
+        whole = all(a % c == 0 and (b % c == 0 or b == n) and b > a for (a, b), c, n in zip(bounds, chunks, shape))
+        values = np.asarray(values, dtype=self._dset.dtype).reshape([b - a for a, b in bounds])
+        if not (self.direct and whole):
+            self._dset[tuple(slice(a, b) for a, b in bounds)] = values
+            return
+        starts = list(np.ndindex(*[-(-(b - a) // c) for (a, b), c in zip(bounds, chunks)]))
+        local = [tuple(i * c for i, c in zip(idx, chunks)) for idx in starts]
+
+        def encode(origin):
+            return self._encode(values[tuple(slice(o, o + c) for o, c in zip(origin, chunks))])
+
+        for origin, data in zip(local, self._pool.map(encode, local)):
+            offset = tuple(int(a + o) for (a, _), o in zip(bounds, origin))
+            self._dset.id.write_direct_chunk(offset, data, filter_mask=0)
+
+
 class _StreamWriter:
     """What :func:`stream_dataset` yields: ``writer(name, key, values)`` stores a block of a large
     variable; ``writer.set_attrs(mapping)`` adds global attributes known only at the end."""
 
-    def __init__(self, nc, variables):
-        self._nc, self._vars = nc, variables
+    def __init__(self, variables, attrs: dict):
+        self._vars, self._attrs = variables, attrs
 
     def __call__(self, name: str, key: tuple, values) -> None:
         var = self._vars[name]
-        var[key] = np.asarray(values, dtype=var.dtype)
+        if isinstance(var, _ChunkWriter):
+            var.write(key, values)
+        else:
+            var[key] = np.asarray(values, dtype=var.dtype)
 
     def set_attrs(self, attrs: Mapping[str, Any]) -> None:
-        for key, value in attrs.items():
-            if value is None:
-                continue
-            if isinstance(value, bool):
-                value = int(value)
-            elif isinstance(value, dict):
-                value = json.dumps(value, default=float)
-            self._nc.setncattr(key, value)
+        self._attrs.update(attrs)
+
+
+def _set_global_attrs(nc, attrs: Mapping[str, Any]) -> None:
+    for key, value in attrs.items():
+        if value is None:
+            continue
+        if isinstance(value, bool):
+            value = int(value)
+        elif isinstance(value, dict):
+            value = json.dumps(value, default=float)
+        nc.setncattr(key, value)
 
 
 @contextlib.contextmanager
@@ -509,7 +584,9 @@ def stream_dataset(
     ``name: (dims, shape, attrs[, dtype])`` of ``variables`` becomes a variable (float64 unless
     ``dtype`` says otherwise) chunked along time (``time_rows`` samples) and facet (about 1 MB per
     chunk), compressed as ``compression`` says (:data:`SERIES_COMPRESSION`; ``"zlib"``: like every
-    large variable). ``facet_block``: the pieces are blocks of this many facets from facet 0 (a
+    large variable, its chunks compressed in parallel by :class:`_ChunkWriter`; blosc only for chunks
+    of at least :data:`_BLOSC_MIN_CHUNK_BYTES`, zlib below). ``facet_block``: the
+    pieces are blocks of this many facets from facet 0 (a
     distributed replay's chunks), so the chunks' facet extent is made a divisor of it
     (:func:`aligned_width`): each piece then fills whole chunks, each compressed once, instead of
     HDF5 decompressing and compressing again a chunk that several pieces share. Yields a
@@ -523,10 +600,11 @@ def stream_dataset(
     with atomic_output(path, overwrite) as tmp:
         ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=_encoding(ds))
         nc = netCDF4.Dataset(tmp, "a")
+        attrs: dict = {}
         try:
             created = {}
             for name, spec in variables.items():
-                dims, shape, attrs = spec[:3]
+                dims, shape, var_attrs = spec[:3]
                 dtype = np.dtype(spec[3] if len(spec) > 3 else "f8")
                 for dim, size in zip(dims, shape):
                     if dim not in nc.dimensions:
@@ -534,19 +612,37 @@ def stream_dataset(
                     elif len(nc.dimensions[dim]) != size:
                         raise ValueError(f"{name}: dimension {dim} has {len(nc.dimensions[dim])}, not {size}")
                 t_axis = list(dims).index("time") if "time" in dims else 0
+                chunks = _piece_chunks(tuple(shape), t_axis, time_rows, dtype.itemsize, facet_block)
+                filters = compression
+                if compression.startswith("blosc") and int(np.prod(chunks)) * dtype.itemsize < _BLOSC_MIN_CHUNK_BYTES:
+                    filters = "zlib"
                 var = nc.createVariable(
                     name,
                     dtype,
                     dims,
                     fill_value=dtype.type(np.nan),
-                    chunksizes=_piece_chunks(tuple(shape), t_axis, time_rows, dtype.itemsize, facet_block),
-                    **SERIES_COMPRESSION[compression],
+                    chunksizes=chunks,
+                    **SERIES_COMPRESSION[filters],
                 )
-                var.setncatts(dict(attrs))
+                var.setncatts(dict(var_attrs))
                 created[name] = var
-            yield _StreamWriter(nc, created)
+            if compression != "zlib":
+                yield _StreamWriter(created, attrs)
+                _set_global_attrs(nc, attrs)
+                return
         finally:
             nc.close()
+        # zlib: the chunks go in through h5py (HDF5's direct chunk write); netCDF4 closed meanwhile
+        # (two HDF5 libraries must never hold the file open at once), then adds the global attributes
+        from concurrent.futures import ThreadPoolExecutor
+
+        import h5py
+
+        threads = max(1, min(_MAX_COMPRESS_THREADS, os.cpu_count() or 1))
+        with ThreadPoolExecutor(threads, thread_name_prefix="deflate") as pool, h5py.File(tmp, "r+") as h5:
+            yield _StreamWriter({name: _ChunkWriter(h5[name], pool) for name in created}, attrs)
+        with netCDF4.Dataset(tmp, "a") as nc:
+            _set_global_attrs(nc, attrs)
 
 
 class SegmentStore:
