@@ -26,7 +26,7 @@ the class); the time loop that drives it is :mod:`crater_thermal.simulate`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import scipy.sparse as sp
@@ -240,15 +240,19 @@ class ScatteringSolver:
         Returns ``(B, FB)``: the last iterate and the product ``F B'`` of the one before it that formed
         it (``B = rhs + A FB`` exactly). ``FB`` differs from ``F B`` by at most the row sum times the last
         change (below :data:`ITERATIVE_RTOL` of the largest exitance), so it serves as the scattered
-        irradiance without one more product."""
+        irradiance without one more product. The update and its change are made in place (two (nf, k)
+        arrays besides the product's), not in new temporaries."""
         a = self.albedo[:, None]
         B = rhs.copy() if B0 is None else np.array(B0, dtype=float).reshape(rhs.shape)
+        Bn = np.empty_like(B)
         scale = max(float(np.abs(rhs).max()), np.finfo(float).tiny)
         for it in range(1, ITERATIVE_MAX + 1):
             FB = np.asarray(self.F.matvec(B)).reshape(rhs.shape)
-            Bn = rhs + a * FB
-            change = float(np.abs(Bn - B).max())
-            B = Bn
+            np.multiply(a, FB, out=Bn)
+            Bn += rhs
+            diff = np.subtract(Bn, B, out=B)  # B is not needed past this point: it holds the change
+            change = max(float(diff.max()), -float(diff.min()))
+            B, Bn = Bn, B
             if change <= ITERATIVE_RTOL * scale:
                 self.iterations = max(self.iterations, it)
                 return B, FB
@@ -263,43 +267,51 @@ class ScatteringSolver:
         ``B0`` (same shape): starting guess of the iterative solve (compressed operator only), e.g. the
         previous step's exitance; ignored by the LU and bounce methods.
         """
-        return self._exitance(E_direct, B0)[0]
+        E = self._checked(E_direct)
+        if self.n_facets == 0:
+            return np.zeros_like(E)
+        if self.method == "exact" and self._lu is None:
+            B = np.zeros_like(E)
+            for rows, Bb, _ in self._blocks(E, B0):
+                B.reshape(-1, self.n_facets)[rows] = Bb.T
+            return B
+        return self._exitance(E)
 
-    def _exitance(self, E_direct: np.ndarray, B0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-        """:meth:`exitance` and, from the iterative solve, the scattered irradiance ``F B`` of its last
-        product (same shape; None from the LU and bounce methods)."""
+    def _checked(self, E_direct) -> np.ndarray:
         E = np.asarray(E_direct, dtype=float)
         if E.shape[-1] != self.n_facets or E.ndim not in (1, 2):
             raise ConfigError(f"E_direct has shape {E.shape}; expected ({self.n_facets},) or (nt, {self.n_facets})")
+        return E
+
+    def _blocks(self, E: np.ndarray, B0: np.ndarray | None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The iterative solve of E (nf,) or (nt, nf) in blocks of :data:`ITERATIVE_BLOCK` samples: yields
+        ``(rows, B, FB)``, the rows (samples) of a block and their exitance and scattered irradiance
+        (nf, k). Samples without sunlight on any facet that reflects (night over the whole mesh) have
+        ``B = 0`` exactly and are not yielded."""
+        self.iterations = 0
+        E2 = E.reshape(-1, self.n_facets)
+        G = None if B0 is None else np.asarray(B0, dtype=float).reshape(E2.shape)
+        reflects = self.albedo != 0.0
+        lit_any = E2 != 0.0 if reflects.all() else (E2 != 0.0) & reflects
+        lit = np.flatnonzero(np.any(lit_any, axis=1))
+        for c in range(0, len(lit), ITERATIVE_BLOCK):
+            rows = lit[c : c + ITERATIVE_BLOCK]
+            rhs = np.ascontiguousarray((E2[rows] * self.albedo).T)
+            yield rows, *self._iterate(rhs, None if G is None else np.ascontiguousarray(G[rows].T))
+
+    def _exitance(self, E: np.ndarray) -> np.ndarray:
+        """Exitance by LU or by bounces (E checked, (nf,) or (nt, nf)); same shape back."""
         rhs = (self.albedo * E).T  # (nf,) or (nf, nt)
-        if self.n_facets == 0:
-            return np.zeros_like(E), None
-        FB = None
-        if self.method == "exact" and self._lu is not None:
-            B = self._lu.solve(rhs)
-        elif self.method == "exact":
-            self.iterations = 0
-            R = rhs.reshape(self.n_facets, -1)
-            G = None if B0 is None else np.asarray(B0, dtype=float).T.reshape(R.shape)
-            B = np.zeros_like(R)
-            FB = np.zeros_like(R)
-            # samples with no sunlight anywhere (night over the whole mesh) have B = 0 exactly: skipped
-            lit = np.flatnonzero(np.any(R != 0.0, axis=0))
-            for c in range(0, len(lit), ITERATIVE_BLOCK):
-                cols = lit[c : c + ITERATIVE_BLOCK]
-                B[:, cols], FB[:, cols] = self._iterate(
-                    np.ascontiguousarray(R[:, cols]), None if G is None else G[:, cols]
-                )
-            B, FB = B.reshape(rhs.shape), FB.reshape(rhs.shape).T
-        else:
-            # B = sum_{k=0}^{n-1} (A F)^k A E   (n reflections in total)
-            B = np.zeros_like(rhs)
-            term = rhs
-            for k in range(self.n_bounces):
-                B = B + term
-                if k + 1 < self.n_bounces:
-                    term = self.F.matvec(term) * (self.albedo if rhs.ndim == 1 else self.albedo[:, None])
-        return np.asarray(B).T, FB
+        if self.method == "exact":
+            return np.asarray(self._lu.solve(rhs)).T
+        # B = sum_{k=0}^{n-1} (A F)^k A E   (n reflections in total)
+        B = np.zeros_like(rhs)
+        term = rhs
+        for k in range(self.n_bounces):
+            B = B + term
+            if k + 1 < self.n_bounces:
+                term = self.F.matvec(term) * (self.albedo if rhs.ndim == 1 else self.albedo[:, None])
+        return np.asarray(B).T
 
     def solar_incident(self, E_direct: np.ndarray) -> np.ndarray:
         """Direct + scattered shortwave irradiance [W m-2].
@@ -315,13 +327,19 @@ class ScatteringSolver:
             negatives (about 1e-3 of the largest term) where a facet sees no lit terrain, so it is clipped
             at zero (a run's flux file refuses negative irradiance).
         """
-        E = np.asarray(E_direct, dtype=float)
-        B, FB = self._exitance(E, None)
-        if FB is not None:  # the iterative solve's last product is the scattered irradiance (see _iterate)
-            return E + np.maximum(FB, 0.0)
-        if E.ndim == 1:
-            return E + np.maximum(np.asarray(self.F.matvec(B)), 0.0)
+        E = self._checked(E_direct)
         Q = E.copy()
+        if self.n_facets == 0:
+            return Q
+        if self.method == "exact" and self._lu is None:
+            # the iterative solve's last product is the scattered irradiance (see _iterate)
+            Q2 = Q.reshape(-1, self.n_facets)
+            for rows, _, FB in self._blocks(E, None):
+                Q2[rows] += np.maximum(FB.T, 0.0)
+            return Q
+        B = self._exitance(E)
+        if E.ndim == 1:
+            return Q + np.maximum(np.asarray(self.F.matvec(B)), 0.0)
         lit = np.flatnonzero(np.any(B != 0.0, axis=1))  # rows with no exitance anywhere scatter nothing
         if len(lit):
             Q[lit] += np.maximum(np.asarray(self.F.matvec(np.ascontiguousarray(B[lit].T))).T, 0.0)

@@ -95,3 +95,28 @@ def test_warm_start_gives_the_same_solution_in_fewer_products(terrain):
         assert np.abs(E[k] + Fd @ B - ref[k]).max() <= 2 * _bound(F, E)  # B itself, one product more
         prev = B - rhs
     assert warm <= cold
+
+
+def test_blocks_per_facet_albedo_and_warm_start_match_dense_solve(terrain, monkeypatch):
+    """Several blocks of samples (block of 5), a per-facet albedo with facets that reflect nothing (A = 0)
+    and a warm start from the dense solution's neighbour: exitance and incident light against a dense LU
+    solve of (I - diag(A) F) B = diag(A) E, within the stopping rule's bound; a sample lit only on
+    non-reflecting facets scatters nothing."""
+    m, F, E = terrain
+    monkeypatch.setattr(radiosity, "ITERATIVE_BLOCK", 5)
+    rng = np.random.default_rng(7)
+    A = rng.uniform(0.05, 0.3, m.n_facets)
+    A[rng.random(m.n_facets) < 0.2] = 0.0
+    only_dark_reflectors = np.zeros(m.n_facets)
+    only_dark_reflectors[np.flatnonzero(A == 0.0)[:10]] = 800.0
+    E = np.vstack([E, only_dark_reflectors])
+    Fd = F.toarray()
+    B_ref = np.linalg.solve(np.eye(m.n_facets) - A[:, None] * Fd, (A * E).T).T
+    Q_ref = E + B_ref @ Fd.T
+    bound = radiosity.ITERATIVE_RTOL * float((A * E).max()) / (1.0 - float((A[:, None] * Fd).sum(axis=1).max()))
+        solver = radiosity.ScatteringSolver(vo.SparseViewFactors(F), A, solver="iterative")
+    assert np.abs(solver.exitance(E) - B_ref).max() <= 2 * bound
+    assert np.abs(solver.solar_incident(E) - Q_ref).max() <= 2 * bound
+    assert np.abs(solver.exitance(E, B0=np.roll(B_ref, 1, axis=0)) - B_ref).max() <= 2 * bound
+    assert np.array_equal(solver.solar_incident(E[-1]), E[-1])
+    assert np.abs(solver.exitance(E[3]) - B_ref[3]).max() <= 2 * bound  # one sample, (nf,)
