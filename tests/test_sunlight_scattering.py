@@ -114,7 +114,7 @@ def test_blocks_per_facet_albedo_and_warm_start_match_dense_solve(terrain, monke
     B_ref = np.linalg.solve(np.eye(m.n_facets) - A[:, None] * Fd, (A * E).T).T
     Q_ref = E + B_ref @ Fd.T
     bound = radiosity.ITERATIVE_RTOL * float((A * E).max()) / (1.0 - float((A[:, None] * Fd).sum(axis=1).max()))
-        solver = radiosity.ScatteringSolver(vo.SparseViewFactors(F), A, solver="iterative")
+    solver = radiosity.ScatteringSolver(vo.SparseViewFactors(F), A, solver="iterative")
     assert np.abs(solver.exitance(E) - B_ref).max() <= 2 * bound
     assert np.abs(solver.solar_incident(E) - Q_ref).max() <= 2 * bound
     assert np.abs(solver.exitance(E, B0=np.roll(B_ref, 1, axis=0)) - B_ref).max() <= 2 * bound
