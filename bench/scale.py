@@ -197,11 +197,13 @@ def run_one(args) -> dict:
         def __init__(self):
             super().__init__()
             self.peak_mb: dict = {}
+            self.run_peak_mb = _status_kb("VmHWM") / 1024.0  # the whole run's, across the resets
             self.can_reset = _reset_peak()
 
         @contextmanager
         def __call__(self, name):
             if self.can_reset:
+                self.run_peak_mb = max(self.run_peak_mb, _status_kb("VmHWM") / 1024.0)
                 _reset_peak()
             with super().__call__(name):
                 yield
@@ -257,7 +259,8 @@ def run_one(args) -> dict:
         t0 = time.perf_counter()
         out = runner.run_case(case, tmp / "run.nc", progress=reporter, timer=timer)
         total = time.perf_counter() - t0
-        peak = _status_kb("VmHWM") / 1024.0
+        # VmHWM is reset at each stage's start: the run's peak is the largest seen before any reset
+        peak = max(timer.run_peak_mb, _status_kb("VmHWM") / 1024.0)
         size_mb = out.stat().st_size / 2**20
         import xarray as xr
 
