@@ -493,6 +493,16 @@ def _deflate_level1():
         return lambda data: zlib.compress(data, 1)
 
 
+def _h5py():
+    """h5py, for :class:`_ChunkWriter`'s direct chunk writes; None where it is not installed (then netCDF4
+    writes the zlib series itself, one chunk at a time: the same file, ~8x slower to write)."""
+    try:
+        import h5py
+    except ImportError:
+        return None
+    return h5py
+
+
 class _ChunkWriter:
     """Writes whole chunks of a shuffle + deflate HDF5 dataset: the shuffle (numpy) and the deflate
     (``isal``/``zlib``, both release the GIL) of a block's chunks run in a thread pool and the bytes go
@@ -626,7 +636,8 @@ def stream_dataset(
                 )
                 var.setncatts(dict(var_attrs))
                 created[name] = var
-            if compression != "zlib":
+            h5py = _h5py() if compression == "zlib" else None
+            if h5py is None:  # netCDF4 writes (and HDF5 filters) every piece
                 yield _StreamWriter(created, attrs)
                 _set_global_attrs(nc, attrs)
                 return
@@ -635,8 +646,6 @@ def stream_dataset(
         # zlib: the chunks go in through h5py (HDF5's direct chunk write); netCDF4 closed meanwhile
         # (two HDF5 libraries must never hold the file open at once), then adds the global attributes
         from concurrent.futures import ThreadPoolExecutor
-
-        import h5py
 
         threads = max(1, min(_MAX_COMPRESS_THREADS, os.cpu_count() or 1))
         with ThreadPoolExecutor(threads, thread_name_prefix="deflate") as pool, h5py.File(tmp, "r+") as h5:

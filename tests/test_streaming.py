@@ -248,3 +248,27 @@ def test_streamed_file_interrupted_leaves_the_earlier_output(tmp_path):
             raise RuntimeError("killed")
     assert out.read_bytes() == b"earlier result"
     assert [p.name for p in tmp_path.iterdir()] == ["run.nc"]
+
+
+def test_without_h5py_netcdf4_writes_the_same_values(tmp_path, monkeypatch):
+    """Where h5py is not installed the zlib series are written by netCDF4 alone: the same values and
+    chunks as the parallel writer's file."""
+    import netCDF4
+    import xarray as xr
+
+    rng = np.random.default_rng(11)
+    values = rng.uniform(40.0, 300.0, (50, 3000)).astype(np.float32)
+    spec = {"T": (("time", "facet"), values.shape, {"units": "K"}, "f4")}
+    files = {}
+    for label, missing in (("h5py", False), ("netcdf4", True)):
+        if missing:
+            monkeypatch.setattr(io, "_h5py", lambda: None)
+        files[label] = tmp_path / f"{label}.nc"
+        with io.stream_dataset(xr.Dataset(coords={"facet": np.arange(3000)}), files[label], spec) as write:
+            for a in range(0, 50, 24):
+                write("T", (slice(a, a + 24), slice(None)), values[a : a + 24])
+    for path in files.values():
+        with netCDF4.Dataset(path) as nc:
+            np.testing.assert_array_equal(nc["T"][:], values)
+            assert nc["T"].filters()["zlib"] and nc["T"].filters()["shuffle"]
+            assert nc["T"].chunking() == [24, 3000]
