@@ -9,7 +9,9 @@ time of one product with ``--samples`` right-hand sides (a window's emission) by
 by every block, and the largest difference between the two (round-off). Products are timed after one
 untimed call (compilation), ``--repeat`` times, alternating with the row blocks' product as it was made
 before their float32 arithmetic (scipy's float64 CSR product of the near rows and the low-rank blocks in
-float64: ``apply_float64_s``; medians), so that the ratio comes from one run.
+float64: ``apply_float64_s``) and with the product as made before the far blocks were applied by halves
+(every far block meeting the rows applied both ways: ``apply_whole_far_s``, whose result must equal the
+shipped one bit for bit: ``equal_to_whole_far``); medians, so that the ratios come from one run.
 
 Usage: ``python bench/row_blocks.py [--facets 30000] [--workers 2] [--chunk-facets 4000] [--samples 96]
 [--repeat 3] [--out bench/results/row_blocks.json]``.
@@ -52,6 +54,27 @@ def apply_float64(blk, near64, X: np.ndarray) -> np.ndarray:
     return Y / blk.areas[:, None]
 
 
+def apply_whole_far(blk, X: np.ndarray) -> np.ndarray:
+    """A compressed row block's product as it was made before its far blocks were applied by halves: every
+    low-rank block meeting the rows applied both ways into an (n, k) array, the block's rows kept."""
+    from crater_thermal.kernels import vfoperator as kv
+
+    dtype = vfoperator.PRODUCT_DTYPE if X.shape[1] > 1 else np.float64
+    Xc = np.ascontiguousarray(X[blk.perm], dtype)
+    if blk.scale is not None:
+        Xc *= blk.scale.astype(dtype)[:, None]
+    Y = np.zeros((blk.b - blk.a, Xc.shape[1]), Xc.dtype)
+    kv.csr_matmat(blk.near.indptr, blk.near.indices, blk.near.data, Xc, Y)
+    if len(blk.lowrank[4]):
+        full = np.zeros_like(Xc)
+        kv.lowrank_matvec(*blk.lowrank, Xc, full, np.empty((2 * int(blk.lowrank[4].max()), Xc.shape[1]), Xc.dtype))
+        Y += full[blk.a : blk.b]
+    Y = Y.astype(np.float64, copy=False)
+    if blk.scale is not None:
+        Y *= blk.scale[blk.a : blk.b, None]
+    return Y / blk.areas[:, None]
+
+
 def _timed(f, *a) -> float:
     t0 = time.perf_counter()
     f(*a)
@@ -87,9 +110,11 @@ def main() -> None:
             Y = blk.apply(X)
             near64 = blk.near.astype(np.float64)
             Y64 = apply_float64(blk, near64, X) if blk.perm is not None else Y
-            times = {"new": [], "old": []}
+            Yw = apply_whole_far(blk, X) if blk.perm is not None else Y
+            times = {"new": [], "old": [], "whole_far": []}
             for _ in range(args.repeat):
                 times["old"].append(_timed(apply_float64, blk, near64, X) if blk.perm is not None else np.nan)
+                times["whole_far"].append(_timed(apply_whole_far, blk, X) if blk.perm is not None else np.nan)
                 times["new"].append(_timed(blk.apply, X))
             err = float(np.abs(Y - ref[blk.facets]).max())
             blocks.append(
@@ -99,6 +124,8 @@ def main() -> None:
                     "load_s": load_s,
                     "apply_s": float(np.median(times["new"])),
                     "apply_float64_s": float(np.median(times["old"])),
+                    "apply_whole_far_s": float(np.median(times["whole_far"])),
+                    "equal_to_whole_far": bool(np.array_equal(Y, Yw)),
                     "max_abs_diff": err,
                     "max_abs_diff_float64": float(np.abs(Y - Y64).max()),
                 }
@@ -117,6 +144,9 @@ def main() -> None:
         "block_products_s_sum_over_whole": sum(b["apply_s"] for b in blocks) / whole_s,
         "block_products_float64_over_shipped": sum(b["apply_float64_s"] for b in blocks)
         / sum(b["apply_s"] for b in blocks),
+        "block_products_whole_far_over_shipped": sum(b["apply_whole_far_s"] for b in blocks)
+        / sum(b["apply_s"] for b in blocks),
+        "block_products_whole_far_s_sum_over_whole": sum(b["apply_whole_far_s"] for b in blocks) / whole_s,
         "product_dtype": np.dtype(vfoperator.PRODUCT_DTYPE).name,
         "largest_product_W_m2": float(np.abs(ref).max()),
         "max_abs_diff_W_m2": max(b["max_abs_diff"] for b in blocks),

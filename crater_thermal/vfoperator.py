@@ -1218,9 +1218,10 @@ class RowBlock:
     facets): ``block.apply(X)`` is ``(F @ X)[block.facets]`` for X (n, k) over all facets, [unit of X].
 
     Built by :func:`load_row_block` (from a saved operator) or :meth:`CompressedPlan.row_block` (from
-    the mesh, without the whole operator). For a compressed operator the product applies the low-rank blocks
-    that meet the rows (both halves of each, as the whole operator does; the half outside is discarded),
-    so ``apply`` equals the whole operator's product on these rows to round-off.
+    the mesh, without the whole operator). For a compressed operator the product applies the halves of the
+    low-rank blocks that land in these rows (:func:`kernels.vfoperator.lowrank_matvec_rows`: a block
+    spanning two chunks costs each chunk half of it), so ``apply`` equals the whole operator's product on
+    these rows to round-off.
     """
 
     def __init__(self, n, facets, near, a=None, b=None, areas=None, perm=None, scale=None, lowrank=None):
@@ -1273,11 +1274,11 @@ class RowBlock:
             Xc *= self.scale.astype(dtype)[:, None]
         Y = np.zeros((self.b - self.a, Xc.shape[1]), Xc.dtype)
         kv.csr_matmat(self.near.indptr, self.near.indices, self.near.data, Xc, Y)
-        if len(self.lowrank[4]):
-            full = np.zeros_like(Xc)
+        if len(self.lowrank[4]):  # only the halves of the far blocks that land in these rows
+            far = np.zeros_like(Y)
             tmp = np.empty((2 * int(self.lowrank[4].max()), Xc.shape[1]), Xc.dtype)
-            kv.lowrank_matvec(*self.lowrank, Xc, full, tmp)
-            Y += full[self.a : self.b]
+            kv.lowrank_matvec_rows(*self.lowrank, Xc, far, tmp, self.a, self.b)
+            Y += far
         Y = Y.astype(np.float64, copy=False)
         if self.scale is not None:
             Y *= self.scale[self.a : self.b, None]

@@ -453,3 +453,27 @@ def test_row_block_products_in_float32_match_the_whole_operator(terrain5k, tmp_p
         assert np.abs(got - want).max() > 0.0  # float32 arithmetic indeed (not float64 by accident)
         one = block.apply(X[:, :1])
         np.testing.assert_allclose(one[:, 0], want[:, 0], rtol=0, atol=1e-12 * np.abs(want[:, 0]).max())
+
+
+def test_row_restricted_far_blocks_equal_the_whole_product_rows(terrain5k):
+    """A row block applies only the halves of the far (low-rank) blocks that land in its rows
+    (``lowrank_matvec_rows``); its rows equal the rows of the whole far-field product
+    (``lowrank_matvec``, every block both ways) bit for bit, for ranges that cut through blocks, one row,
+    all rows, float32 and float64 operands."""
+    from crater_thermal.kernels import vfoperator as kv
+
+    _, _, _, comp = terrain5k
+    lr = (comp.r0, comp.r1, comp.c0, comp.c1, comp.rank, comp.uoff, comp.voff, comp.U, comp.V)
+    assert len(comp.rank) > 0
+    n = comp.shape[0]
+    rng = np.random.default_rng(5)
+    for dtype, k in ((np.float32, 7), (np.float64, 2)):
+        X = np.ascontiguousarray(rng.random((n, k)) * 300.0, dtype)
+        tmp = np.empty((2 * int(comp.rank.max()), k), dtype)
+        whole = np.zeros_like(X)
+        kv.lowrank_matvec(*lr, X, whole, tmp)
+        cuts = sorted({int(v) for v in rng.integers(1, n, 3)})
+        for a, b in [(0, n), (0, 1), (n - 1, n), *zip([0, *cuts], [*cuts, n])]:
+            rows = np.zeros((b - a, k), dtype)
+            kv.lowrank_matvec_rows(*lr, X, rows, tmp, a, b)
+            np.testing.assert_array_equal(rows, whole[a:b])

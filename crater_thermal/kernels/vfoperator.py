@@ -148,6 +148,60 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
 
 
 @njit(nogil=True, cache=True)
+def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp, a, b):
+    """The rows ``a .. b-1`` of :func:`lowrank_matvec`'s product, into ``y`` ((b - a, k), zeroed by the
+    caller): of each block only the halves that land in those rows, ``U_b (V_b^T x[c])`` where its rows
+    meet them and ``V_b (U_b^T x[r])`` where its columns do (a row block of a distributed run: a far block
+    spanning two chunks is then applied half by each, not whole by both). Each row receives the same
+    terms in the same order as from :func:`lowrank_matvec`, so the rows equal its rows bit for bit.
+    Arrays as :func:`lowrank_matvec`."""
+    k = x.shape[1]
+    for blk in range(r0.shape[0]):
+        r = rank[blk]
+        m = r1[blk] - r0[blk]
+        nn = c1[blk] - c0[blk]
+        uo = uoff[blk]
+        vo = voff[blk]
+        row_lo, row_hi = max(r0[blk], a), min(r1[blk], b)
+        col_lo, col_hi = max(c0[blk], a), min(c1[blk], b)
+        rows_meet = row_lo < row_hi
+        cols_meet = col_lo < col_hi
+        if not (rows_meet or cols_meet):
+            continue
+        for q in range(2 * r):
+            for c in range(k):
+                tmp[q, c] = 0.0
+        if rows_meet:  # tmp[:r] = V^T x[c-range]
+            for jj in range(nn):
+                j = c0[blk] + jj
+                base = vo + jj * r
+                for q in range(r):
+                    v = V[base + q]
+                    for c in range(k):
+                        tmp[q, c] += v * x[j, c]
+        if cols_meet:  # tmp[r:2r] = U^T x[r-range]
+            for ii in range(m):
+                i = r0[blk] + ii
+                base = uo + ii * r
+                for q in range(r):
+                    u = U[base + q]
+                    for c in range(k):
+                        tmp[r + q, c] += u * x[i, c]
+        for i in range(row_lo, row_hi):
+            base = uo + (i - r0[blk]) * r
+            for q in range(r):
+                u = U[base + q]
+                for c in range(k):
+                    y[i - a, c] += u * tmp[q, c]
+        for j in range(col_lo, col_hi):
+            base = vo + (j - c0[blk]) * r
+            for q in range(r):
+                v = V[base + q]
+                for c in range(k):
+                    y[j - a, c] += v * tmp[r + q, c]
+
+
+@njit(nogil=True, cache=True)
 def aca_full(R, budget, rmax, U, V):
     """Adaptive cross approximation with full pivoting of a block held in memory.
 
