@@ -154,7 +154,8 @@ def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp, a, b)
     meet them and ``V_b (U_b^T x[r])`` where its columns do (a row block of a distributed run: a far block
     spanning two chunks is then applied half by each, not whole by both). Each row receives the same
     terms in the same order as from :func:`lowrank_matvec`, so the rows equal its rows bit for bit.
-    Arrays as :func:`lowrank_matvec`."""
+    Arrays as :func:`lowrank_matvec`. (Kept apart from it: :func:`lowrank_matvec` as a call of this one
+    over every row measured 8 % slower at 30k facets, 48 right-hand sides, alternating in one run.)"""
     k = x.shape[1]
     for blk in range(r0.shape[0]):
         r = rank[blk]
