@@ -197,6 +197,7 @@ def run_one(args) -> dict:
         def __init__(self):
             super().__init__()
             self.peak_mb: dict = {}
+            self.cpu_s: dict = {}  # process CPU seconds (all threads) inside each stage
             self.run_peak_mb = _status_kb("VmHWM") / 1024.0  # the whole run's, across the resets
             self.can_reset = _reset_peak()
 
@@ -205,8 +206,10 @@ def run_one(args) -> dict:
             if self.can_reset:
                 self.run_peak_mb = max(self.run_peak_mb, _status_kb("VmHWM") / 1024.0)
                 _reset_peak()
+            c0 = time.process_time()
             with super().__call__(name):
                 yield
+            self.cpu_s[name] = self.cpu_s.get(name, 0.0) + time.process_time() - c0
             peak = _status_kb("VmHWM") / 1024.0
             self.peak_mb[name] = max(self.peak_mb.get(name, 0.0), peak)
 
@@ -275,6 +278,7 @@ def run_one(args) -> dict:
         "total_s": total,
         "stages_s": dict(timer.split),
         "stage_peak_mb": timer.peak_mb,
+        "stage_cpu_s": timer.cpu_s,
         "peak_memory_mb": peak,
         "periodic_iterations": iterations,
         "spinup_passes": passes,
@@ -386,6 +390,7 @@ def summarize(results: list, args, failed: list | None = None) -> dict:
         "measured_total_s": [r["total_s"] for r in results],
         "measured_stages_s": [r["stages_s"] for r in results],
         "stage_peak_mb": [r["stage_peak_mb"] for r in results],
+        "stage_cpu_s": [r.get("stage_cpu_s") for r in results],
         "conduction_step_s": [r.get("conduction_step_s") for r in results],
         "quasi_newton_pass_s": [r.get("quasi_newton_pass_s") for r in results],
         "periodic_iterations": [r["periodic_iterations"] for r in results],

@@ -522,6 +522,18 @@ SCHEMA: Tuple[Key, ...] = (
         "scheme of a distributed run); docs/model.md: accuracy of each",
         choices=choices.IR_COUPLING_SCHEMES,
     ),
+    K(
+        "steps",
+        "ir_product_samples",
+        "int",
+        None,
+        "extrapolated coupling: samples per exact IR product of the record; with n > 1 the IR of the samples "
+        "between is predicted from the last two products and the sunlight the terrain absorbs (columns whose "
+        "IR it missed taken again); 1: a product every step; docs/model.md: accuracy",
+        lo=1,
+        hi=12,
+        default_doc="2 from 10,000 facets, 1 below",
+    ),
     # [surface]
     K(
         "surface",
@@ -838,7 +850,8 @@ class Period:
 @_section("steps")
 class Steps:
     """Time steps: flux step ``flux_step_hours`` [h], optional largest conduction sub-step
-    ``conduction_step_s`` [s], the coupled step's IR scheme ``ir_coupling``."""
+    ``conduction_step_s`` [s], the coupled step's IR scheme ``ir_coupling``, samples per IR product of the
+    record ``ir_product_samples``."""
 
     @property
     def flux_step_s(self) -> float:

@@ -576,11 +576,30 @@ def ir_of_emission(F, E_rows: np.ndarray) -> np.ndarray:
     return np.maximum(np.asarray(F @ np.ascontiguousarray(np.asarray(E_rows, float).T)).T, 0.0)
 
 
+def prompt_ir(solar, direct, albedo: float) -> np.ndarray:
+    """The IR [W m-2] that the terrain's instant re-emission of the sunlight it absorbs adds on each facet:
+    ``(1 - A) / A`` times the scattered sunlight ``solar - direct`` [W m-2] (same shapes).
+
+    The scattered sunlight on a facet is ``F (A S)`` for the shortwave ``S`` reaching the terrain it sees
+    (direct and scattered, albedo ``A``); a surface in radiative equilibrium would emit ``(1 - A) S`` of it,
+    whose IR on the facet is ``F ((1 - A) S)``: the same field times ``(1 - A) / A``. The coupled steps of
+    :meth:`CoupledStepper.steps` extrapolate the IR less this part and add it back, so that the IR's kinks
+    at sunrise and sunset on the terrain a facet sees, which this part carries, are not extrapolated.
+    Zero for ``A = 0`` (nothing scattered)."""
+    albedo = float(albedo)
+    if albedo <= 0.0:
+        return np.zeros(np.shape(solar))
+    return (1.0 - albedo) / albedo * np.maximum(np.asarray(solar, float) - np.asarray(direct, float), 0.0)
+
+
 #: The extrapolated IR scheme's acceptance test: a column whose absorbed IR at the end of the step differs
 #: from that of the new temperatures by more than max(IR_DEFECT_W_M2, IR_DEFECT_REL x its absorbed flux)
 #: takes the step again driven by the new temperatures' IR (CoupledStepper).
 IR_DEFECT_W_M2 = 0.01
 IR_DEFECT_REL = 1e-3
+#: :meth:`CoupledStepper.steps` (several samples per IR product) also takes a group again where the miss
+#: would move the surface by more than this [K] in radiative balance (cold shadowed facets).
+GROUP_DEFECT_K = 0.005
 
 
 @dataclass
@@ -603,7 +622,8 @@ class CoupledStepper:
       Two conduction solves and one IR product per step.
 
     Either way the IR returned for the end of the step is the one that drove it, so a replay of the
-    recorded series reproduces the run.
+    recorded series reproduces the run. :meth:`steps` takes several samples per IR product
+    (``[steps] ir_product_samples``, the record's default from 10,000 facets).
 
     Parameters
     ----------
@@ -623,6 +643,8 @@ class CoupledStepper:
     ir_scheme: str = "extrapolated"
     #: (surface T [K] the history belongs to, F·e(T) at it, F·e(T) one sample before, that step [s])
     _history: tuple | None = field(default=None, repr=False)
+    #: (prompt IR at the history's two samples) of :meth:`steps`, or None
+    _prompt: tuple | None = field(default=None, repr=False)
     #: column-steps taken by extrapolation, and those taken again (diagnostics)
     stepped: int = 0
     redone: int = 0
@@ -647,19 +669,27 @@ class CoupledStepper:
     def reset_history(self) -> None:
         """Forget the IR history: the next step is a predictor-corrector step (a new sequence)."""
         self._history = None
+        self._prompt = None
 
     def history(self) -> dict | None:
-        """The IR history for a checkpoint: ``{"ir_now", "ir_before", "dt_before"}`` or None."""
+        """The IR history for a checkpoint: ``{"ir_now", "ir_before", "dt_before"}`` (and, after
+        :meth:`steps`, ``"prompt_now"``, ``"prompt_before"``) or None."""
         if self._history is None or not self._history_valid():
             return None
         _, now, before, dt = self._history
-        return {"ir_now": now.copy(), "ir_before": before.copy(), "dt_before": float(dt)}
+        h = {"ir_now": now.copy(), "ir_before": before.copy(), "dt_before": float(dt)}
+        if self._prompt is not None:
+            h["prompt_now"], h["prompt_before"] = (p.copy() for p in self._prompt)
+        return h
 
     def set_history(self, h: dict | None) -> None:
         """Restore :meth:`history` (after the solver's state is restored from the same checkpoint)."""
         if h is None:
-            self._history = None
+            self._history = self._prompt = None
             return
+        self._prompt = None
+        if "prompt_now" in h:
+            self._prompt = (np.asarray(h["prompt_now"], float).copy(), np.asarray(h["prompt_before"], float).copy())
         self._history = (
             self.solver.surface_temperature,
             np.asarray(h["ir_now"], float).copy(),
@@ -709,6 +739,86 @@ class CoupledStepper:
         if now is not None:
             self._history = (T1, self.ir(T1), now, float(duration_s))
         return T1, ir_k1
+
+    def steps(self, times_s, solar_rows, ir_k, prompt=None):
+        """Several coupled steps with one IR product (the extrapolated scheme; ``[steps]
+        ir_product_samples``): through the samples of ``times_s`` (m + 1 of them, the first the solver's
+        current state).
+
+        The IR of every sample of the group is predicted from the last two exact products, linearly in
+        time, after taking out of them the part that follows the sunlight at once (``prompt``: the IR that
+        the terrain's instant re-emission of the sunlight it absorbs adds, :func:`prompt_ir`), which is
+        added back at each sample: the kink of the IR at sunrise and sunset on the terrain a facet sees is
+        in ``prompt``, not in what is extrapolated. The columns run through the group in one solve; the
+        exact IR of the group's end is formed, and a column whose IR the prediction missed (at the end, or
+        between, against the exact end's IR interpolated the same way) by more than :data:`IR_DEFECT_W_M2`
+        / :data:`IR_DEFECT_REL` takes the group again, driven by that interpolated IR.
+
+        Parameters
+        ----------
+        times_s : (m + 1,) [s]
+        solar_rows : (m + 1, nf) sunlight of the samples [W m-2] (as :meth:`step`).
+        ir_k : (nf,) the IR that drove the current sample [W m-2].
+        prompt : (m + 1, nf) [W m-2] or None (zero).
+
+        Returns
+        -------
+        ``(T (m, nf), ir (m, nf))``: surface temperature [K] and the IR [W m-2] that drove each sample after
+        the first (pass ``ir[-1]`` back as ``ir_k``). With one step, another scheme or no history yet the
+        samples are taken one :meth:`step` at a time.
+        """
+        times_s = np.asarray(times_s, float)
+        m = len(times_s) - 1
+        nf = len(ir_k)
+        if m < 1:
+            raise ConfigError("CoupledStepper.steps: need at least two samples")
+        P = np.zeros((m + 1, nf)) if prompt is None else np.asarray(prompt, float)
+        if self.F is None or self.ir_scheme != "extrapolated" or self._history is None or not self._history_valid():
+            Ts, irs = np.empty((m, nf)), np.empty((m, nf))
+            for q in range(m):
+                Ts[q], ir_k = self.step(solar_rows[q], solar_rows[q + 1], ir_k, times_s[q + 1] - times_s[q])
+                irs[q] = ir_k
+            self._prompt = (P[-1].copy(), P[-2].copy())
+            return Ts, irs
+        _, now, before, dt_before = self._history
+        p_now, p_before = self._prompt if self._prompt is not None else (P[0], P[0])
+        tau = times_s[1:] - times_s[0]
+        r_now = now - p_now
+        ir = np.maximum(r_now + (r_now - (before - p_before)) * (tau / dt_before)[:, None] + P[1:], 0.0)
+        start = self.solver.snapshot()
+        a = np.empty((m + 1, nf))
+        a[0] = self.absorbed(solar_rows[0], ir_k)
+        a[1:] = self.absorbed(solar_rows[1:], ir)
+        T = self.solver.run_series(times_s, a, record=True)[1:]
+        exact = self.ir(T[-1])
+        # the IR between, from ir_k to the exact end: linear in time less the prompt part, which is added back
+        w = (tau[:-1] / tau[-1])[:, None]
+        r0 = ir_k - P[0]
+        between = np.maximum(r0 + (exact - P[-1] - r0) * w + P[1:-1], 0.0)
+        bad = self.emissivity * np.abs(exact - ir[-1]) > self._group_defect(a[-1], T[-1])
+        bad |= np.any(self.emissivity * np.abs(between - ir[:-1]) > self._group_defect(a[1:-1], T[:-1]), axis=0)
+        miss = np.flatnonzero(bad)
+        if miss.size:
+            ir[:-1, miss] = between[:, miss]
+            ir[-1, miss] = exact[miss]
+            am = np.empty((m + 1, miss.size))
+            am[0] = a[0, miss]
+            am[1:] = self.absorbed(solar_rows[1:, miss], ir[:, miss])
+            T[:, miss] = self.solver.rerun_columns(miss, start, times_s, am)[1:]
+        self._history = (self.solver.T[:, 0].copy(), exact, now, float(tau[-1]))
+        self._prompt = (P[-1].copy(), p_now.copy())
+        self.redone += miss.size * m
+        self.stepped += T.size
+        return T, ir
+
+    def _group_defect(self, absorbed, T):
+        """The absorbed-IR miss [W m-2] above which a column takes a group of :meth:`steps` again: the single
+        step's threshold, but never more than what would move a surface at ``T`` [K] by
+        :data:`GROUP_DEFECT_K` in radiative balance (``4 eps sigma T^3 GROUP_DEFECT_K``: 7e-5 W m-2 at 40 K)."""
+        thr = np.maximum(IR_DEFECT_W_M2, IR_DEFECT_REL * np.abs(absorbed))
+        if GROUP_DEFECT_K is not None:
+            thr = np.minimum(thr, 4.0 * self.emissivity * SIGMA * np.asarray(T, float) ** 3 * GROUP_DEFECT_K)
+        return thr
 
     def run(
         self,

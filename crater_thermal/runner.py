@@ -359,7 +359,8 @@ def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints,
         k0 = int(ckpt["k"])
         solver.set_state(ckpt["state"])
         if "history_ir_now" in ckpt:
-            stepper.set_history({name: ckpt[f"history_{name}"] for name in ("ir_now", "ir_before", "dt_before")})
+            names = ("ir_now", "ir_before", "dt_before", "prompt_now", "prompt_before")
+            stepper.set_history({name: ckpt[f"history_{name}"] for name in names if f"history_{name}" in ckpt})
         return spin_info, k0, store.read("ir", k0, k0 + 1)[0]
     spin_t = simulate.seconds_since(fc.spin_times, fc.times[0])
     save_spin = case.output.save_spinup_fluxes and fc.n_spin > 0
@@ -399,29 +400,62 @@ class _RecordRows:
         self.first, self.n = self.first + self.n, 0
 
 
+def ir_product_samples(case, n_facets: int) -> int:
+    """Samples per IR product of the record's extrapolated coupled steps (``[steps] ir_product_samples``;
+    default :data:`IR_PRODUCT_SAMPLES` from :data:`crater_thermal.simulate.LAGGED_SPINUP_MIN_FACETS` facets
+    on, 1 below); 1 for another scheme or without exchange."""
+    n = case.steps.ir_product_samples
+    if case.steps.ir_coupling != "extrapolated":
+        return 1
+    if n is None:
+        return IR_PRODUCT_SAMPLES if n_facets >= simulate.LAGGED_SPINUP_MIN_FACETS else 1
+    return int(n)
+
+
+#: ``[steps] ir_product_samples`` by default from 10,000 facets on (docs/model.md: accuracy and speed).
+IR_PRODUCT_SAMPLES = 2
+
+
 def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, timer, progress) -> None:
-    """The recorded period from sample ``k0``: coupled steps, rows into the store, a checkpoint every
-    ``[output] checkpoint_interval_steps`` steps."""
+    """The recorded period from sample ``k0``: coupled steps (:func:`ir_product_samples` of them per IR
+    product), rows into the store, a checkpoint every ``[output] checkpoint_interval_steps`` steps (at the
+    end of the group of steps that reaches it)."""
     nt, off = len(fc.times), fc.record_offset
     rec_t = simulate.seconds_since(fc.times, fc.times[0])
     every = case.output.checkpoint_interval_steps
+    g = ir_product_samples(case, fc.mesh.n_facets) if fc.F is not None else 1
     rows = _RecordRows(store, block, fc.mesh.n_facets, k0 + 1, timer)
-    sol, w0 = None, 0
+    sol, prompt, w0 = None, None, 0
     with simulate.stage(progress, f"record {case.name}") as report:
-        for k in range(k0, nt - 1):
-            if sol is None or k + 1 >= w0 + len(sol):
-                sol = None
+        k = k0
+        while k < nt - 1:
+            e = min(k + g, nt - 1)
+            if sol is None or e >= w0 + len(sol):
+                sol = prompt = None
                 w0 = k
                 with timer("io"):
-                    sol = fc.rows(fc.drive, off + k, off + min(nt, k + block + 1))
+                    sol = fc.rows(fc.drive, off + k, off + min(nt, k + block + g))
+                    if g > 1:
+                        rows_in = (off + k, off + min(nt, k + block + g))
+                        prompt = radiosity.prompt_ir(
+                            fc.rows("solar", *rows_in), fc.rows("direct", *rows_in), stepper.albedo
+                        )
             with timer("conduction_record"):
-                T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
-            rows.append(T1, ir_k)
-            if every and (k + 1) % every == 0 and k + 1 < nt - 1:
+                if g == 1:
+                    T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
+                    Ts, irs = (T1,), (ir_k,)
+                else:
+                    i0, i1 = k - w0, e + 1 - w0
+                    Ts, irs = stepper.steps(rec_t[k : e + 1], sol[i0:i1], ir_k, prompt[i0:i1])
+                    ir_k = irs[-1]
+            for T1, ir1 in zip(Ts, irs):
+                rows.append(T1, ir1)
+            if every and e // every > k // every and e < nt - 1:
                 rows.flush()
-                checkpoints.save(k + 1, spin_info)
+                checkpoints.save(e, spin_info)
+            k = e
             if report is not None:
-                report(k + 1 - k0, nt - 1 - k0)
+                report(k - k0, nt - 1 - k0)
         rows.flush()
 
 
@@ -555,6 +589,8 @@ def _write_run(case, fc, store, block, out_path, nominal, spin_info, incidence, 
         }
         if "relaxation" in spin_info:  # waveform relaxation: where, and its iterations per window
             attrs["relaxation"] = spin_info["relaxation"]
+        elif fc.F is not None:
+            attrs["ir_product_samples"] = ir_product_samples(case, fc.mesh.n_facets)
         ds = io.run_dataset(
             fc.mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
         )

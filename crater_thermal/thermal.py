@@ -668,6 +668,35 @@ class ColumnSolver:
         self._run(times, a, np.arange(len(cols), dtype=np.int64), False, self.time_s - duration_s, cols=cols)
         return self.T[cols, 0].copy()
 
+    def rerun_columns(self, cols, start, times_s, absorbed) -> np.ndarray:
+        """Run again the columns ``cols`` (int array) through the samples just run by :meth:`run_series`,
+        from ``start`` (the :meth:`state` or :meth:`snapshot` taken before it) with other forcing: the
+        several-step :meth:`redo_columns`. The clock and the other columns are untouched; those columns'
+        energy accumulators are rewound with their state.
+
+        Parameters
+        ----------
+        cols : (m,) column indices.
+        times_s : (nt,) the samples of that run [s].
+        absorbed : (nt, m) absorbed flux [W m-2] of those columns.
+
+        Returns
+        -------
+        (nt, m) surface temperature [K] of those columns (first row: their start).
+        """
+        if self._snap is None or start is not self._snap[0]:
+            raise SolverError("rerun_columns: start must be the array returned by the latest state() or snapshot()")
+        cols = np.asarray(cols, np.int64)
+        times = np.ascontiguousarray(np.asarray(times_s, dtype=np.float64))
+        a = np.ascontiguousarray(np.asarray(absorbed, dtype=np.float64))
+        if a.shape != (times.size, cols.size):
+            raise SolverError(f"absorbed has shape {a.shape}; need (times, columns) = {(times.size, cols.size)}")
+        T0, acc0, _ = self._snap
+        self.T[cols] = T0[cols]
+        self.acc[cols] = acc0[cols]
+        t_offset = self.time_s - float(times[-1] - times[0]) - times[0]
+        return self._run(times, a, np.arange(cols.size, dtype=np.int64), True, t_offset, cols=cols)
+
     def run_columns(self, columns, times_s, absorbed) -> np.ndarray:
         """Run only the columns ``columns`` (int array) through forcing samples from their current state;
         the other columns, and the clock, are left as they are.

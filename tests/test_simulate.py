@@ -362,6 +362,21 @@ def _implicit_run(stepper, t, solar, iterations=10):
     return np.array(T)
 
 
+def _grouped_run(stepper, t, solar, prompt, g):
+    """Surface temperatures (nt, nf) [K] of the record's steps taken ``g`` samples per IR product
+    (:meth:`radiosity.CoupledStepper.steps`), as the runner takes them."""
+    T = [stepper.solver.surface_temperature]
+    ir = stepper.ir(T[0])
+    k = 0
+    while k < len(t) - 1:
+        e = min(k + g, len(t) - 1)
+        Ts, irs = stepper.steps(t[k : e + 1], solar[k : e + 1], ir, prompt[k : e + 1])
+        T.extend(Ts)
+        ir = irs[-1]
+        k = e
+    return np.array(T)
+
+
 @pytest.fixture(scope="module")
 def ir_scheme_runs(tmp_path_factory):
     """A 300-facet crater at 85 S over 20 days (sunrise and sunset on its walls every day) stepped by
@@ -373,6 +388,14 @@ def ir_scheme_runs(tmp_path_factory):
     t = simulate.seconds_since(fc.times, fc.times[0])
     nf = fc.mesh.n_facets
     out = {}
+    _, direct = fc.split(fc.direct)
+    prompt = radiosity.prompt_ir(solar, direct, 0.12)
+    for g in (runner.IR_PRODUCT_SAMPLES, 3):
+        solver = thermal.ColumnSolver(["1300/1800"] * nf)
+        solver.set_equilibrium(solar)
+        stepper = radiosity.CoupledStepper(solver, fc.F, 0.12, 0.98)
+        out[f"grouped{g}"] = _grouped_run(stepper, t, solar, prompt, g)
+        out[f"grouped{g}_redone"] = stepper.redone / max(stepper.stepped, 1)
     for scheme in ("extrapolated", "predictor", "implicit"):
         solver = thermal.ColumnSolver(["1300/1800"] * nf)
         solver.set_equilibrium(solar)
@@ -402,6 +425,72 @@ def test_extrapolated_ir_matches_implicit_reference(ir_scheme_runs):
     assert err["extrapolated"].max() <= err["predictor"].max()
     assert err["extrapolated"].mean() <= err["predictor"].mean()
     assert 0.0 < r["extrapolated_redone"] < 0.5  # the acceptance test does take some columns again
+
+
+def test_grouped_ir_steps_match_implicit_reference(ir_scheme_runs):
+    """Issue 24: the record's steps taken several samples per IR product (``[steps] ir_product_samples``,
+    :meth:`radiosity.CoupledStepper.steps`: the IR between products extrapolated less its prompt part,
+    :func:`radiosity.prompt_ir`, columns it missed taken again) against the fully implicit exchange, on
+    the 300-facet crater of the schemes above. Measured here with 2 samples per product (the default from
+    10,000 facets): at night 0.0006 K at most, over all samples 0.31 K at most and 0.0048 K mean (one
+    product per step: 0.004, 0.26, 0.0078 K; the predictor-corrector 0.001, 0.59, 0.015 K); with 3:
+    0.0044, 0.67, 0.012 K. Bounds for the default: the night tolerance of the coupled-run checks (0.05 K)
+    and no worse than the predictor-corrector over all samples; with 3, the night tolerance."""
+    r = ir_scheme_runs
+    night = r["solar"] == 0.0
+    g = runner.IR_PRODUCT_SAMPLES
+    err = np.abs(r[f"grouped{g}"] - r["implicit"])
+    pred = np.abs(r["predictor"] - r["implicit"])
+    assert err[night].max() <= 0.05
+    assert err.max() <= pred.max()
+    assert err.mean() <= pred.mean()
+    assert 0.0 < r[f"grouped{g}_redone"] < 0.5
+    assert np.abs(r["grouped3"] - r["implicit"])[night].max() <= 0.05
+
+
+def test_prompt_ir_is_the_view_factors_times_the_absorbed_sunlight(ir_scheme_runs, tmp_path):
+    """The prompt IR of the grouped steps, ``(1 - A) / A`` times the scattered sunlight, equals the IR of the
+    terrain emitting at once the sunlight it absorbs, ``F ((1 - A) S)`` with ``S`` direct + scattered,
+    computed here with the exact view-factor matrix product (the scattering solve is exact below 10,000
+    facets: to its LU's round-off); zero without albedo."""
+    case = config.load_case(small_case(tmp_path, facets=300, end="2019-01-16", spinup="fixed", spinup_days=0.0))
+    fc = simulate.compute_forcing(case, simulate.Timer())
+    A = 0.12
+    P = radiosity.prompt_ir(fc.solar, fc.direct, A)
+    ref = np.asarray(fc.F @ ((1.0 - A) * fc.solar).T).T
+    assert np.abs(P - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max())
+    assert P.max() > 0.1
+    assert not radiosity.prompt_ir(fc.solar, fc.direct, 0.0).any()
+
+
+def test_grouped_record_resumes_as_the_uninterrupted_run(tmp_path, monkeypatch):
+    """A record taken 2 samples per IR product, interrupted after some groups and resumed from its
+    checkpoint (every 5 steps: the checkpoints fall at the groups' ends past each multiple), steps as the
+    uninterrupted run: the same surface temperatures and IR, bit for bit (the checkpoint carries the prompt
+    IR of the extrapolation's history)."""
+    path = small_case(tmp_path, name="grouped", facets=80, end="2019-01-11", every=5)
+    path.write_text(path.read_text().replace("[steps]", "[steps]\nir_product_samples = 2"))
+    case = config.load_case(path)
+    assert runner.ir_product_samples(case, 80) == 2
+    whole = io.open_run(runner.run_case(case, tmp_path / "whole.nc", progress=False))
+    appended = []
+    real = runner._RecordRows.append
+
+    def stop_after_some(self, T, ir):
+        appended.append(1)
+        if len(appended) == 23:
+            raise KeyboardInterrupt
+        real(self, T, ir)
+
+    monkeypatch.setattr(runner._RecordRows, "append", stop_after_some)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_case(case, tmp_path / "cut.nc", progress=False)
+    monkeypatch.setattr(runner._RecordRows, "append", real)
+    assert Path(runner.checkpoint_path(tmp_path / "cut.nc")).exists()
+    cut = io.open_run(runner.run_case(case, tmp_path / "cut.nc", resume=True, progress=False))
+    assert whole.attrs["ir_product_samples"] == 2
+    for name in ("surface_temperature", "ir_incident"):
+        assert np.array_equal(cut[name].values, whole[name].values), name
 
 
 def test_lagged_spinup_skips_converged_columns_without_moving_the_result(tmp_path, monkeypatch):

@@ -388,6 +388,36 @@ def test_redo_columns_is_the_step_with_the_other_forcing(take):
     assert s.time_s == ref.time_s
 
 
+def test_rerun_columns_is_the_series_with_the_other_forcing():
+    """ColumnSolver.rerun_columns (a group of coupled steps taken again for some columns, issue 24): the same
+    state, recorded surface temperatures and energy accumulators as the series run with the new forcing
+    for those columns from the start; the other columns and the clock untouched."""
+    n = 9
+    t = 1.0e6 + np.array([0.0, 14400.0, 28800.0, 43200.0])
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0.0, 300.0, (4, n))
+    b = rng.uniform(0.0, 60.0, (4, n))
+    cols = np.array([0, 3, 8])
+    ref_a = a.copy()
+    ref_a[:, cols] = b[:, cols]
+    ref_a[0] = a[0]  # the start's forcing is the run's
+    s, ref = th.ColumnSolver(["1300/1800"] * n), th.ColumnSolver(["1300/1800"] * n)
+    for x in (s, ref):
+        x.set_uniform(150.0)
+    start = s.snapshot()
+    s.run_series(t, a)
+    sub = b[:, cols].copy()
+    sub[0] = a[0, cols]
+    T_cols = s.rerun_columns(cols, start, t, sub)
+    T_ref = ref.run_series(t, ref_a)
+    np.testing.assert_array_equal(T_cols, T_ref[:, cols])
+    np.testing.assert_array_equal(s.T, ref.T)
+    np.testing.assert_array_equal(s.acc, ref.acc)
+    assert s.time_s == ref.time_s
+    with pytest.raises(SolverError, match="rerun_columns"):
+        s.rerun_columns(cols, start.copy(), t, sub)
+
+
 def test_snapshot_reuses_one_buffer_and_rewinds_like_state():
     """snapshot(): the state's values in a buffer that the next snapshot overwrites (no new array per
     step); set_state of it rewinds the clock and energy accumulators as set_state(state()) does."""
