@@ -59,26 +59,6 @@ def step_year(stepper, t, solar, prompt, g) -> tuple[np.ndarray, float, int]:
     return out, time.perf_counter() - t0, products
 
 
-def implicit_year(stepper, t, solar, iterations: int = 6) -> np.ndarray:
-    """The fully implicit exchange from the solver's state: each step's end IR iterated to the fixed point
-    ``ir1 = F e(T1(ir1))`` (the reference of ``tests/test_simulate.py``). (nt, nf) float32 [K]."""
-    solver = stepper.solver
-    out = np.empty((len(t), solar.shape[1]), np.float32)
-    out[0] = solver.surface_temperature
-    ir = stepper.ir(solver.surface_temperature)
-    for k in range(len(t) - 1):
-        a_k = stepper.absorbed(solar[k], ir)
-        start = solver.state()
-        ir1 = ir
-        for _ in range(iterations):
-            solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), t[k + 1] - t[k])
-            ir1 = stepper.ir(solver.surface_temperature)
-            solver.set_state(start)
-        out[k + 1] = solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), t[k + 1] - t[k])
-        ir = ir1
-    return out
-
-
 def nights(solar, direct, t) -> tuple[np.ndarray, np.ndarray]:
     """(nt, nf) bool masks: the report's default night (:func:`crater_thermal.regions.dark_night_mask`: no
     sunlight for 24 h, least-lit fallback) and the facet night (no direct sunlight for 24 h,
@@ -152,7 +132,7 @@ def main() -> dict:
         solver, stepper = runner._coupled_solver(case, nominal, fc, False)
         solver.set_state(start)
         t0 = time.perf_counter()
-        implicit = implicit_year(stepper, t, solar)
+        implicit = radiosity.implicit_run(stepper, t, solar, iterations=6)
         implicit_s = round(time.perf_counter() - t0, 1)
     load.append(list(os.getloadavg()))
     for g in args.samples:

@@ -592,6 +592,39 @@ def prompt_ir(solar, direct, albedo: float) -> np.ndarray:
     return (1.0 - albedo) / albedo * np.maximum(np.asarray(solar, float) - np.asarray(direct, float), 0.0)
 
 
+def implicit_run(stepper, times_s, solar, iterations: int = 10) -> np.ndarray:
+    """The fully implicit exchange, the reference of the coupled schemes: every step's end IR iterated to
+    the fixed point ``ir1 = F e(T1(ir1))`` (``iterations`` conduction solves of the step, then the step
+    with the last IR), from ``stepper``'s solver state (at ``times_s[0]``).
+
+    Parameters
+    ----------
+    stepper : :class:`CoupledStepper` (its solver, operator, albedo and emissivity).
+    times_s : (nt,) [s]
+    solar : (nt, nf) sunlight rows [W m-2] (as :meth:`CoupledStepper.step`).
+
+    Returns
+    -------
+    (nt, nf) surface temperature [K] (first row: the start).
+    """
+    solver = stepper.solver
+    T = np.empty((len(times_s), np.shape(solar)[1]))
+    T[0] = solver.surface_temperature
+    ir = stepper.ir(T[0])
+    for k in range(len(times_s) - 1):
+        dt = times_s[k + 1] - times_s[k]
+        a_k = stepper.absorbed(solar[k], ir)
+        start = solver.state()
+        ir1 = ir
+        for _ in range(iterations):
+            solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), dt)
+            ir1 = stepper.ir(solver.surface_temperature)
+            solver.set_state(start)
+        T[k + 1] = solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), dt)
+        ir = ir1
+    return T
+
+
 #: The extrapolated IR scheme's acceptance test: a column whose absorbed IR at the end of the step differs
 #: from that of the new temperatures by more than max(IR_DEFECT_W_M2, IR_DEFECT_REL x its absorbed flux)
 #: takes the step again driven by the new temperatures' IR (CoupledStepper).

@@ -345,21 +345,9 @@ def test_hayne2017_equator(tmp_path):
 
 def _implicit_run(stepper, t, solar, iterations=10):
     """Reference for the coupled step: the IR at each step's end iterated to the fixed point
-    ir1 = F e(T1(ir1)) (a fully implicit exchange term), from the stepper's solver state."""
-    solver = stepper.solver
-    T = [solver.surface_temperature]
-    ir = stepper.ir(T[0])
-    for k in range(len(t) - 1):
-        a_k = stepper.absorbed(solar[k], ir)
-        start = solver.state()
-        ir1 = ir
-        for _ in range(iterations):
-            solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), t[k + 1] - t[k])
-            ir1 = stepper.ir(solver.surface_temperature)
-            solver.set_state(start)
-        T.append(solver.advance(a_k, stepper.absorbed(solar[k + 1], ir1), t[k + 1] - t[k]))
-        ir = ir1
-    return np.array(T)
+    ir1 = F e(T1(ir1)) (a fully implicit exchange term, :func:`radiosity.implicit_run`), from the
+    stepper's solver state."""
+    return radiosity.implicit_run(stepper, t, solar, iterations)
 
 
 def _grouped_run(stepper, t, solar, prompt, g):
