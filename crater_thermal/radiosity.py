@@ -827,7 +827,10 @@ class CoupledStepper:
         # the IR between, from ir_k to the exact end: linear in time less the prompt part, which is added back
         w = (tau[:-1] / tau[-1])[:, None]
         r0 = ir_k - P[0]
-        between = np.maximum(r0 + (exact - P[-1] - r0) * w + P[1:-1], 0.0)
+        between = r0 + (exact - P[-1] - r0) * w + P[1:-1]
+        # ... kept within the IR of the group's two ends: where the terrain is just lit, its prompt part
+        # outruns the IR (the lit surface has not warmed yet) and the interpolation would dip below both
+        np.clip(between, np.minimum(ir_k, exact), np.maximum(ir_k, exact), out=between)
         bad = self.emissivity * np.abs(exact - ir[-1]) > self._group_defect(a[-1], T[-1])
         bad |= np.any(self.emissivity * np.abs(between - ir[:-1]) > self._group_defect(a[1:-1], T[:-1]), axis=0)
         miss = np.flatnonzero(bad)
