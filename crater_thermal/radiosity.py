@@ -784,8 +784,10 @@ class CoupledStepper:
         added back at each sample: the kink of the IR at sunrise and sunset on the terrain a facet sees is
         in ``prompt``, not in what is extrapolated. The columns run through the group in one solve; the
         exact IR of the group's end is formed, and a column whose IR the prediction missed (at the end, or
-        between, against the exact end's IR interpolated the same way) by more than :data:`IR_DEFECT_W_M2`
-        / :data:`IR_DEFECT_REL` takes the group again, driven by that interpolated IR.
+        between, against the exact end's IR interpolated the same way and kept within the IR of the group's
+        two ends) by more than :meth:`_group_defect` (the single step's :data:`IR_DEFECT_W_M2` /
+        :data:`IR_DEFECT_REL`, capped by :data:`GROUP_DEFECT_K`) takes the group again, driven by that
+        interpolated IR.
 
         Parameters
         ----------
@@ -852,9 +854,7 @@ class CoupledStepper:
         step's threshold, but never more than what would move a surface at ``T`` [K] by
         :data:`GROUP_DEFECT_K` in radiative balance (``4 eps sigma T^3 GROUP_DEFECT_K``: 7e-5 W m-2 at 40 K)."""
         thr = np.maximum(IR_DEFECT_W_M2, IR_DEFECT_REL * np.abs(absorbed))
-        if GROUP_DEFECT_K is not None:
-            thr = np.minimum(thr, 4.0 * self.emissivity * SIGMA * np.asarray(T, float) ** 3 * GROUP_DEFECT_K)
-        return thr
+        return np.minimum(thr, 4.0 * self.emissivity * SIGMA * np.asarray(T, float) ** 3 * GROUP_DEFECT_K)
 
     def run(
         self,

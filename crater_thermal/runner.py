@@ -435,11 +435,11 @@ def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, t
                 w0 = k
                 with timer("io"):
                     sol = fc.rows(fc.drive, off + k, off + min(nt, k + block + g))
-                    if g > 1:
+                    if g > 1:  # the prompt IR of these samples (radiosity.prompt_ir)
                         rows_in = (off + k, off + min(nt, k + block + g))
-                        prompt = radiosity.prompt_ir(
-                            fc.rows("solar", *rows_in), fc.rows("direct", *rows_in), stepper.albedo
-                        )
+                        solar = sol if fc.drive == "solar" else fc.rows("solar", *rows_in)
+                        prompt = radiosity.prompt_ir(solar, fc.rows("direct", *rows_in), stepper.albedo)
+                        del solar
             with timer("conduction_record"):
                 if g == 1:
                     T1, ir_k = stepper.step(sol[k - w0], sol[k + 1 - w0], ir_k, rec_t[k + 1] - rec_t[k])
