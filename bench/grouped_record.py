@@ -37,26 +37,18 @@ import scale  # noqa: E402  (the scale crater's case text)
 
 def step_year(stepper, t, solar, prompt, g) -> tuple[np.ndarray, float, int]:
     """Surface temperatures (nt, nf) float32 [K] of the year from the solver's state, ``g`` samples per
-    IR product as the runner takes them; seconds; IR products made."""
+    IR product (:meth:`crater_thermal.radiosity.CoupledStepper.run`, as the runner's record takes them);
+    seconds; IR products made."""
     nt = len(t)
     out = np.empty((nt, solar.shape[1]), np.float32)
     out[0] = stepper.solver.surface_temperature
-    ir = stepper.ir(stepper.solver.surface_temperature)
-    products = 0
+
+    def keep(k, T, ir):
+        out[k] = T
+
     t0 = time.perf_counter()
-    k = 0
-    while k < nt - 1:
-        e = min(k + g, nt - 1)
-        if g == 1:
-            T1, ir = stepper.step(solar[k], solar[k + 1], ir, t[k + 1] - t[k])
-            out[k + 1] = T1
-        else:
-            Ts, irs = stepper.steps(t[k : e + 1], solar[k : e + 1], ir, prompt[k : e + 1])
-            out[k + 1 : e + 1] = Ts
-            ir = irs[-1]
-        products += 1
-        k = e
-    return out, time.perf_counter() - t0, products
+    stepper.run(t, solar, record=False, on_step=keep, product_samples=g, prompt=prompt)
+    return out, time.perf_counter() - t0, -(-(nt - 1) // g)
 
 
 def nights(solar, direct, t) -> tuple[np.ndarray, np.ndarray]:

@@ -864,8 +864,14 @@ class CoupledStepper:
         record: bool = True,
         on_step: Callable | None = None,
         first_step: int = 0,
+        product_samples: int = 1,
+        prompt: np.ndarray | None = None,
     ):
         """Run over all samples from the solver's current state (at ``times_s[first_step]``).
+
+        ``product_samples`` > 1: the samples taken that many at a time by :meth:`steps` (one IR product
+        each; ``prompt`` (nt, nf) [W m-2], :func:`prompt_ir`, or None for zero), as the record of a run
+        with ``[steps] ir_product_samples`` takes them; 1: one :meth:`step` per sample.
 
         Returns ``(T_surface (nt, nf), ir (nt, nf))`` when ``record``; else ``(None, ir_last)``.
         """
@@ -878,11 +884,23 @@ class CoupledStepper:
             out_ir = np.empty((nt, nf))
             out_T[first_step] = T
             out_ir[first_step] = ir
-        for k in range(first_step, nt - 1):
-            T, ir = self.step(solar[k], solar[k + 1], ir, times_s[k + 1] - times_s[k])
+        g = int(product_samples)
+        k = first_step
+        while k < nt - 1:
+            e = min(k + g, nt - 1)
+            if g == 1:
+                T, ir = self.step(solar[k], solar[k + 1], ir, times_s[k + 1] - times_s[k])
+                Ts, irs = T[None, :], ir[None, :]
+            else:
+                Ts, irs = self.steps(
+                    times_s[k : e + 1], solar[k : e + 1], ir, None if prompt is None else prompt[k : e + 1]
+                )
+                ir = irs[-1]
             if record:
-                out_T[k + 1] = T
-                out_ir[k + 1] = ir
+                out_T[k + 1 : e + 1] = Ts
+                out_ir[k + 1 : e + 1] = irs
             if on_step is not None:
-                on_step(k + 1, T, ir)
+                for q in range(len(Ts)):
+                    on_step(k + 1 + q, Ts[q], irs[q])
+            k = e
         return out_T, (out_ir if record else ir)

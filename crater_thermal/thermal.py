@@ -650,17 +650,23 @@ class ColumnSolver:
         self.time_s += float(duration_s)
         return self.T[:, 0].copy()
 
+    def _rewind_columns(self, cols, start, caller: str) -> np.ndarray:
+        """Restore the columns ``cols`` (state and energy accumulators) from ``start``, the array of the latest
+        :meth:`state` or :meth:`snapshot`; returns ``cols`` as int64 (``caller`` names the method in errors)."""
+        if self._snap is None or start is not self._snap[0]:
+            raise SolverError(f"{caller}: start must be the array returned by the latest state() or snapshot()")
+        cols = np.asarray(cols, np.int64)
+        T0, acc0, _ = self._snap
+        self.T[cols] = T0[cols]
+        self.acc[cols] = acc0[cols]
+        return cols
+
     def redo_columns(self, cols, start, absorbed_start, absorbed_end, duration_s: float) -> np.ndarray:
         """Advance again the columns ``cols`` (int array) of the step just taken, from ``start`` (the
         :meth:`state` or :meth:`snapshot` taken before it) with other forcing [W m-2] (``cols``-long
         arrays). The clock and the other columns are untouched; those columns' energy accumulators are
         rewound with their state. Returns the surface T [K] of those columns."""
-        if self._snap is None or start is not self._snap[0]:
-            raise SolverError("redo_columns: start must be the array returned by the latest state() or snapshot()")
-        cols = np.asarray(cols, np.int64)
-        T0, acc0, _ = self._snap
-        self.T[cols] = T0[cols]
-        self.acc[cols] = acc0[cols]
+        cols = self._rewind_columns(cols, start, "redo_columns")
         a = np.empty((2, len(cols)))
         a[0] = absorbed_start
         a[1] = absorbed_end
@@ -684,16 +690,12 @@ class ColumnSolver:
         -------
         (nt, m) surface temperature [K] of those columns (first row: their start).
         """
-        if self._snap is None or start is not self._snap[0]:
-            raise SolverError("rerun_columns: start must be the array returned by the latest state() or snapshot()")
         cols = np.asarray(cols, np.int64)
         times = np.ascontiguousarray(np.asarray(times_s, dtype=np.float64))
         a = np.ascontiguousarray(np.asarray(absorbed, dtype=np.float64))
         if a.shape != (times.size, cols.size):
             raise SolverError(f"absorbed has shape {a.shape}; need (times, columns) = {(times.size, cols.size)}")
-        T0, acc0, _ = self._snap
-        self.T[cols] = T0[cols]
-        self.acc[cols] = acc0[cols]
+        cols = self._rewind_columns(cols, start, "rerun_columns")
         t_offset = self.time_s - float(times[-1] - times[0]) - times[0]
         return self._run(times, a, np.arange(cols.size, dtype=np.int64), True, t_offset, cols=cols)
 

@@ -350,21 +350,6 @@ def _implicit_run(stepper, t, solar, iterations=10):
     return radiosity.implicit_run(stepper, t, solar, iterations)
 
 
-def _grouped_run(stepper, t, solar, prompt, g):
-    """Surface temperatures (nt, nf) [K] of the record's steps taken ``g`` samples per IR product
-    (:meth:`radiosity.CoupledStepper.steps`), as the runner takes them."""
-    T = [stepper.solver.surface_temperature]
-    ir = stepper.ir(T[0])
-    k = 0
-    while k < len(t) - 1:
-        e = min(k + g, len(t) - 1)
-        Ts, irs = stepper.steps(t[k : e + 1], solar[k : e + 1], ir, prompt[k : e + 1])
-        T.extend(Ts)
-        ir = irs[-1]
-        k = e
-    return np.array(T)
-
-
 @pytest.fixture(scope="module")
 def ir_scheme_runs(tmp_path_factory):
     """A 300-facet crater at 85 S over 20 days (sunrise and sunset on its walls every day) stepped by
@@ -382,7 +367,7 @@ def ir_scheme_runs(tmp_path_factory):
         solver = thermal.ColumnSolver(["1300/1800"] * nf)
         solver.set_equilibrium(solar)
         stepper = radiosity.CoupledStepper(solver, fc.F, 0.12, 0.98)
-        out[f"grouped{g}"] = _grouped_run(stepper, t, solar, prompt, g)
+        out[f"grouped{g}"] = stepper.run(t, solar, product_samples=g, prompt=prompt)[0]
         out[f"grouped{g}_redone"] = stepper.redone / max(stepper.stepped, 1)
     for scheme in ("extrapolated", "predictor", "implicit"):
         solver = thermal.ColumnSolver(["1300/1800"] * nf)
