@@ -400,30 +400,14 @@ class _RecordRows:
         self.first, self.n = self.first + self.n, 0
 
 
-def ir_product_samples(case, n_facets: int) -> int:
-    """Samples per IR product of the record's extrapolated coupled steps (``[steps] ir_product_samples``;
-    default :data:`IR_PRODUCT_SAMPLES` from :data:`crater_thermal.simulate.LAGGED_SPINUP_MIN_FACETS` facets
-    on, 1 below); 1 for another scheme or without exchange."""
-    n = case.steps.ir_product_samples
-    if case.steps.ir_coupling != "extrapolated":
-        return 1
-    if n is None:
-        return IR_PRODUCT_SAMPLES if n_facets >= simulate.LAGGED_SPINUP_MIN_FACETS else 1
-    return int(n)
-
-
-#: ``[steps] ir_product_samples`` by default from 10,000 facets on (docs/model.md: accuracy and speed).
-IR_PRODUCT_SAMPLES = 2
-
-
 def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, timer, progress) -> None:
-    """The recorded period from sample ``k0``: coupled steps (:func:`ir_product_samples` of them per IR
+    """The recorded period from sample ``k0``: coupled steps (:func:`crater_thermal.simulate.ir_product_samples` of them per IR
     product), rows into the store, a checkpoint every ``[output] checkpoint_interval_steps`` steps (at the
     end of the group of steps that reaches it)."""
     nt, off = len(fc.times), fc.record_offset
     rec_t = simulate.seconds_since(fc.times, fc.times[0])
     every = case.output.checkpoint_interval_steps
-    g = ir_product_samples(case, fc.mesh.n_facets) if fc.F is not None else 1
+    g = simulate.ir_product_samples(case, fc.mesh.n_facets) if fc.F is not None else 1
     rows = _RecordRows(store, block, fc.mesh.n_facets, k0 + 1, timer)
     sol, prompt, w0 = None, None, 0
     with simulate.stage(progress, f"record {case.name}") as report:
@@ -590,7 +574,7 @@ def _write_run(case, fc, store, block, out_path, nominal, spin_info, incidence, 
         if "relaxation" in spin_info:  # waveform relaxation: where, and its iterations per window
             attrs["relaxation"] = spin_info["relaxation"]
         elif fc.F is not None:
-            attrs["ir_product_samples"] = ir_product_samples(case, fc.mesh.n_facets)
+            attrs["ir_product_samples"] = simulate.ir_product_samples(case, fc.mesh.n_facets)
         ds = io.run_dataset(
             fc.mesh, fc.times, sun_direction=rec_dirs, sun_distance_au=rec_dist / AU, attrs=attrs, extra=extra_vars
         )

@@ -597,6 +597,23 @@ def _mean_over_rows(fc: Forcing, k0: int, k1: int, block: int, fn: Callable) -> 
 LAGGED_SPINUP_MIN_FACETS = 10_000
 
 
+#: ``[steps] ir_product_samples`` by default from 10,000 facets on (docs/model.md: accuracy and speed).
+IR_PRODUCT_SAMPLES = 2
+
+
+def ir_product_samples(case, n_facets: int) -> int:
+    """Samples per IR product (``[steps] ir_product_samples``) of the record's extrapolated coupled steps
+    and of the lagged spin-up windows (:meth:`_SpinUpWindow.lagged`): the default :data:`IR_PRODUCT_SAMPLES`
+    from :data:`LAGGED_SPINUP_MIN_FACETS` facets on, 1 below; 1 for another coupling scheme or without
+    exchange."""
+    n = case.steps.ir_product_samples
+    if case.steps.ir_coupling != "extrapolated":
+        return 1
+    if n is None:
+        return IR_PRODUCT_SAMPLES if n_facets >= LAGGED_SPINUP_MIN_FACETS else 1
+    return int(n)
+
+
 def spinup_ir_method(method: str, F, n_facets: int) -> str:
     """ "coupled" or "lagged": the IR exchange of the periodic spin-up windows for ``[period] spinup_ir``
     ``method`` ("auto" | "coupled" | "lagged"), the operator ``F`` (None: no exchange) and the facet count."""
@@ -629,7 +646,8 @@ def spin_up(case, fc, solver, stepper, spin_t, block, save_spin, progress):
             solver.set_equilibrium(surface_K=ts)
             method = "equilibrium estimate, no spin-up"
         return {"start_method": method, "iterations": 0, "residual": np.full(fc.mesh.n_facets, np.nan)}, None
-    window = _SpinUpWindow(fc, solver, stepper, spin_t, block, save_spin, period.periodic_tol_K)
+    g = ir_product_samples(case, fc.mesh.n_facets) if fc.F is not None else 1
+    window = _SpinUpWindow(fc, solver, stepper, spin_t, block, save_spin, period.periodic_tol_K, g)
     if T0 is not None:
         solver.set_uniform(float(T0))
     else:
@@ -711,7 +729,9 @@ class _SpinUpWindow:
     ``ir_end``: the IR [W m-2] at the window's last sample after the latest pass (the record's first).
     """
 
-    def __init__(self, fc, solver, stepper, spin_t, block: int, save_spin: bool, tol_K: float = 0.01):
+    def __init__(
+        self, fc, solver, stepper, spin_t, block: int, save_spin: bool, tol_K: float = 0.01, product_samples: int = 1
+    ):
         self.fc, self.solver, self.stepper, self.t, self.block, self.save_spin = (
             fc,
             solver,
@@ -725,6 +745,7 @@ class _SpinUpWindow:
         self.ir_end = None
         self.lag_in, self.lag_out = None, "lag_ir0"
         self.tol_K = float(tol_K)
+        self.product_samples = max(1, int(product_samples))
         nf = fc.mesh.n_facets
         self.skipped = np.zeros(nf, bool)  # columns the next lagged pass does not run
         self.drift = np.zeros(nf)  # max |IR change| [W m-2] of each column's input since its last run
@@ -812,6 +833,34 @@ class _SpinUpWindow:
         ir_out = waveform.between(t, known, self.stepper.ir_rows(Tk), rows)
         return ir_in, T_out, ir_out, ir
 
+    def _lagged_ir_rows(self, b0: int, e: int, T: np.ndarray, sol: np.ndarray) -> np.ndarray:
+        """The IR rows [W m-2] of a lagged pass's surface temperatures ``T`` (e - b0, nf) [K] at samples
+        b0..e-1 (``sol``: the drive's rows there). With ``product_samples`` g > 1 the exact products are
+        made at every g-th sample from b0 and at e - 1 only; between two of them the IR is interpolated
+        linearly in time less its prompt part (:func:`crater_thermal.radiosity.prompt_ir`, which carries
+        the kinks at sunrise and sunset on the terrain a facet sees), that part added back, and kept
+        within the IR of the two exact ends: the record's interpolation
+        (:meth:`crater_thermal.radiosity.CoupledStepper.steps`), without its check, since a pass's
+        input is only the next pass's guess and the fixed point's residual is tested on the state."""
+        g, n = self.product_samples, T.shape[0]
+        if g <= 1 or n <= 2:
+            return self.stepper.ir_rows(T)
+        fc = self.fc
+        idx = np.unique(np.r_[np.arange(0, n, g), n - 1])
+        out = np.empty(T.shape)
+        out[idx] = self.stepper.ir_rows(T[idx])
+        solar = sol if fc.drive == "solar" else fc.rows("solar", b0, e)
+        P = radiosity.prompt_ir(solar, fc.rows("direct", b0, e), self.stepper.albedo)
+        t = self.t[b0:e]
+        for a, c in zip(idx[:-1], idx[1:]):
+            if c - a < 2:
+                continue
+            w = ((t[a + 1 : c] - t[a]) / (t[c] - t[a]))[:, None]
+            mid = P[a + 1 : c] + (1.0 - w) * (out[a] - P[a]) + w * (out[c] - P[c])
+            np.clip(mid, np.minimum(out[a], out[c]), np.maximum(out[a], out[c]), out=mid)
+            out[a + 1 : c] = mid
+        return out
+
     def lagged(self, report, expected: int) -> None:
         """One lagged pass (the first one with each facet's IR held a day at a time, in steps of up to
         :data:`crater_thermal.waveform.FIRST_PASS_STEP_S`, recording the IR series the next passes start
@@ -845,9 +894,9 @@ class _SpinUpWindow:
                         )
                     else:
                         T = self.solver.run_series(t[b0:e], self.stepper.absorbed(sol, ir), record=True)
+                    rows = self._lagged_ir_rows(b0, e, T, sol)[: b1 - b0]
                     del sol
                     T = T[: b1 - b0]
-                    rows = self.stepper.ir_rows(T)
                 fc.store.write(self.lag_out, b0, rows)
                 fc.store.write("lag_T", b0, T.astype(np.float32))
                 np.maximum(moved, np.max(np.abs(rows - ir[: b1 - b0]), axis=0), out=moved)
