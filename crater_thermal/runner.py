@@ -401,9 +401,10 @@ class _RecordRows:
 
 
 def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, timer, progress) -> None:
-    """The recorded period from sample ``k0``: coupled steps (:func:`crater_thermal.simulate.ir_product_samples` of them per IR
-    product), rows into the store, a checkpoint every ``[output] checkpoint_interval_steps`` steps (at the
-    end of the group of steps that reaches it)."""
+    """The recorded period from sample ``k0``: coupled steps
+    (:func:`crater_thermal.simulate.ir_product_samples` of them per IR product), rows into the store, a
+    checkpoint every ``[output] checkpoint_interval_steps`` steps (at the end of the group of steps that
+    reaches it)."""
     nt, off = len(fc.times), fc.record_offset
     rec_t = simulate.seconds_since(fc.times, fc.times[0])
     every = case.output.checkpoint_interval_steps
