@@ -97,7 +97,68 @@ def sym_sparse_matvec(indptr, indices, data, x, y, i0, i1):
                 y[j, c] += g * x[i, c]
 
 
-@njit(nogil=True, cache=True)
+#: LLVM flags of the several-right-hand-side low-rank kernels: multiply-adds fused (one rounding instead
+#: of two; their grouped sums are written out in the source, nothing is reassociated by the compiler).
+MULTI_RHS_FASTMATH = {"contract"}
+
+
+@njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
+def _project(W, off, r, X, x0, count, tmp, t0):
+    """``tmp[t0 + q, :] += sum_jj W[off + jj * r + q] X[x0 + jj, :]`` for q < r, jj < count: the
+    projection ``W^T X`` of a low-rank factor (row-major (count, r) at ``W[off:]``), four rows of X per
+    update of ``tmp`` (a quarter of the loads and stores of one at a time: 1.3x with 64 right-hand
+    sides, docs/performance.md)."""
+    k = X.shape[1]
+    jj = 0
+    while jj + 3 < count:
+        j = x0 + jj
+        base = off + jj * r
+        for q in range(r):
+            w0 = W[base + q]
+            w1 = W[base + r + q]
+            w2 = W[base + 2 * r + q]
+            w3 = W[base + 3 * r + q]
+            for c in range(k):
+                tmp[t0 + q, c] += (w0 * X[j, c] + w1 * X[j + 1, c]) + (w2 * X[j + 2, c] + w3 * X[j + 3, c])
+        jj += 4
+    while jj < count:
+        j = x0 + jj
+        base = off + jj * r
+        for q in range(r):
+            w = W[base + q]
+            for c in range(k):
+                tmp[t0 + q, c] += w * X[j, c]
+        jj += 1
+
+
+@njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
+def _expand(W, off, r, tmp, t0, Y, y0, ii0, ii1):
+    """``Y[y0 + ii, :] += sum_q W[off + ii * r + q] tmp[t0 + q, :]`` for ii0 <= ii < ii1, four terms of q
+    per update of a row of Y. Each row's arithmetic does not depend on the range, so a row computed in
+    any range is the same bit for bit."""
+    k = Y.shape[1]
+    for ii in range(ii0, ii1):
+        i = y0 + ii
+        base = off + ii * r
+        q = 0
+        while q + 3 < r:
+            w0 = W[base + q]
+            w1 = W[base + q + 1]
+            w2 = W[base + q + 2]
+            w3 = W[base + q + 3]
+            for c in range(k):
+                Y[i, c] += (w0 * tmp[t0 + q, c] + w1 * tmp[t0 + q + 1, c]) + (
+                    w2 * tmp[t0 + q + 2, c] + w3 * tmp[t0 + q + 3, c]
+                )
+            q += 4
+        while q < r:
+            w = W[base + q]
+            for c in range(k):
+                Y[i, c] += w * tmp[t0 + q, c]
+            q += 1
+
+
+@njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
 def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
     """``y += sum_b (U_b V_b^T) x[c] (into rows r) + (V_b U_b^T) x[r] (into columns c)``.
 
@@ -108,61 +169,27 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
     k = x.shape[1]
     for b in range(r0.shape[0]):
         r = rank[b]
-        m = r1[b] - r0[b]
-        nn = c1[b] - c0[b]
-        uo = uoff[b]
-        vo = voff[b]
         for q in range(2 * r):
             for c in range(k):
                 tmp[q, c] = 0.0
-        # tmp[:r] = V^T x[c-range], tmp[r:2r] = U^T x[r-range] (two passes over U: merging them into one
-        # was slower with 8 right-hand sides, measured)
-        for jj in range(nn):
-            j = c0[b] + jj
-            base = vo + jj * r
-            for q in range(r):
-                v = V[base + q]
-                for c in range(k):
-                    tmp[q, c] += v * x[j, c]
-        for ii in range(m):
-            i = r0[b] + ii
-            base = uo + ii * r
-            for q in range(r):
-                u = U[base + q]
-                for c in range(k):
-                    tmp[r + q, c] += u * x[i, c]
-        for ii in range(m):
-            i = r0[b] + ii
-            base = uo + ii * r
-            for q in range(r):
-                u = U[base + q]
-                for c in range(k):
-                    y[i, c] += u * tmp[q, c]
-        for jj in range(nn):
-            j = c0[b] + jj
-            base = vo + jj * r
-            for q in range(r):
-                v = V[base + q]
-                for c in range(k):
-                    y[j, c] += v * tmp[r + q, c]
+        # tmp[:r] = V^T x[c-range], tmp[r:2r] = U^T x[r-range]
+        _project(V, voff[b], r, x, c0[b], c1[b] - c0[b], tmp, 0)
+        _project(U, uoff[b], r, x, r0[b], r1[b] - r0[b], tmp, r)
+        _expand(U, uoff[b], r, tmp, 0, y, r0[b], 0, r1[b] - r0[b])
+        _expand(V, voff[b], r, tmp, r, y, c0[b], 0, c1[b] - c0[b])
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
 def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp, a, b):
     """The rows ``a .. b-1`` of :func:`lowrank_matvec`'s product, into ``y`` ((b - a, k), zeroed by the
     caller): of each block only the halves that land in those rows, ``U_b (V_b^T x[c])`` where its rows
     meet them and ``V_b (U_b^T x[r])`` where its columns do (a row block of a distributed run: a far block
     spanning two chunks is then applied half by each, not whole by both). Each row receives the same
-    terms in the same order as from :func:`lowrank_matvec`, so the rows equal its rows bit for bit.
-    Arrays as :func:`lowrank_matvec`. (Kept apart from it: :func:`lowrank_matvec` as a call of this one
-    over every row measured 8 % slower at 30k facets, 48 right-hand sides, alternating in one run.)"""
+    terms in the same order as from :func:`lowrank_matvec` (the same :func:`_project` and
+    :func:`_expand`), so the rows equal its rows bit for bit. Arrays as :func:`lowrank_matvec`."""
     k = x.shape[1]
     for blk in range(r0.shape[0]):
         r = rank[blk]
-        m = r1[blk] - r0[blk]
-        nn = c1[blk] - c0[blk]
-        uo = uoff[blk]
-        vo = voff[blk]
         row_lo, row_hi = max(r0[blk], a), min(r1[blk], b)
         col_lo, col_hi = max(c0[blk], a), min(c1[blk], b)
         rows_meet = row_lo < row_hi
@@ -172,34 +199,12 @@ def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp, a, b)
         for q in range(2 * r):
             for c in range(k):
                 tmp[q, c] = 0.0
-        if rows_meet:  # tmp[:r] = V^T x[c-range]
-            for jj in range(nn):
-                j = c0[blk] + jj
-                base = vo + jj * r
-                for q in range(r):
-                    v = V[base + q]
-                    for c in range(k):
-                        tmp[q, c] += v * x[j, c]
-        if cols_meet:  # tmp[r:2r] = U^T x[r-range]
-            for ii in range(m):
-                i = r0[blk] + ii
-                base = uo + ii * r
-                for q in range(r):
-                    u = U[base + q]
-                    for c in range(k):
-                        tmp[r + q, c] += u * x[i, c]
-        for i in range(row_lo, row_hi):
-            base = uo + (i - r0[blk]) * r
-            for q in range(r):
-                u = U[base + q]
-                for c in range(k):
-                    y[i - a, c] += u * tmp[q, c]
-        for j in range(col_lo, col_hi):
-            base = vo + (j - c0[blk]) * r
-            for q in range(r):
-                v = V[base + q]
-                for c in range(k):
-                    y[j - a, c] += v * tmp[r + q, c]
+        if rows_meet:  # tmp[:r] = V^T x[c-range], into rows row_lo..row_hi-1
+            _project(V, voff[blk], r, x, c0[blk], c1[blk] - c0[blk], tmp, 0)
+            _expand(U, uoff[blk], r, tmp, 0, y, r0[blk] - a, row_lo - r0[blk], row_hi - r0[blk])
+        if cols_meet:  # tmp[r:2r] = U^T x[r-range], into columns col_lo..col_hi-1
+            _project(U, uoff[blk], r, x, r0[blk], r1[blk] - r0[blk], tmp, r)
+            _expand(V, voff[blk], r, tmp, r, y, c0[blk] - a, col_lo - c0[blk], col_hi - c0[blk])
 
 
 @njit(nogil=True, cache=True)
