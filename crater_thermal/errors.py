@@ -20,6 +20,8 @@ The command line prints ``error: ...`` (one line) for the first family and ``int
 ...`` (one line, asking for a bug report) for the second, never a traceback.
 """
 
+import sys
+
 
 class CraterThermalError(ValueError):
     """Base class of the problems with the user's input (exit code 2)."""
@@ -111,8 +113,20 @@ _RECEIVED_SIGNALS: list = []
 
 
 def note_interrupt(signum: int) -> None:
-    """Record that signal ``signum`` asked the process to stop (called by the command line's handler)."""
+    """Record that signal ``signum`` asked the process to stop (called by the signal handlers just before they
+    raise :class:`Interrupted`).
+
+    From then on the process's unraisable exceptions are dropped: the raise can land inside a library's
+    constructor (llvmlite's ``OutputString`` while numba compiles, seen in CI), whose destructor then fails
+    on the half-built object when it is freed, and Python would print that failure as a traceback after
+    the one-line message. It is a consequence of the interruption already reported, not a separate problem.
+    """
     _RECEIVED_SIGNALS.append(int(signum))
+    sys.unraisablehook = _drop_unraisable
+
+
+def _drop_unraisable(unraisable) -> None:
+    """``sys.unraisablehook`` after a stop signal (see :func:`note_interrupt`): print nothing."""
 
 
 def raise_if_interrupted() -> None:

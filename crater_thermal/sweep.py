@@ -159,9 +159,10 @@ def _clean_exit_on_sigterm() -> None:
     writers remove their temporaries and release their locks (a checkpoint stays for the restart)."""
     import signal
 
-    from crater_thermal.errors import Interrupted
+    from crater_thermal.errors import Interrupted, note_interrupt
 
     def handler(signum, frame):
+        note_interrupt(signum)
         raise Interrupted(signum)
 
     try:
