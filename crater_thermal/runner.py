@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from crater_thermal import io, profiles, radiosity, simulate, thermal, waveform
+from crater_thermal import heap, io, profiles, radiosity, simulate, thermal, waveform
 from crater_thermal.constants import AU
 from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
 
@@ -130,6 +130,8 @@ def run_case(
     when the spin-up ends) to ``OUT.checkpoint.npz``; ``resume=True`` continues from it and gives the
     same numbers as an uninterrupted run. Returns the output path.
 
+    Large temporary arrays are reused from the heap during the run (:mod:`crater_thermal.heap`).
+
     ``progress``: optional reporter (:mod:`crater_thermal.progress`): one bar per stage (view factors,
     horizon map, sunlight, spin-up windows, recorded period, writing); None (or False) for none.
 
@@ -143,7 +145,7 @@ def run_case(
     """
     out_path = Path(out_path)
     io.refuse_input_as_output(out_path, case_inputs(case))
-    with io.output_lock(out_path):
+    with io.output_lock(out_path), heap.reuse_large_blocks():
         try:
             return _run_case(
                 case, out_path, resume=resume, overwrite=overwrite, progress=progress, timer=timer, columns=columns
