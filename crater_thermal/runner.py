@@ -62,11 +62,12 @@ def replay_file(
     """``crater-thermal replay``: validate inputs, replay, write the replay dataset atomically.
 
     The fluxes are read and the temperatures written block by block (memory about ``chunk_mb`` [MB]
-    plus the solver's columns, whatever the run's length and size).
+    plus the solver's columns, whatever the run's length and size). Large temporary arrays are reused
+    from the heap meanwhile (:mod:`crater_thermal.heap`).
     ``progress``: optional reporter (see :mod:`crater_thermal.progress`) for the "replay" stage.
     """
     io.check_output(output, overwrite, inputs=[flux_path])  # fail before any work
-    with io.output_lock(output):
+    with io.output_lock(output), heap.reuse_large_blocks():
         if initial_temperature is not None and not (1.0 <= initial_temperature <= 1000.0):
             raise ConfigError(f"--initial-temperature {initial_temperature} K outside [1, 1000] K")
         profiles = resolve_profiles(labels, density_grid, allow_inverted)
