@@ -83,18 +83,18 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=2)
     ap.add_argument("--replay", action="store_true")
     args = ap.parse_args()
-    runs, pairs = [], []
     with tempfile.TemporaryDirectory(prefix="heap_reuse_") as tmp:
         flux = make_run(args.size, Path(tmp)) if args.replay else None
-        compare(args, flux, runs, pairs)
+        runs, pairs = compare(args, flux)
     name = f"heap_reuse_replay_{args.size}" if args.replay else f"heap_reuse_{args.size}"
     out = {"benchmark": "heap_reuse", "facets": args.size, "replay": args.replay, "pairs": pairs, "runs": runs}
     (HERE / "results" / f"{name}.json").write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out))
 
 
-def compare(args, flux, runs: list, pairs: list) -> None:
-    """Off and on alternating, ``args.pairs`` times; appends to ``runs`` and ``pairs``."""
+def compare(args, flux) -> tuple[list, list]:
+    """Off and on alternating, ``args.pairs`` times: (every run, each pair's off / on ratios)."""
+    runs, pairs = [], []
     for p in range(args.pairs):
         got = {}
         for reuse in (False, True):
@@ -109,6 +109,7 @@ def compare(args, flux, runs: list, pairs: list) -> None:
                 },
             }
         )
+    return runs, pairs
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import ctypes.util
+import functools
 import os
 import threading
 
@@ -38,8 +38,14 @@ def _glibc():
     """glibc's ``mallopt``/``malloc_trim`` through ctypes, or None (another C library, or switched off)."""
     if os.environ.get("CRATER_THERMAL_HEAP_REUSE", "1").strip() == "0":
         return None
+    return _process_glibc()
+
+
+@functools.cache
+def _process_glibc():
+    """The C library this process already runs on (its malloc is numpy's), if it is glibc; looked up once."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc = ctypes.CDLL(None)
         libc.mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
         libc.malloc_trim.argtypes = (ctypes.c_size_t,)
         libc.gnu_get_libc_version  # glibc only  # noqa: B018
