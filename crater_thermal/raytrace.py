@@ -14,7 +14,11 @@ changed by O(offset / facet size) = O(1e-3) only, for grazing rays to adjacent f
 Threads
 -------
 embreex's ``EmbreeScene.run`` releases the GIL while tracing, so batches are cut into chunks that a
-``ThreadPoolExecutor`` with ``os.cpu_count()`` workers traces concurrently.
+``ThreadPoolExecutor`` with ``os.cpu_count()`` workers traces concurrently. The pool is kept for the
+process (one per thread count), not started per batch: callers such as the horizon map trace thousands
+of small batches, and starting two threads for each cost more than tracing some of them on a busy
+machine. Callers that already spread their batches over threads (the compressed operator's build) trace
+with ``parallel=False``.
 """
 
 from __future__ import annotations
@@ -41,6 +45,18 @@ MIN_OFFSET_ULPS = 64.0
 CHUNK_RAYS = 65536
 
 _F32_EPS = float(np.finfo(np.float32).eps)
+
+
+_POOLS: dict = {}
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    """The process's tracing pool of ``n`` threads (per process id: a forked child starts its own)."""
+    key = (os.getpid(), n)
+    pool = _POOLS.get(key)
+    if pool is None:
+        pool = _POOLS[key] = ThreadPoolExecutor(n, thread_name_prefix="raytrace")
+    return pool
 
 
 def _n_threads(n_threads: int | None) -> int:
@@ -130,8 +146,7 @@ class RayTracer:
             for s in starts:
                 work(s)
         else:
-            with ThreadPoolExecutor(self.n_threads) as ex:
-                list(ex.map(work, starts))
+            list(_pool(self.n_threads).map(work, starts))
         return out
 
     def run_raw(

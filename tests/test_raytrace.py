@@ -120,3 +120,54 @@ def test_min_offset_floor():
     rt = RayTracer(m)
     assert rt.min_offset == pytest.approx(MIN_OFFSET_ULPS * np.finfo(np.float32).eps * 0.5)
     assert np.all(rt.offsets >= rt.min_offset)
+
+
+def _tracing_threads() -> list:
+    import threading
+
+    return [t for t in threading.enumerate() if t.name.startswith("raytrace")]
+
+
+def test_batches_reuse_one_pool_of_threads(crater):
+    """Many multi-chunk batches are traced by the same n threads (no threads started per batch), with the
+    same answers as one thread tracing the whole batch."""
+    rng = np.random.default_rng(5)
+    n = 3 * 2048  # several chunks of the 2-thread split
+    idx = rng.integers(0, crater.n_facets, n)
+    d = rng.normal(size=(n, 3))
+    r1 = RayTracer(crater, n_threads=1)
+    r2 = RayTracer(crater, n_threads=2)
+    o = r1.facet_origins(idx)
+    ref = r1.occluded(o, d)
+    assert np.array_equal(r2.occluded(o, d), ref)
+    threads = {t.ident for t in _tracing_threads()}
+    assert threads  # the batch was split over the pool's threads
+    for _ in range(20):
+        assert np.array_equal(r2.occluded(o, d), ref)
+    assert {t.ident for t in _tracing_threads()} == threads
+
+
+def test_a_forked_child_traces_with_its_own_pool(crater):
+    """The pool is per process: a child forked after the parent traced (its pool's threads do not exist
+    in the child) still traces, with the parent's answers."""
+    import multiprocessing
+
+    rng = np.random.default_rng(6)
+    n = 4 * 2048
+    idx = rng.integers(0, crater.n_facets, n)
+    d = rng.normal(size=(n, 3))
+    rt = RayTracer(crater, n_threads=2)
+    o = rt.facet_origins(idx)
+    ref = rt.occluded(o, d)  # the parent's pool now exists
+
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=lambda: queue.put(rt.occluded(o, d)))  # forked: nothing pickled but the answer
+    child.start()
+    try:
+        got = queue.get(timeout=60)
+    finally:
+        child.join(timeout=30)
+        if child.is_alive():
+            child.kill()
+    assert np.array_equal(got, ref)

@@ -477,3 +477,25 @@ def test_row_restricted_far_blocks_equal_the_whole_product_rows(terrain5k):
             rows = np.zeros((b - a, k), dtype)
             kv.lowrank_matvec_rows(*lr, X, rows, tmp, a, b)
             np.testing.assert_array_equal(rows, whole[a:b])
+
+
+def test_threaded_build_traces_in_its_own_threads(monkeypatch):
+    """A build on several threads traces each unit's rays in the thread that runs it (no tracer threads
+    inside the build's), one on one thread lets the tracer spread its batches; both give the same operator."""
+    m = terrain_mesh(1500, rough_m=20.0)
+    tr = RayTracer(m, n_threads=2)
+    seen = []
+    run_raw = tr.run_raw
+
+    def spy(*args, parallel=True, **kw):
+        seen.append(parallel)
+        return run_raw(*args, parallel=parallel, **kw)
+
+    monkeypatch.setattr(tr, "run_raw", spy)
+    two = vo.compressed_view_factors(m, tr, n_threads=2)
+    assert seen and not any(seen)
+    seen.clear()
+    one = vo.compressed_view_factors(m, tr, n_threads=1)
+    assert seen and all(seen)
+    x = np.random.default_rng(0).random(m.n_facets)
+    assert np.array_equal(two @ x, one @ x)
