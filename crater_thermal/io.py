@@ -677,14 +677,39 @@ class SegmentStore:
         # plain strings: pathlib interns every path part, a dictionary that grows with the block count
         return os.path.join(self._dir, f"{name}.{b:08d}.npy")
 
-    def write(self, name: str, k0: int, rows: np.ndarray) -> None:
-        """Store ``rows`` as rows ``k0 ..`` of series ``name`` (``k0`` a multiple of ``block``)."""
+    def write(self, name: str, k0: int, rows: np.ndarray, in_place: bool = False) -> None:
+        """Store ``rows`` as rows ``k0 ..`` of series ``name`` (``k0`` a multiple of ``block``).
+
+        ``in_place``: when the block exists with the same shape and type, overwrite its values in the
+        file instead of writing a new file and renaming it. The page cache's pages are then reused (a new
+        file's are allocated afresh: measured 0.4-6 GB/s for new files, 2.6-5 GB/s for renamed
+        rewrites, ~8 GB/s in place), but a process killed during the write can leave the block torn:
+        only for series that nothing reads after an interruption (the spin-up windows' own series,
+        which a resumed run computes again)."""
         if k0 % self.block or len(rows) > self.block:
             raise ValueError(f"{name}: rows {k0}..{k0 + len(rows)} do not fit block {self.block}")
         target = self._file(name, k0 // self.block)
+        if in_place and self._overwrite(target, rows):
+            return
         with atomic_output(target, overwrite=True, durable=False) as tmp:
             with open(tmp, "wb") as fh:
                 np.save(fh, np.ascontiguousarray(rows))
+
+    @staticmethod
+    def _overwrite(target: str, rows: np.ndarray) -> bool:
+        """Overwrite an existing block file's values with ``rows`` if its shape and type are the same;
+        False (nothing written) otherwise."""
+        try:
+            block = np.load(target, mmap_mode="r+")
+        except (OSError, ValueError):
+            return False
+        try:
+            if block.shape != rows.shape or block.dtype != rows.dtype:
+                return False
+            block[...] = rows
+            return True
+        finally:
+            del block
 
     def write_rows(self, name: str, k0: int, rows: np.ndarray) -> None:
         """Store rows ``k0 .. k0 + len(rows) - 1`` of ``name``, split at block boundaries (any ``k0``;

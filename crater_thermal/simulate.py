@@ -883,7 +883,7 @@ class _SpinUpWindow:
                 e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
                 if first:
                     ir, T, rows, ir_held = self._held_ir_block(b0, b1, ir_held)
-                    fc.store.write(self.lag_in, b0, ir)
+                    fc.store.write(self.lag_in, b0, ir, in_place=True)
                 else:
                     ir = fc.store.read(self.lag_in, b0, e)
                     sol = fc.rows(fc.drive, b0, e)
@@ -897,8 +897,10 @@ class _SpinUpWindow:
                     rows = self._lagged_ir_rows(b0, e, T, sol)[: b1 - b0]
                     del sol
                     T = T[: b1 - b0]
-                fc.store.write(self.lag_out, b0, rows)
-                fc.store.write("lag_T", b0, T.astype(np.float32))
+                # the windows' own series, written over the last window's (a resumed run starts the
+                # spin-up again): in place
+                fc.store.write(self.lag_out, b0, rows, in_place=True)
+                fc.store.write("lag_T", b0, T.astype(np.float32), in_place=True)
                 np.maximum(moved, np.max(np.abs(rows - ir[: b1 - b0]), axis=0), out=moved)
                 np.minimum(t_min, np.min(T[:, run], axis=0), out=t_min)
                 if b1 == ns:  # the IR of the window's last state: the record's first sample

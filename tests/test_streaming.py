@@ -80,6 +80,31 @@ def test_segment_store_reads_copies_and_reports_torn_blocks(tmp_path):
         store.read("x", 4, 8)
 
 
+def test_segment_store_writes_in_place_only_over_a_block_of_the_same_shape(tmp_path):
+    """``in_place``: a block of the same shape and type is overwritten in its file (the same inode, read
+    back exactly, earlier reads unchanged); a new block, another shape or another type, or a file that
+    is not a readable block, is written whole as before."""
+    store = io.SegmentStore(tmp_path / "s", block=4)
+    data = np.arange(8 * 5, dtype=float).reshape(8, 5)
+    store.write("x", 0, data[:4], in_place=True)  # no block yet: written whole
+    f = tmp_path / "s" / "x.00000000.npy"
+    inode = f.stat().st_ino
+    before = store.read("x", 0, 4)
+    store.write("x", 0, -data[:4], in_place=True)
+    assert f.stat().st_ino == inode
+    np.testing.assert_array_equal(store.read("x", 0, 4), -data[:4])
+    np.testing.assert_array_equal(before, data[:4])
+    store.write("x", 0, data[:3], in_place=True)  # fewer rows: a new file
+    assert f.stat().st_ino != inode
+    np.testing.assert_array_equal(store.read("x", 0, 3), data[:3])
+    inode = f.stat().st_ino
+    store.write("x", 0, data[:3].astype(np.float32), in_place=True)  # another type: a new file
+    assert f.stat().st_ino != inode and store.read("x", 0, 3).dtype == np.float32
+    f.write_bytes(b"torn")  # not a block at all: written whole, no error
+    store.write("x", 0, data[:4], in_place=True)
+    np.testing.assert_array_equal(store.read("x", 0, 4), data[:4])
+
+
 def test_tiny_budget_gives_the_same_run(tmp_path):
     """Blocks of a few samples (a tiny chunk_mb) change nothing: the same fluxes and temperatures to
     rounding (uniform start and fixed spin-up: no block-wise means; the scattering solve of a different
