@@ -752,6 +752,8 @@ class _SpinUpWindow:
         self.t_min = np.full(nf, np.inf)  # coldest surface temperature [K] of each column's last run
         #: columns run by each lagged pass (diagnostics)
         self.columns_run: list[int] = []
+        #: the latest lagged pass's IR products are still to be made (:meth:`skip` makes them)
+        self.products_due = False
 
     def equilibrium_start(self) -> np.ndarray:
         """Surface temperatures [K] of the equilibrium start (:func:`equilibrium_start`)."""
@@ -864,7 +866,13 @@ class _SpinUpWindow:
     def lagged(self, report, expected: int) -> None:
         """One lagged pass (the first one with each facet's IR held a day at a time, in steps of up to
         :data:`crater_thermal.waveform.FIRST_PASS_STEP_S`, recording the IR series the next passes start
-        from); converged columns whose input moved too little are skipped."""
+        from); converged columns whose input moved too little are skipped.
+
+        A later pass only conducts: its temperatures go to the store ("lag_T") and the IR products of
+        them, the next pass's input, are made by :meth:`skip`, which :func:`thermal.periodic_state`
+        calls only when another pass follows; the last pass, which ends the iteration, makes none but
+        that of its last sample (:attr:`ir_end`). (The relaxed start, :class:`crater_thermal.waveform.SpinUp`,
+        forms its next input in its ``skip`` hook the same way.)"""
         on_step = self._progress(report, expected)
         fc, ns, block, t = self.fc, self.n, self.block, self.t
         first = self.lag_in is None
@@ -874,7 +882,7 @@ class _SpinUpWindow:
         run = np.flatnonzero(~self.skipped)
         some = run.size < self.skipped.size
         self.columns_run.append(int(run.size))
-        moved = np.zeros(self.skipped.size)  # max |output - input| of this pass, per column
+        moved = np.zeros(self.skipped.size)  # max |output - input| of the first pass, per column
         t_min = np.full(run.size, np.inf)
         # the first pass's coarse steps: one sub-step each, not refined
         with waveform.first_pass_steps(self.solver, first):
@@ -884,38 +892,63 @@ class _SpinUpWindow:
                 if first:
                     ir, T, rows, ir_held = self._held_ir_block(b0, b1, ir_held)
                     fc.store.write(self.lag_in, b0, ir, in_place=True)
+                    # the windows' own series, written over the last window's (a resumed run starts the
+                    # spin-up again): in place
+                    fc.store.write(self.lag_out, b0, rows, in_place=True)
+                    np.maximum(moved, np.max(np.abs(rows - ir), axis=0), out=moved)
+                    if b1 == ns:
+                        self.ir_end = rows[-1].copy()
+                    del ir, rows
                 else:
                     ir = fc.store.read(self.lag_in, b0, e)
                     sol = fc.rows(fc.drive, b0, e)
                     if some:  # the skipped columns' temperatures are those of their last run
-                        T = fc.store.read("lag_T", b0, e).astype(float)
+                        T = fc.store.read("lag_T", b0, e)
                         T[:, run] = self.solver.run_columns(
                             run, t[b0:e], self.stepper.absorbed(sol[:, run], ir[:, run])
                         )
                     else:
                         T = self.solver.run_series(t[b0:e], self.stepper.absorbed(sol, ir), record=True)
-                    rows = self._lagged_ir_rows(b0, e, T, sol)[: b1 - b0]
-                    del sol
+                    del sol, ir
+                    if b1 == ns:  # the IR of the window's last state: the record's first sample
+                        self.ir_end = self.stepper.ir_rows(T[-1:])[0]
                     T = T[: b1 - b0]
-                # the windows' own series, written over the last window's (a resumed run starts the
-                # spin-up again): in place
-                fc.store.write(self.lag_out, b0, rows, in_place=True)
-                fc.store.write("lag_T", b0, T.astype(np.float32), in_place=True)
-                np.maximum(moved, np.max(np.abs(rows - ir[: b1 - b0]), axis=0), out=moved)
+                fc.store.write("lag_T", b0, T, in_place=True)
                 np.minimum(t_min, np.min(T[:, run], axis=0), out=t_min)
-                if b1 == ns:  # the IR of the window's last state: the record's first sample
-                    self.ir_end = rows[-1].copy()
-                del ir, T, rows
+                del T
                 if on_step is not None:
                     on_step(e - 1)
         self.t_min[run] = t_min
-        # the next input is this output: each column's input drift since its last run
+        if first:  # the next input is this output: each column's input drift since its last run
+            self.drift = np.where(self.skipped, self.drift, 0.0) + moved
+            self.lag_in, self.lag_out = self.lag_out, self.lag_in
+        self.products_due = not first
+
+    def _next_input(self) -> None:
+        """The IR products of the latest pass's temperatures ("lag_T"), block by block (the exact product
+        at every ``product_samples``-th sample, :meth:`_lagged_ir_rows`): the next pass's input, and each
+        column's input drift since its last run."""
+        fc, ns, block = self.fc, self.n, self.block
+        moved = np.zeros(self.skipped.size)
+        for b0 in range(0, ns, block):
+            b1 = min(ns, b0 + block)
+            e = min(ns, b1 + 1)
+            T = fc.store.read("lag_T", b0, e)
+            rows = self._lagged_ir_rows(b0, e, T, fc.rows(fc.drive, b0, e))[: b1 - b0]
+            del T
+            np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
+            fc.store.write(self.lag_out, b0, rows, in_place=True)
+            del rows
         self.drift = np.where(self.skipped, self.drift, 0.0) + moved
         self.lag_in, self.lag_out = self.lag_out, self.lag_in
+        self.products_due = False
 
     def skip(self, converged: np.ndarray) -> np.ndarray:
-        """The ``skip`` hook of :func:`thermal.periodic_state`: the converged columns the next lagged pass
-        need not run (their input IR has moved by less than 4 sigma T_min^3 tol / 4 since their last run)."""
+        """The ``skip`` hook of :func:`thermal.periodic_state` (called when another pass follows): forms
+        that pass's input (:meth:`_next_input`) and returns the converged columns it need not run (their
+        input IR has moved by less than 4 sigma T_min^3 tol / 4 since their last run)."""
+        if self.products_due:
+            self._next_input()
         self.skipped = waveform.skippable(converged, self.drift, self.t_min, self.tol_K)
         return self.skipped
 
@@ -924,6 +957,6 @@ class _SpinUpWindow:
         it): a lagged pass's input, named ``lag_out`` after its swap."""
         if not self.save_spin:
             return
-        used = self.lag_out
+        used = self.lag_in if self.products_due else self.lag_out  # (not swapped when no products followed)
         for b0 in range(0, self.n, self.block):
             self.fc.store.write("spin_ir", b0, self.fc.store.read(used, b0, min(self.n, b0 + self.block)))

@@ -487,7 +487,14 @@ def test_lagged_spinup_skips_converged_columns_without_moving_the_result(tmp_pat
     path = small_case(tmp_path, name="skip", facets=400, end="2019-01-16", extra_period='spinup_ir = "lagged"')
     case = config.load_case(path)
     skip = io.open_run(runner.run_case(case, tmp_path / "skip.nc", progress=False))
-    monkeypatch.setattr(simulate._SpinUpWindow, "skip", lambda self, converged: np.zeros_like(converged))
+    skip_some = simulate._SpinUpWindow.skip
+
+    def skip_none(self, converged):
+        skip_some(self, converged)  # (it also forms the next window's input)
+        self.skipped = np.zeros_like(converged)
+        return self.skipped
+
+    monkeypatch.setattr(simulate._SpinUpWindow, "skip", skip_none)
     every = io.open_run(runner.run_case(case, tmp_path / "every.nc", progress=False))
     runs = [int(n) for n in skip.attrs["start_method"].split("columns run per window: ")[1].rstrip(")").split(", ")]
     assert runs[0] == 400 and min(runs) < 400, runs
@@ -530,6 +537,29 @@ def test_lagged_spinup_with_two_samples_per_ir_product(tmp_path, monkeypatch):
     assert np.abs(dT).max() <= 0.01
     T, _ = simulate.replay_fluxes(grouped, runner.resolve_profiles(["1300/1800"]), tol_K=1e-4, progress=False)
     assert np.abs(T[0] - grouped["surface_temperature"].values).max() <= 0.01
+
+
+def test_only_windows_followed_by_another_make_their_ir_products(tmp_path, monkeypatch):
+    """Issue 24: a lagged window's IR products are the next window's input, so they are made (in the
+    ``skip`` hook) only when another window follows: of K windows the held first makes its own while it
+    runs, windows 2 .. K - 1 theirs after they ran, and the last none but its last sample's (the
+    record's first IR). The saved spin-up IR is then the last window's input, which still replays the
+    run (the replay re-runs the last window from it)."""
+    path = small_case(tmp_path, name="due", facets=400, end="2019-01-16", extra_period='spinup_ir = "lagged"')
+    case = config.load_case(path)
+    after = []
+    next_input = simulate._SpinUpWindow._next_input
+
+    def counted(self):
+        after.append(self.passes)
+        return next_input(self)
+
+    monkeypatch.setattr(simulate._SpinUpWindow, "_next_input", counted)
+    ds = io.open_run(runner.run_case(case, tmp_path / "due.nc", progress=False))
+    windows = len(ds.attrs["start_method"].split("columns run per window: ")[1].split(", "))
+    assert windows >= 3 and after == list(range(2, windows)), (windows, after)
+    T, _ = simulate.replay_fluxes(ds, runner.resolve_profiles(["1300/1800"]), tol_K=1e-4, progress=False)
+    assert np.abs(T[0] - ds["surface_temperature"].values).max() <= 0.01
 
 
 def test_coarse_first_lagged_pass_leaves_the_periodic_state(tmp_path, monkeypatch):
