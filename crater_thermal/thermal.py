@@ -55,7 +55,6 @@ algebra of the Jacobians; the measured times are in ``docs/performance.md``.
 
 from __future__ import annotations
 
-import functools
 import math
 import os
 import warnings
@@ -788,15 +787,6 @@ class ColumnSolver:
         g1 = (1.0 - 0.5 * _k.TRB_GAMMA * lam) / (1.0 + 0.5 * _k.TRB_GAMMA * lam)
         return (_k.TRB_W1 * g1 - _k.TRB_W0) / (1.0 + _k.TRB_BETA * lam)
 
-    def linear_parts(self, Tmean, dt, cols):
-        """The linearised one-step operator of columns ``cols`` at temperatures ``Tmean`` [K] and mean
-        sub-step ``dt`` (n,) [s]: link conductances ``K`` (n, nz - 1) [W m-2 K-1] and heat capacities over
-        the sub-step ``Cd = m c(Tmean) / dt`` (n, nz) [W m-2 K-1]."""
-        T = Tmean[cols]
-        tl = 0.5 * (T[:, 1:] + T[:, :-1])
-        k = self.b0[cols] + self.b3[cols] * tl**3 + self.pset.heat_capacity(tl) * (self.e0[cols] + self.e1[cols] / tl)
-        return k / self.dz, self.m[cols] * self.pset.heat_capacity(T) / dt[:, None]
-
     def linear_modes(self, Tmean, h, dt, cols):
         """Eigen-decomposition of the linearised one-step operator for columns ``cols``.
 
@@ -804,8 +794,12 @@ class ColumnSolver:
         (L + H) v = lam Cd v, Cd = m c(Tmean)/dt; one sub-step multiplies mode j by
         ``step_gain(lam_j)``.
         """
-        K, Cd = self.linear_parts(Tmean, dt, cols)
-        n, nz = Cd.shape
+        T = Tmean[cols]
+        n, nz = T.shape
+        tl = 0.5 * (T[:, 1:] + T[:, :-1])
+        k = self.b0[cols] + self.b3[cols] * tl**3 + self.pset.heat_capacity(tl) * (self.e0[cols] + self.e1[cols] / tl)
+        K = k / self.dz
+        Cd = self.m[cols] * self.pset.heat_capacity(T) / dt[:, None]
         A = np.zeros((n, nz, nz))
         ii = np.arange(nz)
         diag = np.zeros((n, nz))
@@ -824,55 +818,11 @@ class ColumnSolver:
 # ----------------------------------------------------------------------------- periodic state
 
 
-@functools.cache
-def _negative_gain(scheme: str) -> float:
-    """The largest |g| of one sub-step's amplification g(lambda dt) where it is negative (TR-BDF2's
-    overshoot for fast modes; 0 for backward Euler), on a fine logarithmic grid, 1 % added."""
-    if scheme == "euler":
-        return 0.0
-    lam = np.logspace(-3, 9, 200_001)
-    g1 = (1.0 - 0.5 * _k.TRB_GAMMA * lam) / (1.0 + 0.5 * _k.TRB_GAMMA * lam)
-    g = (_k.TRB_W1 * g1 - _k.TRB_W0) / (1.0 + _k.TRB_BETA * lam)
-    return 1.01 * float(max(0.0, -g.min()))
-
-
 def _newton_step(solver, Tm, h, dt, nst, r, dx, cols) -> None:
     """The quasi-Newton step ``dx[cols]`` [K] of :func:`periodic_state` for columns ``cols``: the residual
-    ``r`` [K] through ``(I - J)^-1``, J from the linearised one-step operator at ``Tm`` [K] (surface
-    conductance ``h`` [W m-2 K-1], mean sub-step ``dt`` [s], ``nst`` sub-steps per period), applied
-    through its slow modes only (:mod:`crater_thermal.kernels.periodic`, a numba kernel on numba's
-    threads: call it from one thread). :func:`_newton_step_eigh` is the same step through numpy's dense
-    eigen-decomposition of every mode (the reference)."""
-    from crater_thermal.kernels import periodic as _kp
-
-    K, Cd = solver.linear_parts(Tm, dt[cols], cols)
-    out = np.empty_like(Cd)
-    modes = np.zeros(len(cols), np.int64)
-    _kp.newton_steps(
-        np.ascontiguousarray(K),
-        np.ascontiguousarray(h[cols], dtype=float),
-        np.ascontiguousarray(Cd),
-        np.ascontiguousarray(r[cols]),
-        np.ascontiguousarray(nst[cols], dtype=float),
-        0 if solver.scheme == "euler" else 1,
-        float(_k.TRB_GAMMA),
-        float(_k.TRB_W0),
-        float(_k.TRB_W1),
-        float(_k.TRB_BETA),
-        _negative_gain(solver.scheme),
-        out,
-        modes,
-    )
-    dx[cols] = out
-
-
-def _newton_step_eigh(solver, Tm, h, dt, nst, r, dx, cols) -> None:
-    """:func:`_newton_step` through numpy's eigen-decomposition of every mode (``eigh`` of the dense
-    (nz x nz) matrices; releases the GIL, so its chunks may run on threads, :func:`_each`)."""
-    # one BLAS thread: LAPACK's threads on thousands of tiny (nz x nz) problems cost 30x the work on a
-    # busy 2-core machine (measured: 17 s instead of 0.5 s for 1000 columns)
-    with threadpool_limits(1, user_api="blas"):
-        sc, Q, lam = solver.linear_modes(Tm, h[cols], dt[cols], cols)
+    ``r`` [K] through ``(I - J)^-1``, J from the linearised one-step operator's modes at ``Tm`` [K]
+    (surface conductance ``h`` [W m-2 K-1], mean sub-step ``dt`` [s], ``nst`` sub-steps per period)."""
+    sc, Q, lam = solver.linear_modes(Tm, h[cols], dt[cols], cols)
     g = solver.step_gain(lam) ** nst[cols, None]
     w = np.einsum("nij,ni->nj", Q, sc * r[cols])
     w /= np.maximum(1.0 - g, 1e-8)
@@ -979,10 +929,17 @@ def periodic_state(
             h = np.where(tsum > 0, solver.acc[:, _k.ACC_HDT] / np.where(tsum > 0, tsum, 1.0), 0.0)
             Tm = 0.5 * (x + y)
             dx = np.zeros_like(r)
-            # in chunks of columns, each through the slow modes on numba's threads (_newton_step: 1.7 s
-            # instead of ~5 s of dense eigh on 2 threads at 100k columns, bench/periodic_jacobian.py)
-            for c0 in range(0, len(run), chunk):
-                _newton_step(solver, Tm, h, dt, nst, r, dx, run[c0 : c0 + chunk])
+            parts = [run[c0 : c0 + chunk] for c0 in range(0, len(run), chunk)]
+            # one BLAS thread: LAPACK's threads on thousands of tiny (nz x nz) problems cost 30x the
+            # work on a busy 2-core machine (measured: 17 s instead of 0.5 s for 1000 columns); the
+            # chunks instead go to numba's number of threads (numpy's eigh releases the GIL: 1.9-2.0x on
+            # 2 cores at 100k columns, bench/periodic_jacobian.py), each column's numbers unchanged
+            with threadpool_limits(1, user_api="blas"):
+                _each(
+                    lambda cols: _newton_step(solver, Tm, h, dt, nst, r, dx, cols),  # noqa: B023 (used at once)
+                    parts,
+                    min(numba.get_num_threads(), len(parts)),
+                )
         else:
             dx = np.where(skipped[:, None], 0.0, r)
         step = np.where(skipped, step, np.max(np.abs(dx), axis=1))
