@@ -15,22 +15,22 @@ Threads
 -------
 embreex's ``EmbreeScene.run`` releases the GIL while tracing, so batches are cut into chunks that a
 ``ThreadPoolExecutor`` with ``os.cpu_count()`` workers traces concurrently. The pool is kept for the
-process (one per thread count), not started per batch: callers such as the horizon map trace thousands
-of small batches, and starting two threads for each cost more than tracing some of them on a busy
-machine. Callers that already spread their batches over threads (the compressed operator's build) trace
-with ``parallel=False``.
+process (:func:`crater_thermal.pools.process_pool`, one per thread count), not started per batch:
+callers such as the horizon map trace thousands of small batches, and starting two threads for each
+cost more than tracing some of them on a busy machine. Callers that already spread their batches over
+threads (the compressed operator's build) trace with ``parallel=False``.
 """
 
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
 from crater_thermal.errors import MeshError
 from crater_thermal.geometry import Mesh
+from crater_thermal.pools import process_pool
 
 __all__ = ["RAY_OFFSET_FRACTION", "MIN_OFFSET_ULPS", "RayTracer"]
 
@@ -45,18 +45,6 @@ MIN_OFFSET_ULPS = 64.0
 CHUNK_RAYS = 65536
 
 _F32_EPS = float(np.finfo(np.float32).eps)
-
-
-_POOLS: dict = {}
-
-
-def _pool(n: int) -> ThreadPoolExecutor:
-    """The process's tracing pool of ``n`` threads (per process id: a forked child starts its own)."""
-    key = (os.getpid(), n)
-    pool = _POOLS.get(key)
-    if pool is None:
-        pool = _POOLS[key] = ThreadPoolExecutor(n, thread_name_prefix="raytrace")
-    return pool
 
 
 def _n_threads(n_threads: int | None) -> int:
@@ -146,7 +134,7 @@ class RayTracer:
             for s in starts:
                 work(s)
         else:
-            list(_pool(self.n_threads).map(work, starts))
+            list(process_pool("raytrace", self.n_threads).map(work, starts))
         return out
 
     def run_raw(

@@ -882,7 +882,7 @@ class _SpinUpWindow:
         run = np.flatnonzero(~self.skipped)
         some = run.size < self.skipped.size
         self.columns_run.append(int(run.size))
-        moved = np.zeros(self.skipped.size)  # max |output - input| of the first pass, per column
+        moved = np.zeros(self.skipped.size) if first else None  # the first pass's max |output - input|
         t_min = np.full(run.size, np.inf)
         # the first pass's coarse steps: one sub-step each, not refined
         with waveform.first_pass_steps(self.solver, first):
@@ -919,9 +919,8 @@ class _SpinUpWindow:
                 if on_step is not None:
                     on_step(e - 1)
         self.t_min[run] = t_min
-        if first:  # the next input is this output: each column's input drift since its last run
-            self.drift = np.where(self.skipped, self.drift, 0.0) + moved
-            self.lag_in, self.lag_out = self.lag_out, self.lag_in
+        if first:
+            self._output_is_next_input(moved)
         self.products_due = not first
 
     def _next_input(self) -> None:
@@ -939,9 +938,14 @@ class _SpinUpWindow:
             np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
             fc.store.write(self.lag_out, b0, rows, in_place=True)
             del rows
+        self._output_is_next_input(moved)
+        self.products_due = False
+
+    def _output_is_next_input(self, moved: np.ndarray) -> None:
+        """The IR series just written (``lag_out``) becomes the next pass's input: each column's input
+        drift since its last run grows by ``moved`` [W m-2] (max |output - input| per column)."""
         self.drift = np.where(self.skipped, self.drift, 0.0) + moved
         self.lag_in, self.lag_out = self.lag_out, self.lag_in
-        self.products_due = False
 
     def skip(self, converged: np.ndarray) -> np.ndarray:
         """The ``skip`` hook of :func:`thermal.periodic_state` (called when another pass follows): forms

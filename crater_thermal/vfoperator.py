@@ -82,6 +82,7 @@ from crater_thermal import io
 from crater_thermal.choices import VIEW_FACTOR_METHODS as METHODS
 from crater_thermal.errors import ConfigError, MeshError
 from crater_thermal.geometry import Mesh
+from crater_thermal.pools import process_pool
 
 __all__ = [
     "METHODS",
@@ -242,18 +243,6 @@ def as_operator(F) -> ViewFactorOperator:
     return SparseViewFactors(sp.csr_matrix(a))
 
 
-_POOL: dict = {}
-
-
-def _product_pool(n: int) -> ThreadPoolExecutor:
-    """A thread pool of n workers kept for the products (starting threads per product costs ~0.1 ms)."""
-    key = (os.getpid(), n)  # a forked child has none of its parent's threads: it starts its own pool
-    pool = _POOL.get(key)
-    if pool is None:
-        pool = _POOL[key] = ThreadPoolExecutor(n, thread_name_prefix="vfproduct")
-    return pool
-
-
 class CompressedViewFactors(ViewFactorOperator):
     """Hierarchically compressed view factors (module docstring); build with :func:`compressed_view_factors`.
 
@@ -364,7 +353,8 @@ class CompressedViewFactors(ViewFactorOperator):
         if len(parts) == 1:
             Y = self._apply_part(X, parts[0])
         else:
-            Ys = list(_product_pool(len(parts)).map(lambda part: self._apply_part(X, part), parts))
+            # a pool kept for the process: starting threads per product costs ~0.1 ms
+            Ys = list(process_pool("vfproduct", len(parts)).map(lambda part: self._apply_part(X, part), parts))
             Y = Ys[0]
             for other in Ys[1:]:
                 Y += other
