@@ -77,6 +77,7 @@ from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
+from threadpoolctl import threadpool_limits
 
 from crater_thermal import io
 from crater_thermal.choices import VIEW_FACTOR_METHODS as METHODS
@@ -955,6 +956,11 @@ class CompressedPlan:
         # the units run on this pool's threads, each tracing its batches itself (measured at 30k facets,
         # alternating: 12.4 / 12.5 s against 14.7 / 17.0 s with the tracer's threads started inside them)
         builder.serial_trace = pool is not None
+        # one BLAS thread while the units run: each far block's recompression (kernels.vfoperator.recompress)
+        # makes QR, SVD and products of blocks of ~60 x 60 at rank ~4, which OpenBLAS's own threads only
+        # slow down, spinning beside the build's threads (30k facets, alternating: recompression 2.1-2.8 s
+        # -> 0.5 s in all, the operator 9.6 -> 7.2 s; the same numbers)
+        limits = threadpool_limits(1, user_api="blas")
         try:
             results = pool.map(work, units) if pool is not None else map(work, units)
             for lr, cc, nr, npairs in results:
@@ -969,6 +975,7 @@ class CompressedPlan:
             builder.serial_trace = False
             if pool is not None:
                 pool.shutdown()
+            limits.restore_original_limits()
         return lowrank, coo, rays, near_pairs
 
     def row_block(self, a: int, b: int, n_threads: int | None = None) -> "RowBlock":

@@ -499,3 +499,31 @@ def test_threaded_build_traces_in_its_own_threads(monkeypatch):
     assert seen and all(seen)
     x = np.random.default_rng(0).random(m.n_facets)
     assert np.array_equal(two @ x, one @ x)
+
+
+def test_build_recompresses_on_one_blas_thread(monkeypatch):
+    """The far blocks' recompression (small QR, SVD and products) runs with one BLAS thread, whatever the
+    build's thread count (BLAS's own threads only spin beside the build's), and the limit is lifted after."""
+    from threadpoolctl import threadpool_info
+
+    from crater_thermal.kernels import vfoperator as kv
+
+    def blas_threads():
+        return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+
+    before = blas_threads()
+    seen = []
+    recompress = kv.recompress
+
+    def spy(*args):
+        seen.append(blas_threads())
+        return recompress(*args)
+
+    monkeypatch.setattr(kv, "recompress", spy)
+    m = terrain_mesh(1500, rough_m=20.0)
+    tr = RayTracer(m, n_threads=2)
+    for n in (2, 1):
+        seen.clear()
+        vo.compressed_view_factors(m, tr, n_threads=n)
+        assert seen and all(s == [1] for s in seen)
+        assert blas_threads() == before
