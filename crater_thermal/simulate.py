@@ -835,9 +835,9 @@ class _SpinUpWindow:
         ir_out = waveform.between(t, known, self.stepper.ir_rows(Tk), rows)
         return ir_in, T_out, ir_out, ir
 
-    def _lagged_ir_rows(self, b0: int, e: int, T: np.ndarray, sol: np.ndarray) -> np.ndarray:
+    def _lagged_ir_rows(self, b0: int, e: int, T: np.ndarray) -> np.ndarray:
         """The IR rows [W m-2] of a lagged pass's surface temperatures ``T`` (e - b0, nf) [K] at samples
-        b0..e-1 (``sol``: the drive's rows there). With ``product_samples`` g > 1 the exact products are
+        b0..e-1. With ``product_samples`` g > 1 the exact products are
         made at every g-th sample from b0 and at e - 1 only; between two of them the IR is interpolated
         linearly in time less its prompt part (:func:`crater_thermal.radiosity.prompt_ir`, which carries
         the kinks at sunrise and sunset on the terrain a facet sees), that part added back, and kept
@@ -851,8 +851,7 @@ class _SpinUpWindow:
         idx = np.unique(np.r_[np.arange(0, n, g), n - 1])
         out = np.empty(T.shape)
         out[idx] = self.stepper.ir_rows(T[idx])
-        solar = sol if fc.drive == "solar" else fc.rows("solar", b0, e)
-        P = radiosity.prompt_ir(solar, fc.rows("direct", b0, e), self.stepper.albedo)
+        P = radiosity.prompt_ir(fc.rows("solar", b0, e), fc.rows("direct", b0, e), self.stepper.albedo)
         t = self.t[b0:e]
         for a, c in zip(idx[:-1], idx[1:]):
             if c - a < 2:
@@ -933,7 +932,7 @@ class _SpinUpWindow:
             b1 = min(ns, b0 + block)
             e = min(ns, b1 + 1)
             T = fc.store.read("lag_T", b0, e)
-            rows = self._lagged_ir_rows(b0, e, T, fc.rows(fc.drive, b0, e))[: b1 - b0]
+            rows = self._lagged_ir_rows(b0, e, T)[: b1 - b0]
             del T
             np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
             fc.store.write(self.lag_out, b0, rows, in_place=True)

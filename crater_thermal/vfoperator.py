@@ -960,22 +960,21 @@ class CompressedPlan:
         # makes QR, SVD and products of blocks of ~60 x 60 at rank ~4, which OpenBLAS's own threads only
         # slow down, spinning beside the build's threads (30k facets, alternating: recompression 2.1-2.8 s
         # -> 0.5 s in all, the operator 9.6 -> 7.2 s; the same numbers)
-        limits = threadpool_limits(1, user_api="blas")
         try:
-            results = pool.map(work, units) if pool is not None else map(work, units)
-            for lr, cc, nr, npairs in results:
-                lowrank += lr
-                coo += cc
-                rays += nr
-                near_pairs += npairs
-                done += 1
-                if progress is not None:
-                    progress(done, len(units))
+            with threadpool_limits(1, user_api="blas"):
+                results = pool.map(work, units) if pool is not None else map(work, units)
+                for lr, cc, nr, npairs in results:
+                    lowrank += lr
+                    coo += cc
+                    rays += nr
+                    near_pairs += npairs
+                    done += 1
+                    if progress is not None:
+                        progress(done, len(units))
         finally:
             builder.serial_trace = False
             if pool is not None:
                 pool.shutdown()
-            limits.restore_original_limits()
         return lowrank, coo, rays, near_pairs
 
     def row_block(self, a: int, b: int, n_threads: int | None = None) -> "RowBlock":

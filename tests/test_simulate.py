@@ -518,9 +518,9 @@ def test_lagged_spinup_with_two_samples_per_ir_product(tmp_path, monkeypatch):
     made = []
     rows = simulate._SpinUpWindow._lagged_ir_rows
 
-    def counted(self, b0, e, T, sol):
+    def counted(self, b0, e, T):
         made.append((self.product_samples, e - b0))
-        return rows(self, b0, e, T, sol)
+        return rows(self, b0, e, T)
 
     monkeypatch.setattr(simulate._SpinUpWindow, "_lagged_ir_rows", counted)
     grouped = io.open_run(runner.run_case(case, tmp_path / "grouped.nc", progress=False))
