@@ -725,8 +725,9 @@ class SegmentStore:
             self.write(name, b0, part)
             k = b1
 
-    def read(self, name: str, k0: int, k1: int) -> np.ndarray:
-        """Rows ``k0 .. k1 - 1`` of series ``name`` (FluxFileError if a block is missing or short)."""
+    def read(self, name: str, k0: int, k1: int, dtype=None) -> np.ndarray:
+        """Rows ``k0 .. k1 - 1`` of series ``name`` (FluxFileError if a block is missing or short), as
+        stored or converted to ``dtype``."""
         parts = []
         k = int(k0)
         while k < k1:
@@ -751,7 +752,7 @@ class SegmentStore:
             parts.append(arr[lo:hi])
             k = b * self.block + hi
         # a copy in memory: no view of a file that a later write of the block replaces
-        return np.array(parts[0]) if len(parts) == 1 else np.concatenate(parts)
+        return np.array(parts[0], dtype=dtype) if len(parts) == 1 else np.concatenate(parts, dtype=dtype)
 
     def mark(self, name: str) -> None:
         """Record that a stage finished (an empty marker file, written atomically)."""
@@ -851,7 +852,9 @@ def write_steady(
 #: Storage type of run.nc's (time, facet) series (fluxes, surface temperature). float32 keeps 7
 #: significant digits: 1e-4 W m-2 at 1,000 W m-2, 1e-5 K at 300 K, far below the model's accuracy;
 #: against float64 it halves the file (measured after zlib: 0.24-0.33 of the float64 bytes instead of
-#: 0.61-0.71) and the time spent compressing it. The run steps in float64 (its block store too); a replay
+#: 0.61-0.71) and the time spent compressing it. The run steps in float64; its scratch store keeps the
+#: sunlight series and the record's rows in this type too (half the bytes to write; the conduction reads the
+#: sunlight back as float64), so the run and a replay from run.nc are driven by the same sunlight. A replay
 #: of the nominal profile from these series reproduces the run's stored temperatures to their float32
 #: rounding (measured <= 3e-5 K on the test cases, fixed and periodic start).
 RUN_SERIES_DTYPE = "f4"

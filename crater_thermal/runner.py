@@ -270,11 +270,11 @@ def _sunlight_into_store(case, fc, tracer, store, block: int, timer, progress, h
         for k0 in range(0, n_all, block):
             k1 = min(n_all, k0 + block)
             direct, solar, absorbed = sunlight.with_absorbed(fc.sun_dirs[k0:k1], fc.sun_dist_m[k0:k1], timer)
-            with timer("io"):
-                store.write("direct", k0, direct)
-                store.write("solar", k0, solar)
+            with timer("io"):  # at run.nc's precision, which the record and the replays are then driven with
+                store.write("direct", k0, direct.astype(io.RUN_SERIES_DTYPE))
+                store.write("solar", k0, solar.astype(io.RUN_SERIES_DTYPE))
                 if absorbed is not None:
-                    store.write("absorbed", k0, absorbed)
+                    store.write("absorbed", k0, absorbed.astype(io.RUN_SERIES_DTYPE))
             del direct, solar, absorbed
             if report is not None:
                 report(k1, n_all)
@@ -328,7 +328,9 @@ class _Checkpoints:
         self.path, self.fingerprint, self.block, self.coupling = path, fingerprint, block, coupling
         self.solver, self.stepper, self.timer = solver, stepper, timer
 
-    def save(self, k: int, info: dict) -> None:
+    def save(self, k: int, info: dict, ir_k: np.ndarray) -> None:
+        """Checkpoint at record sample ``k`` with ``ir_k`` [W m-2], the IR that drove it (float64: the
+        store keeps the record's IR rounded to :data:`crater_thermal.io.RUN_SERIES_DTYPE`)."""
         hist = self.stepper.history()
         extra = {} if hist is None else {f"history_{name}": np.asarray(v) for name, v in hist.items()}
         with self.timer("io"):
@@ -338,6 +340,7 @@ class _Checkpoints:
                 phase=np.array("record"),
                 coupling=np.array(self.coupling),
                 k=np.array(k),
+                ir_k=np.asarray(ir_k, np.float64),
                 block=np.array(self.block),
                 state=self.solver.state(),
                 start_method=np.array(info["start_method"]),
@@ -364,7 +367,8 @@ def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints,
         if "history_ir_now" in ckpt:
             names = ("ir_now", "ir_before", "dt_before", "prompt_now", "prompt_before")
             stepper.set_history({name: ckpt[f"history_{name}"] for name in names if f"history_{name}" in ckpt})
-        return spin_info, k0, store.read("ir", k0, k0 + 1)[0]
+        ir_k = ckpt["ir_k"] if "ir_k" in ckpt else store.read("ir", k0, k0 + 1, dtype=np.float64)[0]
+        return spin_info, k0, np.asarray(ir_k, np.float64)
     spin_t = simulate.seconds_since(fc.spin_times, fc.times[0])
     save_spin = case.output.save_spinup_fluxes and fc.n_spin > 0
     with timer("conduction_spinup"):
@@ -374,19 +378,20 @@ def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints,
             spin_info, ir_start = _spin_up_relaxed(case, fc, cols, solver, stepper, spin_t, block, save_spin, progress)
     ir_k = stepper.ir(solver.surface_temperature) if ir_start is None else ir_start
     with timer("io"):
-        store.write("T", 0, solver.surface_temperature[None, :])
-        store.write("ir", 0, ir_k[None, :])
-    checkpoints.save(0, spin_info)
+        store.write("T", 0, solver.surface_temperature[None, :].astype(io.RUN_SERIES_DTYPE))
+        store.write("ir", 0, ir_k[None, :].astype(io.RUN_SERIES_DTYPE))
+    checkpoints.save(0, spin_info, ir_k)
     return spin_info, 0, ir_k
 
 
 class _RecordRows:
-    """Buffers the record's surface temperatures and IR, row by row, and flushes them to the store in blocks."""
+    """Buffers the record's surface temperatures and IR, row by row, and flushes them to the store in blocks
+    (as :data:`crater_thermal.io.RUN_SERIES_DTYPE`, run.nc's type: nothing computes from them afterwards)."""
 
     def __init__(self, store, block: int, nf: int, first: int, timer):
         self.store, self.block, self.timer = store, block, timer
-        self.T = np.empty((block, nf))
-        self.ir = np.empty((block, nf))
+        self.T = np.empty((block, nf), io.RUN_SERIES_DTYPE)
+        self.ir = np.empty((block, nf), io.RUN_SERIES_DTYPE)
         self.first, self.n = first, 0  # first buffered row, rows buffered
 
     def append(self, T, ir) -> None:
@@ -440,7 +445,7 @@ def _record(case, fc, stepper, store, block, k0, ir_k, checkpoints, spin_info, t
                 rows.append(T1, ir1)
             if every and e // every > k // every and e < nt - 1:
                 rows.flush()
-                checkpoints.save(e, spin_info)
+                checkpoints.save(e, spin_info, ir_k)
             k = e
             if report is not None:
                 report(k - k0, nt - 1 - k0)
@@ -526,7 +531,7 @@ def _record_relaxed(case, fc, cols, solver, store, block, k0, ir_k, checkpoints,
             if every and k1 // every > k // every and k1 < nt - 1:
                 rows.flush()
                 solver.set_state(state)
-                checkpoints.save(k1, spin_info)
+                checkpoints.save(k1, spin_info, ir_k)
             k = k1
             if report is not None:
                 report(k - k0, nt - 1 - k0)

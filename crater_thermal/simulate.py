@@ -389,9 +389,10 @@ class Forcing:
         return arr[:ns], arr[ns - 1 :]
 
     def rows(self, name: str, k0: int, k1: int) -> np.ndarray:
-        """Rows ``k0 .. k1 - 1`` of ``"direct"``, ``"solar"`` or ``"absorbed"`` over spin-up + record [W m-2]."""
+        """Rows ``k0 .. k1 - 1`` of ``"direct"``, ``"solar"`` or ``"absorbed"`` over spin-up + record [W m-2],
+        float64 (a store keeps them as :data:`crater_thermal.io.RUN_SERIES_DTYPE`)."""
         if self.store is not None:
-            return self.store.read(name, k0, k1)
+            return self.store.read(name, k0, k1, dtype=np.float64)
         return getattr(self, name)[k0:k1]
 
 

@@ -436,15 +436,17 @@ def test_prompt_ir_is_the_view_factors_times_the_absorbed_sunlight(ir_scheme_run
     assert not radiosity.prompt_ir(fc.solar, fc.direct, 0.0).any()
 
 
-def test_grouped_record_resumes_as_the_uninterrupted_run(tmp_path, monkeypatch):
-    """A record taken 2 samples per IR product, interrupted after some groups and resumed from its
+@pytest.mark.parametrize("samples", [2, 1])
+def test_grouped_record_resumes_as_the_uninterrupted_run(tmp_path, monkeypatch, samples):
+    """A record taken 2 samples per IR product (and 1), interrupted after some groups and resumed from its
     checkpoint (every 5 steps: the checkpoints fall at the groups' ends past each multiple), steps as the
     uninterrupted run: the same surface temperatures and IR, bit for bit (the checkpoint carries the prompt
-    IR of the extrapolation's history)."""
+    IR of the extrapolation's history, and the IR that drove its sample in float64: the store keeps the
+    record's IR rounded to float32)."""
     path = small_case(tmp_path, name="grouped", facets=80, end="2019-01-11", every=5)
-    path.write_text(path.read_text().replace("[steps]", "[steps]\nir_product_samples = 2"))
+    path.write_text(path.read_text().replace("[steps]", f"[steps]\nir_product_samples = {samples}"))
     case = config.load_case(path)
-    assert simulate.ir_product_samples(case, 80) == 2
+    assert simulate.ir_product_samples(case, 80) == samples
     whole = io.open_run(runner.run_case(case, tmp_path / "whole.nc", progress=False))
     appended = []
     real = runner._RecordRows.append
@@ -461,7 +463,7 @@ def test_grouped_record_resumes_as_the_uninterrupted_run(tmp_path, monkeypatch):
     monkeypatch.setattr(runner._RecordRows, "append", real)
     assert Path(runner.checkpoint_path(tmp_path / "cut.nc")).exists()
     cut = io.open_run(runner.run_case(case, tmp_path / "cut.nc", resume=True, progress=False))
-    assert whole.attrs["ir_product_samples"] == 2
+    assert whole.attrs["ir_product_samples"] == samples
     for name in ("surface_temperature", "ir_incident"):
         assert np.array_equal(cut[name].values, whole[name].values), name
 
