@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crater_thermal import io, runner, simulate
+from crater_thermal import heap, io, runner, simulate
 from crater_thermal.errors import ConfigError, OutputExistsError
 from crater_thermal.extras import connect_scheduler, missing_extra
 
@@ -44,6 +44,8 @@ CONNECT_TIMEOUT_S = 10.0
 CHUNK_FACETS = 2000
 #: Default profiles per chunk (one dask task).
 CHUNK_PROFILES = 8
+#: Name of the worker plugin that has a session's workers reuse large temporaries from their heap.
+HEAP_PLUGIN = "crater_thermal-heap-reuse"
 
 
 def connect(
@@ -55,9 +57,11 @@ def connect(
     local cluster of ``workers`` processes with one thread each. ``purpose``: what needs it (plural),
     for the error when dask.distributed is missing.
 
+    The workers reuse large temporaries from their heap while the client is open (:func:`_heap_plugin`).
+
     Returns
     -------
-    (client, cluster) : the cluster is None for a remote scheduler (the caller closes both).
+    (client, cluster) : the cluster is None for a remote scheduler (close both with :func:`disconnect`).
 
     Raises
     ------
@@ -71,7 +75,9 @@ def connect(
     except ImportError:
         raise missing_extra("dask.distributed", "distributed", purpose) from None
     if scheduler:
-        return connect_scheduler(scheduler, purpose, CONNECT_TIMEOUT_S, "leave out --scheduler"), None
+        client = connect_scheduler(scheduler, purpose, CONNECT_TIMEOUT_S, "leave out --scheduler")
+        client.register_plugin(_heap_plugin(), name=HEAP_PLUGIN)
+        return client, None
     cluster = LocalCluster(
         n_workers=int(workers),
         threads_per_worker=1,
@@ -81,7 +87,46 @@ def connect(
         scheduler_kwargs={"dashboard_address": ":0"},  # its HTTP endpoints on a free port, not 8787
         silence_logs=logging.ERROR,  # not dask's warnings about the tasks an interrupted command cancels
     )
-    return Client(cluster), cluster
+    client = Client(cluster)
+    client.register_plugin(_heap_plugin(), name=HEAP_PLUGIN)
+    return client, cluster
+
+
+def disconnect(client, cluster) -> None:
+    """Close what :func:`connect` opened: a remote scheduler's workers get their own heap settings back
+    (the plugin of :func:`_heap_plugin` is removed; best effort, a lost scheduler is not an error), then
+    the client and a local cluster are closed."""
+    try:
+        if cluster is None:
+            client.unregister_worker_plugin(HEAP_PLUGIN)
+    except Exception:  # noqa: BLE001 - the scheduler or the plugin may be gone; closing goes on
+        pass
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _heap_plugin():
+    """A dask worker plugin: while it is registered, the worker process takes its large temporaries from
+    its heap and reuses them (:func:`crater_thermal.heap.reuse_large_blocks`, as a local run does), instead
+    of a fresh memory map per array. Measured on a coupled 30k year on a local cluster: the workers' busy
+    seconds 165 -> 140 (docs/cluster.md). Removing the plugin restores glibc's defaults in the worker."""
+    from distributed import WorkerPlugin
+
+    class HeapReuse(WorkerPlugin):
+        name = HEAP_PLUGIN
+
+        def setup(self, worker):
+            self._held = contextlib.ExitStack()
+            self._held.enter_context(heap.reuse_large_blocks())
+
+        def teardown(self, worker):
+            held = getattr(self, "_held", None)
+            if held is not None:
+                held.close()
+
+    return HeapReuse()
 
 
 def chunk_folder(output) -> Path:
@@ -315,9 +360,7 @@ def _compute(run, todo, folder, fp, scheduler, workers, retries, progress) -> No
                 if report is not None:
                     report(done, len(todo))
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        disconnect(client, cluster)
 
 
 def _assemble(ds, profiles, chunks, folder, output, overwrite, initial_temperature, resumed) -> None:

@@ -914,8 +914,6 @@ def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_
         try:
             yield _Session(client, case, mesh, store, chunk_facets)
         finally:
-            client.close()
-            if cl is not None:
-                cl.close()
+            cluster.disconnect(client, cl)
 
     return factory

@@ -365,3 +365,50 @@ def test_chunk_tasks_read_their_facets_without_checking_the_whole_file_again(cas
     run.unlink()
     with pytest.raises(io.FluxFileError, match="not readable here"):
         cluster.solve_chunk(str(run), profiles, 8, 24, {}, stamp)
+
+
+def test_session_workers_reuse_their_heap_and_get_the_defaults_back(dask_cli):
+    """While a session's client is open, its workers take a large array from their heap (glibc's own
+    accounting, ``mallinfo2``: no bytes in new memory maps), as a local run does; once the session is closed,
+    a remote scheduler's workers map such an array again (glibc's default, the setting they had)."""
+    from crater_thermal import heap
+
+    if heap._glibc() is None:
+        pytest.skip("glibc's mallopt is not available here")
+
+    def mapped_bytes(nbytes):
+        # bytes glibc holds in memory maps while an untouched array of nbytes more than every free heap
+        # byte is alive, less those before (a free heap chunk that large would be used before any map)
+        import ctypes
+
+        import numpy
+
+        class Info(ctypes.Structure):
+            _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks")]
+            _fields_ += [(n, ctypes.c_size_t) for n in ("fsmblks", "uordblks", "fordblks", "keepcost")]
+
+        try:
+            f = ctypes.CDLL(None).mallinfo2
+        except AttributeError:
+            return None
+        f.restype = Info
+        before = f()
+        a = numpy.empty((nbytes + before.fordblks) // 8)
+        during = f().hblkhd
+        del a
+        return during - before.hblkhd
+
+    address, _ = dask_cli
+    n = 64 << 20
+    client, cl = cluster.connect(address)
+    try:
+        inside = client.run(mapped_bytes, n)
+    finally:
+        cluster.disconnect(client, cl)
+    with distributed.Client(address, timeout=60) as c:
+        after = c.run(mapped_bytes, n)
+    if None in inside.values():
+        pytest.skip("not glibc >= 2.33 (no mallinfo2)")
+    # (an earlier test of this module may have killed one of the two workers)
+    assert inside and all(v == 0 for v in inside.values()), inside
+    assert after and all(v >= n for v in after.values()), after
