@@ -7,7 +7,8 @@ page by page, zero-filled by the kernel, on first touch, which can cost as much 
 (measured in ``docs/performance.md``). Inside :func:`reuse_large_blocks` malloc maps nothing
 (``M_MMAP_MAX`` 0) and keeps up to 2 GB freed at the heap's top (``M_TRIM_THRESHOLD``), so freed blocks
 are handed out again without page faults; the price is a higher peak resident memory, since freed
-memory stays with the process until the block ends and the heap is trimmed.
+memory stays with the process until the block ends and the heap is trimmed. A run and a replay hold the
+block while they run; a dask session's workers hold it while the session lasts (``cluster.connect``).
 
 The settings are the process's (every thread's), glibc has no call that reads them back: on leaving the
 outermost block they are set to glibc's defaults (65,536 maps, 128 kB) and the heap is trimmed. Other C
