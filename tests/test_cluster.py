@@ -376,37 +376,22 @@ def test_session_workers_reuse_their_heap_and_get_the_defaults_back(dask_cli):
     if heap._glibc() is None:
         pytest.skip("glibc's mallopt is not available here")
 
-    def mapped_bytes(nbytes):
-        # bytes glibc holds in memory maps while an untouched array of nbytes more than every free heap
-        # byte is alive, less those before (a free heap chunk that large would be used before any map)
-        import ctypes
-
-        import numpy
-
-        class Info(ctypes.Structure):
-            _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks")]
-            _fields_ += [(n, ctypes.c_size_t) for n in ("fsmblks", "uordblks", "fordblks", "keepcost")]
-
-        try:
-            f = ctypes.CDLL(None).mallinfo2
-        except AttributeError:
-            return None
-        f.restype = Info
-        before = f()
-        a = numpy.empty((nbytes + before.fordblks) // 8)
-        during = f().hblkhd
-        del a
-        return during - before.hblkhd
+    import cloudpickle
+    import heap_probe
 
     address, _ = dask_cli
     n = 64 << 20
-    client, cl = cluster.connect(address)
+    cloudpickle.register_pickle_by_value(heap_probe)  # the workers cannot import the tests' folder
     try:
-        inside = client.run(mapped_bytes, n)
+        client, cl = cluster.connect(address)
+        try:
+            inside = client.run(heap_probe.mapped_while_held, n)
+        finally:
+            cluster.disconnect(client, cl)
+        with distributed.Client(address, timeout=60) as c:
+            after = c.run(heap_probe.mapped_while_held, n)
     finally:
-        cluster.disconnect(client, cl)
-    with distributed.Client(address, timeout=60) as c:
-        after = c.run(mapped_bytes, n)
+        cloudpickle.unregister_pickle_by_value(heap_probe)
     if None in inside.values():
         pytest.skip("not glibc >= 2.33 (no mallinfo2)")
     # (an earlier test of this module may have killed one of the two workers)

@@ -1,57 +1,25 @@
 """Large temporaries reused from the heap during a run (``crater_thermal.heap``), checked with glibc's own
 accounting (``mallinfo2``: bytes in memory maps, bytes free in the heap), independent of our code."""
 
-import ctypes
-import ctypes.util
-
+import heap_probe
 import numpy as np
 import pytest
 
 from crater_thermal import heap
 
-
-class _MallInfo2(ctypes.Structure):
-    _fields_ = [
-        (name, ctypes.c_size_t)
-        for name in (
-            "arena",
-            "ordblks",
-            "smblks",
-            "hblks",
-            "hblkhd",
-            "usmblks",
-            "fsmblks",
-            "uordblks",
-            "fordblks",
-            "keepcost",
-        )
-    ]
-
-
-def _mallinfo():
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-    try:
-        f = libc.mallinfo2
-    except AttributeError:
-        pytest.skip("not glibc >= 2.33 (no mallinfo2)")
-    f.restype = _MallInfo2
-    return f
-
-
 MB = 1 << 20
 
 
+def _mallinfo():
+    f = heap_probe.mallinfo()
+    if f is None:
+        pytest.skip("not glibc >= 2.33 (no mallinfo2)")
+    return f
+
+
 def _mapped_while_held(nbytes: int) -> int:
-    """Bytes glibc holds in memory maps while an array of ``nbytes`` more than every free byte of the heap
-    is alive, less those before. (glibc serves a request from a free heap chunk large enough before it
-    maps anything, whatever its threshold; an earlier test's run can leave such a chunk below a block that
-    outlives the run, which ``malloc_trim`` cannot hand back. The array is not touched: no memory is used.)"""
-    info = _mallinfo()
-    first = info()
-    a = np.empty((nbytes + first.fordblks) // 8)
-    during = info().hblkhd
-    del a
-    return during - first.hblkhd
+    _mallinfo()  # skips without mallinfo2
+    return heap_probe.mapped_while_held(nbytes)
 
 
 def test_large_arrays_come_from_the_heap_inside_and_from_maps_outside():
