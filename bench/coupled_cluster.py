@@ -23,7 +23,7 @@ function's name) and its idle seconds over the run, so that load imbalance betwe
 and the command's work can be told apart.
 
 Usage: ``python bench/coupled_cluster.py [--facets 30000] [--days 365] [--workers 2]
-[--chunk-facets 4000] [--modes stepper relaxed dask] [--out bench/results/coupled_cluster.json]``.
+[--chunk-facets 4000] [--modes stepper relaxed dask dask@15000] [--out bench/results/coupled_cluster.json]``.
 """
 
 from __future__ import annotations
@@ -112,6 +112,19 @@ def task_summary(tasks: list, wall_s: float) -> dict:
                 w["busy_s"] += dt
                 w["by_function_s"][name] = w["by_function_s"].get(name, 0.0) + dt
         w["tasks"] += 1
+    by_worker = {}
+    for t in tasks:
+        for part in t.get("startstops", ()):
+            if part.get("action") == "compute":
+                by_worker.setdefault(t["worker"], []).append((part["start"], part["stop"], key_split(t["key"])))
+    for worker, spans in by_worker.items():
+        # each gap between two computes of a worker, charged to the kind of task that ends it: the waits
+        # of the spin-up's passes, the record's iterations, the scattering's products told apart
+        spans.sort()
+        waits = {}
+        for (_, stop, _), (start, _, name) in zip(spans, spans[1:]):
+            waits[name] = waits.get(name, 0.0) + max(start - stop, 0.0)
+        out[worker]["idle_before_s"] = {k: round(v, 2) for k, v in sorted(waits.items(), key=lambda kv: -kv[1])}
     for w in out.values():
         w["idle_s"] = wall_s - w["busy_s"]
         w["by_function_s"] = {k: round(v, 2) for k, v in sorted(w["by_function_s"].items(), key=lambda kv: -kv[1])}
@@ -124,7 +137,7 @@ def main() -> None:
     ap.add_argument("--facets", type=int, default=30_000)
     ap.add_argument("--days", type=float, default=365.0)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--chunk-facets", type=int, default=cluster_run.CHUNK_FACETS)
+    ap.add_argument("--chunk-facets", type=int, default=None, help="at most N facets a chunk (default: 1 per worker)")
     ap.add_argument("--modes", nargs="+", default=["stepper", "relaxed", "dask"])
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "coupled_cluster.json")
     args = ap.parse_args()
@@ -151,17 +164,23 @@ def main() -> None:
             columns=cluster_run.distributed_columns(workers=args.workers),
         )
         for mode in args.modes:
+            # every mode builds its horizon map and operator itself (a cache of its own): none inherits
+            # another's stages
+            os.environ["CRATER_THERMAL_CACHE"] = str(tmp / f"cache_{mode}")
             scheme = "extrapolated" if mode == "stepper" else "relaxed"
-            case = config.load_case(write_case(tmp, mode, args.facets, args.days, scheme, spinup))
+            case = config.load_case(write_case(tmp, mode.replace("@", "_"), args.facets, args.days, scheme, spinup))
             columns = None
             seen = {}
-            if mode == "dask":
-                columns = observed_columns(args.workers, args.chunk_facets, seen)
+            if mode.startswith("dask"):  # "dask", or "dask@N": chunks of at most N facets
+                chunk_facets = int(mode.split("@")[1]) if "@" in mode else args.chunk_facets
+                columns = observed_columns(args.workers, chunk_facets, seen)
             timer = simulate.Timer()
             load = LoadSampler()
             load.start()
             t0, c0 = time.perf_counter(), os.times()
-            out = runner.run_case(case, tmp / f"{mode}.nc", progress=False, timer=timer, columns=columns)
+            out = runner.run_case(
+                case, tmp / f"{mode.replace('@', '_')}.nc", progress=False, timer=timer, columns=columns
+            )
             wall = time.perf_counter() - t0
             c1 = os.times()
             load.stop.set()
@@ -189,7 +208,7 @@ def main() -> None:
             result["facets"], result["samples"] = nf, nt
             result["modes"][mode] = entry
             print(mode, json.dumps(entry), flush=True)
-            (tmp / f"{mode}.nc").unlink()
+            out.unlink()
     diffs = {}
     for a in temps:
         for b in temps:
@@ -198,8 +217,10 @@ def main() -> None:
                 diffs[f"{a}-{b}"] = {"max_K": float(d.max()), "shadow_max_K": float(d[:, night].max())}
     result["max_differences"] = diffs
     m = result["modes"]
-    if "dask" in m and "relaxed" in m:
-        result["efficiency_relaxed_over_dask"] = m["relaxed"]["wall_s"] / m["dask"]["wall_s"]
+    for mode in m:
+        if mode.startswith("dask") and "relaxed" in m:
+            key = "efficiency_relaxed_over_dask" + mode[4:].replace("@", "_chunk_facets_")
+            result[key] = m["relaxed"]["wall_s"] / m[mode]["wall_s"]
     if "dask" in m and "stepper" in m:
         result["efficiency_stepper_over_dask"] = m["stepper"]["wall_s"] / m["dask"]["wall_s"]
     if "relaxed" in m and "stepper" in m:

@@ -170,7 +170,7 @@ def run(
     progress: Any = None,
     scheduler: Optional[str] = None,
     workers: Optional[int] = None,
-    chunk_facets: int = 4000,
+    chunk_facets: Optional[int] = None,
 ) -> Dataset:
     """Run a case: sunlight, scattering, infrared exchange and conduction over the case's period.
 
@@ -194,8 +194,10 @@ def run(
         (``OUT.partial/``) must be readable by every worker at the same path.
     workers : int, optional
         Instead of ``scheduler``: a local dask cluster of this many one-thread processes.
-    chunk_facets : int
-        With ``scheduler`` or ``workers``: facets per chunk (one task per chunk and relaxation iteration).
+    chunk_facets : int, optional
+        With ``scheduler`` or ``workers``: at most this many facets per chunk (one task per chunk and
+        relaxation iteration). Default: one chunk per worker present at the start (the fastest measured:
+        docs/cluster.md); smaller chunks let workers that join later take some.
 
     Returns
     -------

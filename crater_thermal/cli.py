@@ -362,8 +362,10 @@ def run(
     workers: Optional[int] = typer.Option(
         None, "--workers", help="Instead of --scheduler: a local dask cluster of N one-thread processes."
     ),
-    chunk_facets: int = typer.Option(
-        4000, "--chunk-facets", help="With --scheduler/--workers: facets per task (chunk)."
+    chunk_facets: Optional[int] = typer.Option(
+        None,
+        "--chunk-facets",
+        help="With --scheduler/--workers: at most N facets per task (chunk); default one chunk per worker.",
     ),
 ) -> None:
     """Run a case: ephemeris -> direct sun -> scattering -> IR -> conduction, writing fluxes and temperatures."""

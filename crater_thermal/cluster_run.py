@@ -2,10 +2,10 @@
 radiation operator by waveform relaxation (:mod:`crater_thermal.waveform`).
 
 The facets are cut into chunks of contiguous rows of the operator's own order (the compressed
-operator's cluster order: spatial neighbours together), at most ``--chunk-facets`` each and at least one
-per worker. The cluster is connected once the mesh is made (:func:`distributed_columns` yields a
-session to :func:`crater_thermal.runner.run_case`) and the view-factor operator is built by the workers
-that hold its rows:
+operator's cluster order: spatial neighbours together): by default one chunk per worker present at the
+start, or at most ``--chunk-facets`` each and at least one per worker. The cluster is connected once the
+mesh is made (:func:`distributed_columns` yields a session to :func:`crater_thermal.runner.run_case`)
+and the view-factor operator is built by the workers that hold its rows:
 
 * **compressed operator**: the mesh is saved into the run's scratch store (``OUT.partial/mesh/``) and
   each chunk's rows are built by a worker from it, as a dask task (:func:`build_rows`,
@@ -59,8 +59,6 @@ import numpy as np
 from crater_thermal import cluster, geometry, io, radiosity, raytrace, runner, vfoperator, waveform
 from crater_thermal.errors import ConfigError, CraterThermalError, InternalError
 
-#: Default facets per chunk (one task per chunk and iteration).
-CHUNK_FACETS = 4000
 #: Times dask re-runs a task that raised before the run stops.
 RETRIES = 3
 #: Times an iteration is sent again after its inputs were lost with a worker.
@@ -130,11 +128,15 @@ def solve_chunk(
 
 
 def solve_chunk_parts(
-    rows, facets, E, state, times_s, solar, ir0, options: dict, prev=None, skip_K=0.0, hold=False, chunks=None
+    rows, facets, E, state, times_s, solar, ir0, options, prev=None, skip_K=0.0, hold=False, chunks=None, stop=None
 ):
     """:func:`solve_chunk` with the emitted flux of every facet given whole (``E`` (n, nf)) or as the chunks'
     parts (a list of (n, m_c) in the order of ``chunks``, a :class:`_Facets`: the previous iteration's
-    :func:`_emission` of each chunk, fetched from the workers that hold them)."""
+    :func:`_emission` of each chunk, fetched from the workers that hold them). ``stop``: (every chunk's
+    largest change [K] in the previous iteration, the tolerance [K]): when none is above the tolerance the
+    window has converged and this iteration is not made (returns None)."""
+    if stop is not None and max(stop[0]) <= stop[1]:
+        return None
     if isinstance(E, (list, tuple)):
         E = _joined_columns(E, chunks)
     return solve_chunk(rows, facets, E, state, times_s, solar, ir0, options, prev, skip_K, hold)
@@ -229,6 +231,7 @@ class DaskColumns:
         self._state = None  # the chunks' start states of the current window (futures)
         # lagged spin-up passes kept on the workers: sunlight per block, the latest pass's windows
         self._spin = self._pass = self._surfaces = self._chunks_f = self._next = None
+        self._ahead = None  # the next inputs' tasks submitted at a pass's end (:meth:`_next_tasks`)
         self.description = f"dask: {len(chunks)} chunks on {n_workers} worker(s) at start"
 
     @property
@@ -269,17 +272,24 @@ class DaskColumns:
         skip = waveform.SKIP_FRACTION * tol_K
         last = [None] * len(chunks)
         change = np.inf
+        futures = self._iteration(solve_chunk_parts, E, times_s, ir0, last, skip, False, facets)
         for it in range(1, max_iter + 1):
-            futures = self._iteration(solve_chunk_parts, E, times_s, ir0, last, skip, False, facets)
-            if it > 1:
-                changes = [client.submit(_change, f, p, pure=False) for f, p in zip(futures, last)]
+            # the next iteration is submitted before this one's convergence is known, so that the workers go
+            # on while this process hears of it: its tasks first look at this iteration's changes and do
+            # nothing once every chunk's is within the tolerance (:func:`solve_chunk_parts`'s ``stop``)
+            changes = None if it == 1 else [client.submit(_change, f, p, pure=False) for f, p in zip(futures, last)]
+            following = None
+            if it < max_iter:
+                E = [client.submit(_emission, f, emissivity, pure=False) for f in futures]
+                stop = None if changes is None else (changes, float(tol_K))
+                following = self._iteration(solve_chunk_parts, E, times_s, ir0, futures, skip, False, facets, stop)
+            if changes is not None:
                 change = float(max(client.gather(changes)))
                 if change <= tol_K:
                     parts = client.gather([client.submit(_surface, f, pure=False, retries=RETRIES) for f in futures])
                     self._last = futures
                     return _RemoteWindow(self, futures, parts, n), it, change
-            last = futures
-            E = [client.submit(_emission, f, emissivity, pure=False) for f in futures]
+            last, futures = futures, following
         raise waveform.not_converged(max_iter, change, tol_K)
 
     def lagged_pass(self, state, times_s, rows, block: int, previous, on_step=None, skip=None):
@@ -292,23 +302,14 @@ class DaskColumns:
         """The next lagged pass's input IR formed on the workers from the latest pass's temperatures (per
         block and chunk, kept there for that pass: the products it would make itself); returns (the largest
         change from the latest pass's input [W m-2], the coldest surface temperature [K]) per facet
-        (one exchange), or None when data of the pass is lost (that pass then runs every column)."""
-        client, chunks = self.client, self.chunks
+        (one exchange), or None when data of the pass is lost (that pass then runs every column). The
+        tasks were submitted at the pass's end (:meth:`_pass_end`), so they ran while this process made
+        its quasi-Newton step."""
+        ahead, self._ahead = self._ahead, None
         try:
-            nxt = {
-                b0: [
-                    client.submit(
-                        _next_ir, self.row_futures[c], self._chunks_f, self._surfaces[b0], w, self.options, pure=False
-                    )
-                    for c, w in enumerate(windows)
-                ]
-                for b0, windows in self._pass.items()
-            }
-            summaries = [
-                client.submit(_drift_summary, *[nxt[b0][c] for b0 in nxt], pure=False) for c in range(len(chunks))
-            ]
+            nxt, summaries = ahead if ahead is not None else self._next_tasks()
             dq, t_min = np.empty(self._n), np.empty(self._n)
-            for idx, (d, t) in zip(chunks, client.gather(summaries)):
+            for idx, (d, t) in zip(self.chunks, self.client.gather(summaries)):
                 dq[idx], t_min[idx] = d, t
         except (CraterThermalError, MemoryError):
             raise
@@ -317,6 +318,28 @@ class DaskColumns:
             return None
         self._next = nxt
         return dq, t_min
+
+    def _next_tasks(self):
+        """The tasks of :meth:`next_inputs` (submitted, not gathered): ``({b0: each chunk's input of the
+        block}, each chunk's summary)``."""
+        client, chunks = self.client, self.chunks
+        nxt = {
+            b0: [
+                client.submit(
+                    _next_ir, self.row_futures[c], self._chunks_f, self._surfaces[b0], w, self.options, pure=False
+                )
+                for c, w in enumerate(windows)
+            ]
+            for b0, windows in self._pass.items()
+        }
+        summaries = [client.submit(_drift_summary, *[nxt[b0][c] for b0 in nxt], pure=False) for c in range(len(chunks))]
+        return nxt, summaries
+
+    def _cancel_ahead(self) -> None:
+        """Drop the next inputs' tasks submitted ahead (the start has converged: no next pass)."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:
+            self.client.cancel([f for futs in ahead[0].values() for f in futs] + list(ahead[1]))
 
     def held_pass(self, state, times_s, rows, block: int, on_step=None):
         """:meth:`_held_pass`, with dask's failures turned into one-line errors or :class:`waveform.PassLost`
@@ -451,39 +474,48 @@ class DaskColumns:
         summaries = [
             client.submit(_pass_summary, *[new[b0][c] for b0, _ in blocks], pure=False) for c in range(len(chunks))
         ]
+        self._pass, self._surfaces = new, surfaces
+        try:  # the next pass's inputs, ahead: the workers form them while this process takes its step
+            self._ahead = self._next_tasks()
+        except (CraterThermalError, MemoryError):
+            raise
+        except Exception:  # made (or found lost) when asked for
+            self._ahead = None
         end = acc = None
         ir_end = np.empty(nf)
         for idx, (e, a, last_ir) in zip(chunks, client.gather(summaries)):
             if end is None:
                 end, acc = np.empty((nf, e.shape[1])), np.empty((nf, a.shape[1]))
             end[idx], acc[idx], ir_end[idx] = e, a, last_ir
-        self._pass, self._surfaces = new, surfaces
         if on_step is not None:
             on_step(n - 1)
         return end, acc, ir_end
 
     def pass_ir(self, k0: int, k1: int):
         """IR rows [W m-2] ``k0..k1-1`` of the latest lagged pass, gathered from the workers (each block
-        owns its rows but the last, which is the next block's first, except at the end)."""
+        owns its rows but the last, which is the next block's first, except at the end); only the blocks
+        that hold those rows are asked, and only for them."""
+        self._cancel_ahead()  # asked for once the start has converged: no next pass needs them
         out = []
-        last = max(self._pass)
-        for b0 in sorted(self._pass):
-            futs = self._pass[b0]
-            lo = max(k0, b0)
-            if lo >= k1:
+        starts = sorted(self._pass)
+        for i, b0 in enumerate(starts):
+            own_end = starts[i + 1] if i + 1 < len(starts) else None  # None: the last block owns all its rows
+            if b0 >= k1:
                 break
-            parts = self.client.gather([self.client.submit(_ir_part, f, pure=False) for f in futs])
-            m = len(parts[0]) if b0 == last else len(parts[0]) - 1
-            hi = min(k1, b0 + m)
-            if lo < hi:
-                rows = np.empty((len(parts[0]), self._n))
-                for idx, p in zip(self.chunks, parts):
-                    rows[:, idx] = p
-                out.append(rows[lo - b0 : hi - b0])
+            if own_end is not None and own_end <= k0:
+                continue
+            lo, hi = max(k0, b0) - b0, k1 - b0 if own_end is None else min(k1, own_end) - b0
+            futs = [self.client.submit(_ir_part, f, lo, hi, pure=False) for f in self._pass[b0]]
+            parts = self.client.gather(futs)
+            rows = np.empty((len(parts[0]), self._n))
+            for idx, p in zip(self.chunks, parts):
+                rows[:, idx] = p
+            out.append(rows)
         return np.concatenate(out)
 
     def end_spinup(self) -> None:
         """Release the spin-up's data on the workers."""
+        self._cancel_ahead()
         self._pass = self._surfaces = self._spin = self._chunks_f = self._next = None
 
     def _send_window(self, state, solar) -> None:
@@ -642,8 +674,9 @@ def _pass_summary(*windows):
     return windows[-1].end, sum(w.acc for w in windows), windows[-1].ir[-1]
 
 
-def _ir_part(w):
-    return w.ir
+def _ir_part(w, lo: int, hi: int):
+    """Rows ``lo..hi-1`` of a chunk window's IR [W m-2] (a small task)."""
+    return w.ir[lo:hi]
 
 
 class _RemoteWindow:
@@ -768,6 +801,7 @@ class ClusterOperator(vfoperator.ViewFactorOperator):
     """
 
     kind = "compressed"
+    asynchronous = True
 
     def __init__(self, client, rows, bounds, order, areas, rowsums, held: int):
         n = len(order)
@@ -798,18 +832,59 @@ class ClusterOperator(vfoperator.ViewFactorOperator):
         a = self.areas[:, None]
         return (self._products(y.reshape(y.shape[0], -1) / a) * a).reshape(y.shape)
 
-    def _products(self, X):
+    def submit(self, x):
+        """``F x`` begun on the workers (the operand sent, each chunk's rows' task submitted): ``result()``
+        gathers and assembles it; an input lost meanwhile with a worker makes it again through
+        :meth:`matvec` (which sends it again), a task's own error goes on as it is."""
+        x = self._check(x)
+        X = x.reshape(x.shape[0], -1)
+        try:
+            futures = self._submitted(X)
+        except (CraterThermalError, MemoryError):
+            raise
+        except Exception:  # the cluster failed the send: matvec's resending decides
+            futures = None
+        return _Product(self, x, futures)
+
+    def _submitted(self, X) -> list:
         client = self.client
+        X_f = client.scatter(_operand(X, X.shape[1]), hash=False)
+        return [client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows]
 
-        def attempt():
-            X_f = client.scatter(_operand(X, X.shape[1]), hash=False)
-            parts = client.gather([client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows])
-            out = np.empty_like(X, dtype=np.float64)
-            for (a, b), part in zip(self.bounds, parts):
-                out[self.order[a:b]] = part
-            return out
+    def _assembled(self, X, parts) -> np.ndarray:
+        out = np.empty_like(X, dtype=np.float64)
+        for (a, b), part in zip(self.bounds, parts):
+            out[self.order[a:b]] = part
+        return out
 
-        return _resending(client, attempt)
+    def _products(self, X):
+        return _resending(self.client, lambda: self._assembled(X, self.client.gather(self._submitted(X))))
+
+
+class _Product:
+    """A product of a :class:`ClusterOperator` in flight (:meth:`ClusterOperator.submit`)."""
+
+    def __init__(self, op: ClusterOperator, x: np.ndarray, futures):
+        self.op, self.x, self.futures = op, x, futures
+
+    def result(self) -> np.ndarray:
+        from distributed import KilledWorker
+
+        if self.futures is not None:
+            try:
+                parts = self.op.client.gather(self.futures)
+            except KilledWorker as exc:
+                raise _gave_up(exc) from None
+            except (CraterThermalError, InternalError, MemoryError):
+                raise
+            except Exception:  # an input lost with a worker: made again (and resent) below
+                pass
+            else:
+                X = self.x.reshape(self.x.shape[0], -1)
+                return self.op._assembled(X, parts).reshape(self.x.shape)
+            finally:
+                self.futures = None
+        return self.op.matvec(self.x)
 
 
 class _Session:
@@ -817,11 +892,15 @@ class _Session:
     :func:`distributed_columns` yields to :func:`crater_thermal.runner.run_case`): the operator's row
     blocks are built on the workers (:meth:`view_factors`), then conducted with (:meth:`columns`)."""
 
-    def __init__(self, client, case, mesh, store, chunk_facets: int):
+    def __init__(self, client, case, mesh, store, chunk_facets: int | None):
         self.client, self.case, self.store = client, case, store
         nf = self.nf = mesh.n_facets
         self.n_workers = max(1, len(client.scheduler_info().get("workers", {})))
-        size = min(int(chunk_facets), -(-nf // self.n_workers))  # at least one chunk per worker
+        # one chunk per worker by default: the fewest tasks per iteration, and the fewest far blocks that
+        # two chunks share (each is built and applied by both; measured in docs/cluster.md)
+        size = -(-nf // self.n_workers)
+        if chunk_facets is not None:
+            size = min(int(chunk_facets), size)
         self.bounds = [(a, min(nf, a + size)) for a in range(0, nf, size)]
         self.order = np.arange(nf, dtype=np.int64)
         self.rows = [None] * len(self.bounds)
@@ -905,10 +984,11 @@ def _nbytes(block) -> int:
     return block.nbytes
 
 
-def distributed_columns(scheduler=None, workers=None, chunk_facets: int = CHUNK_FACETS):
+def distributed_columns(scheduler=None, workers=None, chunk_facets: int | None = None):
     """The ``columns`` factory of :func:`crater_thermal.runner.run_case` for a dask cluster: the scheduler at
-    ``scheduler`` (``tcp://host:8786``) or a local cluster of ``workers`` one-thread processes."""
-    if int(chunk_facets) < 1:
+    ``scheduler`` (``tcp://host:8786``) or a local cluster of ``workers`` one-thread processes;
+    ``chunk_facets``: at most that many facets per chunk (None: one chunk per worker, :class:`_Session`)."""
+    if chunk_facets is not None and int(chunk_facets) < 1:
         raise ConfigError(f"--chunk-facets {chunk_facets}: chunks need at least 1 facet")
 
     @contextlib.contextmanager

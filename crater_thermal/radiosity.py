@@ -234,20 +234,22 @@ class ScatteringSolver:
     def n_facets(self) -> int:
         return self.F.shape[0]
 
-    def _iterate(self, rhs: np.ndarray, B0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Fixed point ``B <- rhs + A F B`` for rhs (nf, k), from B0 (default: rhs, the first bounce).
+    def _fixed_point(self, rhs: np.ndarray, B0: np.ndarray | None):
+        """Fixed point ``B <- rhs + A F B`` for rhs (nf, k), from B0 (default: rhs, the first bounce), as a
+        generator: it yields each operand ``B`` whose product ``F B`` it needs and is sent that product
+        (:meth:`_solved` makes them).
 
-        Returns ``(B, FB)``: the last iterate and the product ``F B'`` of the one before it that formed
-        it (``B = rhs + A FB`` exactly). ``FB`` differs from ``F B`` by at most the row sum times the last
-        change (below :data:`ITERATIVE_RTOL` of the largest exitance), so it serves as the scattered
-        irradiance without one more product. The update and its change are made in place (two (nf, k)
-        arrays besides the product's), not in new temporaries."""
+        Returns (as the generator's value) ``(B, FB)``: the last iterate and the product ``F B'`` of the
+        one before it that formed it (``B = rhs + A FB`` exactly). ``FB`` differs from ``F B`` by at most
+        the row sum times the last change (below :data:`ITERATIVE_RTOL` of the largest exitance), so it
+        serves as the scattered irradiance without one more product. The update and its change are made
+        in place (two (nf, k) arrays besides the product's), not in new temporaries."""
         a = self.albedo[:, None]
         B = rhs.copy() if B0 is None else np.array(B0, dtype=float).reshape(rhs.shape)
         Bn = np.empty_like(B)
         scale = max(float(np.abs(rhs).max()), np.finfo(float).tiny)
         for it in range(1, ITERATIVE_MAX + 1):
-            FB = np.asarray(self.F.matvec(B)).reshape(rhs.shape)
+            FB = np.asarray((yield B)).reshape(rhs.shape)
             np.multiply(a, FB, out=Bn)
             Bn += rhs
             diff = np.subtract(Bn, B, out=B)  # B is not needed past this point: it holds the change
@@ -260,6 +262,33 @@ class ScatteringSolver:
             f"scattered sunlight: the fixed-point solve did not converge in {ITERATIVE_MAX} "
             f"products (last change {change:.3g} W m-2)"
         )
+
+    def _solved(self, problems) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray]]]:
+        """``(i, (B, FB))`` of :meth:`_fixed_point` for each ``(rhs, B0)`` of ``problems`` (an iterable, read
+        as the solves start), as each converges. With an :attr:`~ViewFactorOperator.asynchronous` operator
+        (a cluster's) two solves are in flight: one's product runs on the workers while this process
+        updates the other (the same operations per solve, so the same numbers); else one at a time."""
+        width = 2 if self.F.asynchronous else 1
+        problems = enumerate(problems)
+        active: list = []  # (i, solve, its product in flight), oldest first
+
+        def start() -> None:
+            for i, (rhs, B0) in problems:
+                solve = self._fixed_point(rhs, B0)
+                active.append((i, solve, self.F.submit(next(solve))))
+                return
+
+        for _ in range(width):
+            start()
+        while active:
+            i, solve, product = active.pop(0)
+            try:
+                operand = solve.send(product.result())
+            except StopIteration as done:
+                yield i, done.value
+                start()
+            else:
+                active.append((i, solve, self.F.submit(operand)))
 
     def exitance(self, E_direct: np.ndarray, B0: np.ndarray | None = None) -> np.ndarray:
         """Reflected shortwave exitance ``B`` [W m-2], same shape as ``E_direct`` ((nt, nf) or (nf,)).
@@ -286,18 +315,21 @@ class ScatteringSolver:
     def _blocks(self, E: np.ndarray, B0: np.ndarray | None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """The iterative solve of E (nf,) or (nt, nf) in blocks of :data:`ITERATIVE_BLOCK` samples: yields
         ``(rows, B, FB)``, the rows (samples) of a block and their exitance and scattered irradiance
-        (nf, k). Samples without sunlight on any facet that reflects (night over the whole mesh) have
-        ``B = 0`` exactly and are not yielded."""
+        (nf, k), as each block converges (:meth:`_solved`). Samples without sunlight on any facet that
+        reflects (night over the whole mesh) have ``B = 0`` exactly and are not yielded."""
         self.iterations = 0
         E2 = E.reshape(-1, self.n_facets)
         G = None if B0 is None else np.asarray(B0, dtype=float).reshape(E2.shape)
         reflects = self.albedo != 0.0
         lit_any = E2 != 0.0 if reflects.all() else (E2 != 0.0) & reflects
         lit = np.flatnonzero(np.any(lit_any, axis=1))
-        for c in range(0, len(lit), ITERATIVE_BLOCK):
-            rows = lit[c : c + ITERATIVE_BLOCK]
-            rhs = np.ascontiguousarray((E2[rows] * self.albedo).T)
-            yield rows, *self._iterate(rhs, None if G is None else np.ascontiguousarray(G[rows].T))
+        blocks = [lit[c : c + ITERATIVE_BLOCK] for c in range(0, len(lit), ITERATIVE_BLOCK)]
+        problems = (
+            (np.ascontiguousarray((E2[rows] * self.albedo).T), None if G is None else np.ascontiguousarray(G[rows].T))
+            for rows in blocks
+        )
+        for i, (B, FB) in self._solved(problems):
+            yield blocks[i], B, FB
 
     def _exitance(self, E: np.ndarray) -> np.ndarray:
         """Exitance by LU or by bounces (E checked, (nf,) or (nt, nf)); same shape back."""
@@ -332,7 +364,7 @@ class ScatteringSolver:
         if self.n_facets == 0:
             return Q
         if self.method == "exact" and self._lu is None:
-            # the iterative solve's last product is the scattered irradiance (see _iterate)
+            # the iterative solve's last product is the scattered irradiance (see _fixed_point)
             Q2 = Q.reshape(-1, self.n_facets)
             for rows, _, FB in self._blocks(E, None):
                 Q2[rows] += np.maximum(FB.T, 0.0)

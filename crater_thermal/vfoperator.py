@@ -153,6 +153,9 @@ class ViewFactorOperator:
     shape: tuple[int, int]
     #: Largest ``rowsum - 1`` before the rescaling that keeps row sums <= 1 (0 if none was needed).
     rowsum_excess: float = 0.0
+    #: True where :meth:`submit` returns before its product is made (the products run elsewhere, on a
+    #: cluster's workers): a caller with independent products then keeps two in flight.
+    asynchronous = False
 
     @property
     def n_facets(self) -> int:
@@ -183,6 +186,11 @@ class ViewFactorOperator:
     def __matmul__(self, x):
         return self.matvec(x)
 
+    def submit(self, x: np.ndarray):
+        """``F x`` begun (``x`` as for :meth:`matvec`): an object whose ``result()`` is the product. Made at
+        once here; an :attr:`asynchronous` operator returns while its product runs elsewhere."""
+        return _Made(self.matvec(x))
+
     def _check(self, x) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
         if x.ndim not in (1, 2) or x.shape[0] != self.shape[1]:
@@ -190,6 +198,16 @@ class ViewFactorOperator:
                 f"view-factor product: operand has shape {x.shape}; expected ({self.shape[1]},) or ({self.shape[1]}, k)"
             )
         return x
+
+
+class _Made:
+    """A product made at once (:meth:`ViewFactorOperator.submit`)."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def result(self):
+        return self.value
 
 
 class SparseViewFactors(ViewFactorOperator):

@@ -103,6 +103,35 @@ class _CountingClient:
         return out
 
 
+def test_the_latest_pass_ir_is_gathered_from_only_the_blocks_and_rows_asked():
+    """``DaskColumns.pass_ir(k0, k1)``: the IR rows of a spin-up pass kept on the workers as blocks of chunk
+    windows (consecutive blocks share a sample, owned by the later one) equal the series they were cut
+    from for every range, and each call brings back only the rows asked (before, every call gathered
+    every block up to ``k1`` whole: the spin-up's saved IR cost blocks^2 / 2 block gathers)."""
+    rng = np.random.default_rng(5)
+    n, nf = 13, 7
+    series = rng.uniform(0.0, 50.0, (n, nf))  # the pass's IR [W m-2]
+    chunks = [np.array([0, 3, 5]), np.array([1, 2]), np.array([4, 6])]  # not contiguous facets
+    blocks = [(0, 5), (5, 10), (10, 12)]  # samples b0..b1, the last shared with the next block
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False) as cl:
+        with distributed.Client(cl) as raw:
+            client = _CountingClient(raw)
+            remote = cluster_run.DaskColumns(client, chunks, [None] * 3, {}, nf, 2)
+            remote._pass = {
+                b0: [
+                    raw.scatter(waveform.Window(series[b0 : b1 + 1, idx], series[b0 : b1 + 1, idx], None, None))
+                    for idx in chunks
+                ]
+                for b0, b1 in blocks
+            }
+            for k0 in range(n):
+                for k1 in range(k0 + 1, n + 1):
+                    client.gathered.clear()
+                    got = remote.pass_ir(k0, k1)
+                    np.testing.assert_array_equal(got, series[k0:k1])
+                    assert sum(client.gathered) == (k1 - k0) * nf, (k0, k1, client.gathered)
+
+
 def test_a_window_relaxed_on_the_workers_equals_the_local_relaxation(tmp_path, monkeypatch):
     """Two windows (48 and 24 samples, a sunrise on the walls in each) of a 300-facet crater relaxed by the
     columns of this process and by a cluster's (two one-thread workers in this process, so that the
@@ -219,10 +248,10 @@ def test_dask_cli_cluster_run_equals_single_process(local_run, dask_cli, tmp_pat
     tmp, path, ref = local_run
     address, _ = dask_cli
     out = tmp_path / "run.nc"
-    r = _cli("run", path, "-o", out, "--scheduler", address, "--chunk-facets", "100")
+    r = _cli("run", path, "-o", out, "--scheduler", address)
     assert r.returncode == 0, r.stderr
     rel = _assert_close_to_local(out, ref)
-    assert rel["columns"].startswith("dask: 3 chunks on 2 worker(s)")
+    assert rel["columns"].startswith("dask: 2 chunks on 2 worker(s)")  # the default: one chunk per worker
     assert "operator rows built by the workers" in rel["columns"]
     assert not Path(str(out) + ".partial").exists()
 

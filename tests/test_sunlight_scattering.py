@@ -120,3 +120,46 @@ def test_blocks_per_facet_albedo_and_warm_start_match_dense_solve(terrain, monke
     assert np.abs(solver.exitance(E, B0=np.roll(B_ref, 1, axis=0)) - B_ref).max() <= 2 * bound
     assert np.array_equal(solver.solar_incident(E[-1]), E[-1])
     assert np.abs(solver.exitance(E[3]) - B_ref[3]).max() <= 2 * bound  # one sample, (nf,)
+
+
+class _Deferred(vo.SparseViewFactors):
+    """The exact matrix as an asynchronous operator (as a cluster's is): a product is made only when its
+    ``result()`` is asked for; the products in flight are counted."""
+
+    asynchronous = True
+
+    def __init__(self, F):
+        super().__init__(F)
+        self.in_flight = self.most_in_flight = 0
+
+    def submit(self, x):
+        x = np.array(x, dtype=float)  # the operand as it was sent: the solve may update its array next
+        self.in_flight += 1
+        self.most_in_flight = max(self.most_in_flight, self.in_flight)
+        op = self
+
+        class Pending:
+            def result(self):
+                op.in_flight -= 1
+                return op.matvec(x)
+
+        return Pending()
+
+
+def test_two_solves_in_flight_with_an_asynchronous_operator(terrain, monkeypatch):
+    """With an operator whose products run elsewhere, two blocks' fixed points run interleaved (one's
+    product in flight while the other is updated, never more than two): the same exitance and incident
+    light as one block at a time, bit for bit (the same operations per block), and against a dense solve
+    within the stopping rule's bound."""
+    m, F, E = terrain
+    monkeypatch.setattr(radiosity, "ITERATIVE_BLOCK", 5)  # 5 blocks of lit samples
+    ref = _dense_reference(F, E)
+    one = radiosity.ScatteringSolver(vo.SparseViewFactors(F), ALBEDO, solver="iterative")
+    op = _Deferred(F)
+    two = radiosity.ScatteringSolver(op, ALBEDO, solver="iterative")
+    Q = two.solar_incident(E)
+    assert op.most_in_flight == 2 and op.in_flight == 0
+    assert np.array_equal(Q, one.solar_incident(E))
+    assert np.array_equal(two.exitance(E), one.exitance(E))
+    assert two.iterations == one.iterations
+    assert np.abs(Q - ref).max() <= _bound(F, E)
