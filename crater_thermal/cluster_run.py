@@ -137,6 +137,8 @@ def solve_chunk_parts(
     window has converged and this iteration is not made (returns None)."""
     if stop is not None and max(stop[0]) <= stop[1]:
         return None
+    if isinstance(E, _Broadcast):
+        E = E.array()
     if isinstance(E, (list, tuple)):
         E = _joined_columns(E, chunks)
     return solve_chunk(rows, facets, E, state, times_s, solar, ir0, options, prev, skip_K, hold)
@@ -171,6 +173,7 @@ def _chunk_window(
     flux ``E`` (n, nf) [W m-2] of every facet (``ir0`` [W m-2] at sample 0 when given; with ``hold``, ``E``
     is one row whose IR is held over the window); the :class:`waveform.Window` of the chunk."""
     _PLANS.clear()  # the operator's rows are built: its plan is no longer needed on this worker
+    solar = np.asarray(solar, np.float64)  # sent in float32 where that held it exactly (:func:`_compact`)
     ir = np.zeros((len(E), m)) if rows is None else np.maximum(rows.apply(E.T).T, 0.0)
     ir = waveform.held_ir(ir, len(times_s), hold)
     if ir0 is not None and not hold:
@@ -268,7 +271,8 @@ class DaskColumns:
         self._send_window(state, solar)
         facets = client.scatter(_Facets(chunks), hash=False)
         T0 = np.asarray(state)[:, 0]
-        E = client.scatter(_operand(np.broadcast_to(radiosity.emitted(T0, emissivity), (n, len(T0))), n), hash=False)
+        # the start's emission held over the window: one row sent, in the type of the window's products
+        E = client.scatter(_Broadcast(_operand(radiosity.emitted(T0, emissivity)[None, :], n)[0], n), hash=False)
         skip = waveform.SKIP_FRACTION * tol_K
         last = [None] * len(chunks)
         change = np.inf
@@ -419,7 +423,7 @@ class DaskColumns:
             client, chunks = self.client, self.chunks
             self._chunks_f = client.scatter(_Facets(chunks), hash=False)
             self._spin = {
-                b0: client.scatter([np.ascontiguousarray(rows(b0, b1 + 1)[:, idx]) for idx in chunks], hash=False)
+                b0: client.scatter([_compact(rows(b0, b1 + 1)[:, idx]) for idx in chunks], hash=False)
                 for b0, b1 in blocks
             }
         return blocks
@@ -521,7 +525,7 @@ class DaskColumns:
     def _send_window(self, state, solar) -> None:
         """A window's start state (nf, nz) [K] and sunlight rows (n, nf) [W m-2] to the workers, per chunk."""
         self._state = self.client.scatter([np.ascontiguousarray(state[idx]) for idx in self.chunks], hash=False)
-        self._solar = self.client.scatter([np.ascontiguousarray(solar[:, idx]) for idx in self.chunks], hash=False)
+        self._solar = self.client.scatter([_compact(solar[:, idx]) for idx in self.chunks], hash=False)
 
     def _iteration(self, task, E, times_s, ir0, last, skip_K: float, *tail) -> list:
         """One iteration's tasks, one per chunk: ``task(rows, facets, E, state, times_s, solar, ir0, options,
@@ -560,6 +564,28 @@ class DaskColumns:
         parts = client.gather([client.submit(_surface, f, pure=False, retries=RETRIES) for f in futures])
         self._last = futures
         return _RemoteWindow(self, futures, parts, len(times_s))
+
+
+def _compact(X: np.ndarray) -> np.ndarray:
+    """``X`` to send to the workers: as float32 where that holds it exactly (sunlight read from a run's
+    store, which keeps it in float32: half the bytes), else as it is; the tasks take it back in float64."""
+    X = np.ascontiguousarray(X)
+    if X.dtype == np.float64:
+        X32 = X.astype(np.float32)
+        if np.array_equal(X32, X):
+            return X32
+    return X
+
+
+class _Broadcast:
+    """One row ``row`` (nf,) standing for ``n`` equal rows (the first iteration's emission of a window: the
+    start's, held), sent instead of the (n, nf) array and made into it by the task."""
+
+    def __init__(self, row: np.ndarray, n: int):
+        self.row, self.n = row, int(n)
+
+    def array(self) -> np.ndarray:
+        return np.ascontiguousarray(np.broadcast_to(self.row, (self.n, len(self.row))))
 
 
 def _operand(X: np.ndarray, k: int) -> np.ndarray:
@@ -644,6 +670,7 @@ def lagged_chunk(rows, chunks, c: int, source, start, times_s, solar, options: d
     state = start.end if isinstance(start, waveform.Window) else start
     if isinstance(source, tuple):  # the input IR, formed between the passes
         ir = source[0]
+        solar = np.asarray(solar, np.float64)  # sent in float32 where that held it exactly (:func:`_compact`)
         a = radiosity.absorbed_flux(solar, ir, options["albedo"], options["emissivity"], options["solar_is_absorbed"])
         if run is not None:
             prev = waveform.Window(prev.T, ir, prev.end, np.zeros_like(prev.acc))
@@ -674,6 +701,12 @@ def _pass_summary(*windows):
     return windows[-1].end, sum(w.acc for w in windows), windows[-1].ir[-1]
 
 
+def _rest(w):
+    """A chunk window's IR [W m-2], end state [K] and accumulators: what the command has not got (a small
+    task; the temperatures came with :func:`_surface`)."""
+    return w.ir, w.end, w.acc
+
+
 def _ir_part(w, lo: int, hi: int):
     """Rows ``lo..hi-1`` of a chunk window's IR [W m-2] (a small task)."""
     return w.ir[lo:hi]
@@ -695,13 +728,14 @@ class _RemoteWindow:
 
     def _fetch(self):
         if self._full is None:
-            parts = self._owner.client.gather(self._futures)
+            client = self._owner.client
+            parts = client.gather([client.submit(_rest, f, pure=False) for f in self._futures])
             nf, chunks = self._owner.n_facets, self._owner.chunks
             ir = np.empty_like(self.T)
-            end = np.empty((nf, parts[0].end.shape[1]))
-            acc = np.empty((nf, parts[0].acc.shape[1]))
-            for idx, w in zip(chunks, parts):
-                ir[:, idx], end[idx], acc[idx] = w.ir, w.end, w.acc
+            end = np.empty((nf, parts[0][1].shape[1]))
+            acc = np.empty((nf, parts[0][2].shape[1]))
+            for idx, (w_ir, w_end, w_acc) in zip(chunks, parts):
+                ir[:, idx], end[idx], acc[idx] = w_ir, w_end, w_acc
             self._full = (ir, end, acc)
         return self._full
 

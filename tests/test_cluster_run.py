@@ -103,6 +103,21 @@ class _CountingClient:
         return out
 
 
+def test_sunlight_goes_to_the_workers_in_float32_only_where_that_is_exact():
+    """``_compact``: rows that float32 holds exactly (a store's sunlight) are sent in float32, any other in
+    float64, unchanged; a window's first emission goes as one row that the task makes into the window's."""
+    exact = np.array([[0.0, 1361.0, 0.5], [2.0**-20, 3.0, 1e3]])
+    sent = cluster_run._compact(exact)
+    assert sent.dtype == np.float32 and np.array_equal(sent.astype(float), exact)
+    inexact = exact + np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 0.0]])  # 0.6 is not a float32
+    sent = cluster_run._compact(inexact)
+    assert sent.dtype == np.float64 and np.array_equal(sent, inexact)
+    row = np.array([1.0, 2.5, 3.0], np.float32)
+    whole = cluster_run._Broadcast(row, 4).array()
+    assert whole.shape == (4, 3) and whole.dtype == np.float32 and whole.flags.c_contiguous
+    assert np.array_equal(whole, np.tile(row, (4, 1)))
+
+
 def test_the_latest_pass_ir_is_gathered_from_only_the_blocks_and_rows_asked():
     """``DaskColumns.pass_ir(k0, k1)``: the IR rows of a spin-up pass kept on the workers as blocks of chunk
     windows (consecutive blocks share a sample, owned by the later one) equal the series they were cut
@@ -144,6 +159,7 @@ def test_a_window_relaxed_on_the_workers_equals_the_local_relaxation(tmp_path, m
     case = config.load_case(small_case(tmp_path, facets=300, end="2019-01-13", spinup="fixed", spinup_days=0.0))
     fc = simulate.compute_forcing(case, simulate.Timer())
     _, solar = fc.split(fc.solar)
+    solar = solar.astype(np.float32).astype(float)  # as a run's store gives it: sent to the workers in float32
     t = simulate.seconds_since(fc.times, fc.times[0])
     assert len(t) > 72
     nf = fc.mesh.n_facets
