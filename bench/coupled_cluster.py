@@ -23,7 +23,9 @@ function's name) and its idle seconds over the run, so that load imbalance betwe
 and the command's work can be told apart.
 
 Usage: ``python bench/coupled_cluster.py [--facets 30000] [--days 365] [--workers 2]
-[--chunk-facets 4000] [--modes stepper relaxed dask dask@15000] [--out bench/results/coupled_cluster.json]``.
+[--chunk-facets 4000] [--modes stepper relaxed dask dask@15000 relaxed#2 dask#2]
+[--out bench/results/coupled_cluster.json]``. A mode ``dask@N`` cuts chunks of at most N facets (``dask``:
+one per worker); ``relaxed#2``, ``dask#2``: a repeat, paired with the relaxed run of its number.
 """
 
 from __future__ import annotations
@@ -167,20 +169,20 @@ def main() -> None:
             # every mode builds its horizon map and operator itself (a cache of its own): none inherits
             # another's stages
             os.environ["CRATER_THERMAL_CACHE"] = str(tmp / f"cache_{mode}")
-            scheme = "extrapolated" if mode == "stepper" else "relaxed"
-            case = config.load_case(write_case(tmp, mode.replace("@", "_"), args.facets, args.days, scheme, spinup))
+            kind = mode.split("#")[0]  # "relaxed#2": the second run of a mode (repeats alternate in one run)
+            scheme = "extrapolated" if kind == "stepper" else "relaxed"
+            name = mode.replace("@", "_").replace("#", "_")
+            case = config.load_case(write_case(tmp, name, args.facets, args.days, scheme, spinup))
             columns = None
             seen = {}
-            if mode.startswith("dask"):  # "dask", or "dask@N": chunks of at most N facets
-                chunk_facets = int(mode.split("@")[1]) if "@" in mode else args.chunk_facets
+            if kind.startswith("dask"):  # "dask", or "dask@N": chunks of at most N facets
+                chunk_facets = int(kind.split("@")[1]) if "@" in kind else args.chunk_facets
                 columns = observed_columns(args.workers, chunk_facets, seen)
             timer = simulate.Timer()
             load = LoadSampler()
             load.start()
             t0, c0 = time.perf_counter(), os.times()
-            out = runner.run_case(
-                case, tmp / f"{mode.replace('@', '_')}.nc", progress=False, timer=timer, columns=columns
-            )
+            out = runner.run_case(case, tmp / f"{name}.nc", progress=False, timer=timer, columns=columns)
             wall = time.perf_counter() - t0
             c1 = os.times()
             load.stop.set()
@@ -218,9 +220,11 @@ def main() -> None:
     result["max_differences"] = diffs
     m = result["modes"]
     for mode in m:
-        if mode.startswith("dask") and "relaxed" in m:
-            key = "efficiency_relaxed_over_dask" + mode[4:].replace("@", "_chunk_facets_")
-            result[key] = m["relaxed"]["wall_s"] / m[mode]["wall_s"]
+        kind, _, rep = mode.partition("#")
+        base = "relaxed" + (f"#{rep}" if rep else "")  # a repeat pairs with the relaxed run of its number
+        if kind.startswith("dask") and base in m:
+            key = "efficiency_relaxed_over_dask" + kind[4:].replace("@", "_chunk_facets_") + (f"_{rep}" if rep else "")
+            result[key] = m[base]["wall_s"] / m[mode]["wall_s"]
     if "dask" in m and "stepper" in m:
         result["efficiency_stepper_over_dask"] = m["stepper"]["wall_s"] / m["dask"]["wall_s"]
     if "relaxed" in m and "stepper" in m:
