@@ -46,7 +46,6 @@ dask is imported only inside :func:`distributed_columns`'s context."""
 from __future__ import annotations
 
 import contextlib
-import functools
 import hashlib
 import json
 import os
@@ -894,90 +893,6 @@ class ClusterOperator(vfoperator.ViewFactorOperator):
 
     def _products(self, X):
         return _resending(self.client, lambda: self._assembled(X, self.client.gather(self._submitted(X))))
-
-    def fixed_points(self, problems, albedo, max_iter: int):
-        """The scattered sunlight's fixed points ``B <- rhs + A F B`` (:class:`radiosity.ScatteringSolver`)
-        kept on the workers, as the record's relaxation is: each chunk's task makes its rows' product from
-        every chunk's iterate (fetched worker to worker, in the products' type) and its rows' next iterate
-        and largest change (:func:`radiosity.fixed_point_step`, the same step as in one process), and only
-        one number per chunk comes back per iteration; the next iteration is submitted before the
-        convergence test and does nothing once it has passed. Yields ``(i, B, FB, iterations)`` for each
-        ``(rhs, B0)`` of ``problems`` ((nf, k) [W m-2], B0 the start or None: rhs), in order. A lost input
-        makes that problem again from its start."""
-        a_col = np.asarray(albedo, np.float64)[:, None]
-        for i, (rhs, B0) in enumerate(problems):
-            got = _resending(self.client, functools.partial(self._fixed_point, rhs, B0, a_col, max_iter))
-            yield (i, *got)
-
-    def _fixed_point(self, rhs, B0, a_col, max_iter: int):
-        client = self.client
-        idx = [self.order[a:b] for a, b in self.bounds]
-        tol = radiosity.fixed_point_tolerance(rhs)
-        k = rhs.shape[1]
-        start = rhs if B0 is None else np.asarray(B0, np.float64).reshape(rhs.shape)
-        rhs_f = client.scatter([np.ascontiguousarray(rhs[ix]) for ix in idx], hash=False)
-        a_f = client.scatter([np.ascontiguousarray(a_col[ix]) for ix in idx], hash=False)
-        state = client.scatter([_ScatterState(np.array(start[ix], np.float64), None, np.inf) for ix in idx], hash=False)
-        facets = client.scatter(_Facets(idx), hash=False)
-
-        def iteration(prev, stop):
-            sent = [client.submit(_scatter_operand, s, k, pure=False) for s in prev]
-            return [
-                client.submit(_scatter_step, r, facets, sent, prev[c], rhs_f[c], a_f[c], stop, pure=False)
-                for c, r in enumerate(self.rows)
-            ]
-
-        futures = iteration(state, None)
-        change = np.inf
-        for it in range(1, max_iter + 1):
-            changes = [client.submit(_scatter_change, f, pure=False) for f in futures]
-            following = iteration(futures, (changes, tol)) if it < max_iter else None
-            change = float(max(client.gather(changes)))
-            if change <= tol:
-                B, FB = np.empty_like(rhs), np.empty_like(rhs)
-                for ix, (b, fb) in zip(idx, client.gather([client.submit(_scatter_result, f) for f in futures])):
-                    B[ix], FB[ix] = b, fb
-                return B, FB, it
-            futures = following
-        raise radiosity.fixed_point_not_converged(change)
-
-
-class _ScatterState:
-    """A chunk's rows of a scattered-sunlight fixed point on a worker: its iterate ``B`` (m, k) [W m-2],
-    the product ``FB`` that formed it (None at the start) and its largest change [W m-2]."""
-
-    def __init__(self, B, FB, change: float):
-        self.B, self.FB, self.change = B, FB, change
-
-
-def _scatter_operand(state: _ScatterState, k: int) -> np.ndarray:
-    """A chunk's iterate as the other chunks' products take it (:func:`_operand`: float32 for several
-    right-hand sides): what travels worker to worker."""
-    return _operand(state.B, k)
-
-
-def _scatter_step(rows, chunks, sent, own: _ScatterState, rhs, a, stop=None):
-    """One step of a chunk's rows of ``B <- rhs + A F B`` (a dask task): ``F B`` on its rows from every
-    chunk's iterate (``sent``, in the order of ``chunks``), then :func:`radiosity.fixed_point_step`.
-    ``stop``: (every chunk's change in the previous step, the tolerance) [W m-2]: within it, None."""
-    if stop is not None and max(stop[0]) <= stop[1]:
-        return None
-    X = np.empty((sum(len(ix) for ix in chunks.idx), sent[0].shape[1]), sent[0].dtype)
-    for ix, part in zip(chunks.idx, sent):
-        X[ix] = part
-    with cluster.one_numba_thread():
-        FB = rows.apply(X)
-    B = np.empty_like(own.B)
-    change = radiosity.fixed_point_step(FB, rhs, a, own.B.copy(), B)
-    return _ScatterState(B, FB, change)
-
-
-def _scatter_change(state: _ScatterState) -> float:
-    return state.change
-
-
-def _scatter_result(state: _ScatterState):
-    return state.B, state.FB
 
 
 class _Product:

@@ -247,27 +247,27 @@ class ScatteringSolver:
         a = self.albedo[:, None]
         B = rhs.copy() if B0 is None else np.array(B0, dtype=float).reshape(rhs.shape)
         Bn = np.empty_like(B)
-        tol = fixed_point_tolerance(rhs)
+        scale = max(float(np.abs(rhs).max()), np.finfo(float).tiny)
         for it in range(1, ITERATIVE_MAX + 1):
             FB = np.asarray((yield B)).reshape(rhs.shape)
-            change = fixed_point_step(FB, rhs, a, B, Bn)  # B is not needed past this point: it holds the change
+            np.multiply(a, FB, out=Bn)
+            Bn += rhs
+            diff = np.subtract(Bn, B, out=B)  # B is not needed past this point: it holds the change
+            change = max(float(diff.max()), -float(diff.min()))
             B, Bn = Bn, B
-            if change <= tol:
+            if change <= ITERATIVE_RTOL * scale:
                 self.iterations = max(self.iterations, it)
                 return B, FB
-        raise fixed_point_not_converged(change)
+        raise SolverError(
+            f"scattered sunlight: the fixed-point solve did not converge in {ITERATIVE_MAX} "
+            f"products (last change {change:.3g} W m-2)"
+        )
 
     def _solved(self, problems) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray]]]:
         """``(i, (B, FB))`` of :meth:`_fixed_point` for each ``(rhs, B0)`` of ``problems`` (an iterable, read
         as the solves start), as each converges. With an :attr:`~ViewFactorOperator.asynchronous` operator
         (a cluster's) two solves are in flight: one's product runs on the workers while this process
         updates the other (the same operations per solve, so the same numbers); else one at a time."""
-        own = getattr(self.F, "fixed_points", None)
-        if own is not None:  # an operator that keeps the iterations where its rows are (a cluster's)
-            for i, B, FB, it in own(problems, self.albedo, ITERATIVE_MAX):
-                self.iterations = max(self.iterations, it)
-                yield i, (B, FB)
-            return
         width = 2 if self.F.asynchronous else 1
         problems = enumerate(problems)
         active: list = []  # (i, solve, its product in flight), oldest first
@@ -376,29 +376,6 @@ class ScatteringSolver:
         if len(lit):
             Q[lit] += np.maximum(np.asarray(self.F.matvec(np.ascontiguousarray(B[lit].T))).T, 0.0)
         return Q
-
-
-def fixed_point_tolerance(rhs: np.ndarray) -> float:
-    """The scattered sunlight's fixed point stops when no exitance changes by more than this [W m-2]:
-    :data:`ITERATIVE_RTOL` of the largest first-bounce exitance ``rhs``."""
-    return ITERATIVE_RTOL * max(float(np.abs(rhs).max()), np.finfo(float).tiny)
-
-
-def fixed_point_step(FB: np.ndarray, rhs: np.ndarray, a: np.ndarray, B: np.ndarray, out: np.ndarray) -> float:
-    """One step of ``B <- rhs + A F B`` given ``FB = F B``: the next iterate into ``out`` and the largest
-    absolute change [W m-2] from ``B``, which is overwritten with the change (no temporaries).
-    ``a``: the albedo as a column (nf, 1) [-]."""
-    np.multiply(a, FB, out=out)
-    out += rhs
-    diff = np.subtract(out, B, out=B)
-    return max(float(diff.max()), -float(diff.min()))
-
-
-def fixed_point_not_converged(change: float) -> SolverError:
-    return SolverError(
-        f"scattered sunlight: the fixed-point solve did not converge in {ITERATIVE_MAX} "
-        f"products (last change {change:.3g} W m-2)"
-    )
 
 
 def ir_incident(F, T: np.ndarray, emissivity=EMISSIVITY) -> np.ndarray:
