@@ -498,7 +498,8 @@ class DaskColumns:
     def pass_ir(self, k0: int, k1: int):
         """IR rows [W m-2] ``k0..k1-1`` of the latest lagged pass, gathered from the workers (each block
         owns its rows but the last, which is the next block's first, except at the end); only the blocks
-        that hold those rows are asked, and only for them."""
+        that hold those rows are asked, and only for them. In ``run.nc``'s type
+        (:data:`crater_thermal.io.RUN_SERIES_DTYPE`: they are kept for it only), half the bytes."""
         self._cancel_ahead()  # asked for once the start has converged: no next pass needs them
         out = []
         starts = sorted(self._pass)
@@ -511,7 +512,7 @@ class DaskColumns:
             lo, hi = max(k0, b0) - b0, k1 - b0 if own_end is None else min(k1, own_end) - b0
             futs = [self.client.submit(_ir_part, f, lo, hi, pure=False) for f in self._pass[b0]]
             parts = self.client.gather(futs)
-            rows = np.empty((len(parts[0]), self._n))
+            rows = np.empty((len(parts[0]), self._n), io.RUN_SERIES_DTYPE)
             for idx, p in zip(self.chunks, parts):
                 rows[:, idx] = p
             out.append(rows)
@@ -708,8 +709,8 @@ def _rest(w):
 
 
 def _ir_part(w, lo: int, hi: int):
-    """Rows ``lo..hi-1`` of a chunk window's IR [W m-2] (a small task)."""
-    return w.ir[lo:hi]
+    """Rows ``lo..hi-1`` of a chunk window's IR [W m-2] in ``run.nc``'s type (a small task)."""
+    return w.ir[lo:hi].astype(io.RUN_SERIES_DTYPE)
 
 
 class _RemoteWindow:

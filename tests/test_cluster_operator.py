@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from crater_thermal import cluster_run, geometry, io, vfoperator
+from crater_thermal import cluster_run, geometry, io, radiosity, vfoperator
 
 distributed = pytest.importorskip("distributed")
 
@@ -39,7 +39,7 @@ def _close32(got, ref):
     np.testing.assert_allclose(got, ref, rtol=0, atol=FLOAT32_ROUNDOFF * np.abs(ref).max())
 
 
-def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
+def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path, monkeypatch):
     """An inward sphere of 800 facets (every facet sees most others; row sums above 1, so the rescale of
     all row sums applies) in 3 chunks on 2 workers: ``F x``, ``F X`` and ``F^T y`` from the workers' rows
     equal the whole operator's; this process holds only the facet order and areas. Then one worker is
@@ -65,6 +65,8 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
             assert F.rowsum_excess == pytest.approx(whole.rowsum_excess, abs=1e-12) and not F.is_zero
             # the whole operator's entries are on the workers, not here
             assert F.nbytes == 16 * mesh.n_facets and F.held_bytes >= whole.nbytes // 2
+            monkeypatch.setattr(radiosity, "ITERATIVE_BLOCK", 2)  # several blocks: two solves in flight
+            E, Q = _scattering_through_the_workers(F, whole, rng)
             client = session.client
             # the victim holds a row block (the scheduler may have put every block on one worker)
             holders = sorted({a for addrs in client.who_has(F.rows).values() for a in addrs})
@@ -77,12 +79,34 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path):
                     time.sleep(0.05)
                 _close(F @ x, whole @ x)
                 _close32(F @ X, whole @ X)
+                # the scattered sunlight's products through the one worker left: the same numbers
+                assert np.array_equal(radiosity.ScatteringSolver(F, 0.3, solver="iterative").solar_incident(E), Q)
             # the lost block made again: rescaled from its unscaled rows where these were still held on the
             # other worker ("ct-rows-"), else built again from the mesh ("ct-build-"): which one depends on
             # when dask released the unscaled rows, a race the test must not depend on
             keys = [str(t["key"]) for t in stream.data]
             rebuilt = [k for k in keys if k.startswith(("ct-build-", "ct-rows-"))]
             assert rebuilt, f"no row block was made again: the test proves nothing (tasks run: {sorted(set(keys))})"
+
+
+def _scattering_through_the_workers(F, whole, rng):
+    """The scattered sunlight's fixed points with the workers' products (two solves in flight: the
+    operator is asynchronous) against the whole operator's solve in one process: to the products'
+    round-off carried through the fixed point (1 / (1 - q), q = A max row sum <= 0.3) plus both solves'
+    stopping rules (ITERATIVE_RTOL of the largest first bounce, / (1 - q) each); several samples, one
+    dark, and one sample alone (float64 products). Returns the samples and their incident light."""
+    nf = F.shape[0]
+    E = rng.uniform(0.0, 1000.0, (5, nf)) * (rng.random((5, nf)) < 0.6)
+    E[3] = 0.0  # a dark sample: skipped
+    assert F.asynchronous
+    cluster = radiosity.ScatteringSolver(F, 0.3, solver="iterative")
+    local = radiosity.ScatteringSolver(whole, 0.3, solver="iterative")
+    for e in (E, E[0]):
+        Q, ref = cluster.solar_incident(e), local.solar_incident(e)
+        stopping = 2 * radiosity.ITERATIVE_RTOL * 0.3 * np.abs(e).max() / 0.7
+        np.testing.assert_allclose(Q, ref, rtol=0, atol=FLOAT32_ROUNDOFF * np.abs(ref - e).max() / 0.7 + stopping)
+    assert np.array_equal(cluster.solar_incident(E)[3], E[3])  # the dark sample: skipped, no light
+    return E, cluster.solar_incident(E)
 
 
 def test_rows_of_another_mesh_are_refused(tmp_path):

@@ -143,7 +143,7 @@ def test_the_latest_pass_ir_is_gathered_from_only_the_blocks_and_rows_asked():
                 for k1 in range(k0 + 1, n + 1):
                     client.gathered.clear()
                     got = remote.pass_ir(k0, k1)
-                    np.testing.assert_array_equal(got, series[k0:k1])
+                    np.testing.assert_array_equal(got, series[k0:k1].astype(io.RUN_SERIES_DTYPE))
                     assert sum(client.gathered) == (k1 - k0) * nf, (k0, k1, client.gathered)
 
 
