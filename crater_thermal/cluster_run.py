@@ -807,9 +807,10 @@ def _scaled(block, scale):
 
 
 def _apply_rows(block, X):
-    """``(F @ X)`` on a chunk's rows (a product of :class:`ClusterOperator`)."""
+    """``(F @ X)`` on a chunk's rows (a product of :class:`ClusterOperator`), sent back in float32 where
+    that holds it exactly (several right-hand sides are multiplied in float32: :func:`_compact`)."""
     with cluster.one_numba_thread():
-        return block.apply(X)
+        return _compact(block.apply(X))
 
 
 def _workers_left(client) -> bool:
