@@ -25,13 +25,17 @@ Either way each worker holds only its chunks' rows, and the scratch store must b
 worker reads at the same path. The sunlight (direct and scattered) goes into the store as in a local run.
 
 Then the time loop, window by window (the recorded period in windows of
-:func:`crater_thermal.waveform.window_samples` samples, the spin-up window in blocks): per relaxation
-iteration the client sends the window's emitted flux (samples x facets, in the products' type: float32,
-one copy per worker) and
-each chunk's start state and sunlight; each task forms its rows' IR from the emission and its rows of the
-operator, conducts its columns through the window on one thread, and returns their temperatures, IR and
-end state. The client checks convergence, keeps the state, writes the rows into the store and the
-checkpoints (``--resume`` works as for a local run), and at the end writes ``run.nc`` as a local run does.
+:func:`crater_thermal.waveform.window_samples` samples, the spin-up window in blocks). A record window
+(:meth:`DaskColumns.relax_window`): the client sends each chunk's start state and sunlight (float32
+where that is exact: :func:`_compact`) and the start's emission (one row); each task forms its rows' IR
+from every chunk's emission (fetched worker to worker, in the products' type) and its rows of the
+operator, and conducts its columns through the window on one thread; each chunk forms its next emission
+and its largest change where it is, and only that number comes back per iteration (the next iteration
+is submitted ahead and does nothing once the window has converged). The converged window's
+temperatures, IR and end states come back once. The periodic start's passes run whole on the workers
+(:meth:`DaskColumns.held_pass`, :meth:`DaskColumns.lagged_pass`). The client keeps the state, writes the
+rows into the store and the checkpoints (``--resume`` works as for a local run), and at the end writes
+``run.nc`` as a local run does.
 
 Tasks are pure functions of their inputs: a task whose worker dies is run again by the scheduler
 (``retries`` for errors it raises), and an iteration (or a product) whose operand was lost with a worker
