@@ -874,57 +874,46 @@ class ClusterOperator(vfoperator.ViewFactorOperator):
 
     def submit(self, x):
         """``F x`` begun on the workers (the operand sent, each chunk's rows' task submitted): ``result()``
-        gathers and assembles it; an input lost meanwhile with a worker makes it again through
-        :meth:`matvec` (which sends it again), a task's own error goes on as it is."""
+        gathers and assembles it, with :func:`_resending`'s rules (an input lost with a worker: the product
+        made again; a task's own error: raised as it is)."""
         x = self._check(x)
         X = x.reshape(x.shape[0], -1)
         try:
             futures = self._submitted(X)
-        except (CraterThermalError, MemoryError):
+        except (CraterThermalError, InternalError, MemoryError):
             raise
-        except Exception:  # the cluster failed the send: matvec's resending decides
+        except Exception:  # the cluster failed the send: result() sends it again, or gives up
             futures = None
-        return _Product(self, x, futures)
+        return _Product(self, X, futures, x.shape)
 
     def _submitted(self, X) -> list:
         client = self.client
         X_f = client.scatter(_operand(X, X.shape[1]), hash=False)
         return [client.submit(_apply_rows, r, X_f, pure=False, retries=RETRIES) for r in self.rows]
 
-    def _assembled(self, X, parts) -> np.ndarray:
-        out = np.empty_like(X, dtype=np.float64)
-        for (a, b), part in zip(self.bounds, parts):
-            out[self.order[a:b]] = part
-        return out
-
     def _products(self, X):
-        return _resending(self.client, lambda: self._assembled(X, self.client.gather(self._submitted(X))))
+        return _Product(self, X, None, X.shape).result()
 
 
 class _Product:
-    """A product of a :class:`ClusterOperator` in flight (:meth:`ClusterOperator.submit`)."""
+    """A product of a :class:`ClusterOperator`: ``X`` (n, k) [any unit], its tasks already submitted
+    (``futures``) or None; ``result()`` in ``shape``."""
 
-    def __init__(self, op: ClusterOperator, x: np.ndarray, futures):
-        self.op, self.x, self.futures = op, x, futures
+    def __init__(self, op: ClusterOperator, X: np.ndarray, futures, shape):
+        self.op, self.X, self.futures, self.shape = op, X, futures, shape
 
     def result(self) -> np.ndarray:
-        from distributed import KilledWorker
+        op = self.op
 
-        if self.futures is not None:
-            try:
-                parts = self.op.client.gather(self.futures)
-            except KilledWorker as exc:
-                raise _gave_up(exc) from None
-            except (CraterThermalError, InternalError, MemoryError):
-                raise
-            except Exception:  # an input lost with a worker: made again (and resent) below
-                pass
-            else:
-                X = self.x.reshape(self.x.shape[0], -1)
-                return self.op._assembled(X, parts).reshape(self.x.shape)
-            finally:
-                self.futures = None
-        return self.op.matvec(self.x)
+        def attempt():
+            futures, self.futures = self.futures, None  # the tasks in flight first, then sent again
+            parts = op.client.gather(futures if futures is not None else op._submitted(self.X))
+            out = np.empty_like(self.X, dtype=np.float64)
+            for (a, b), part in zip(op.bounds, parts):
+                out[op.order[a:b]] = part
+            return out.reshape(self.shape)
+
+        return _resending(op.client, attempt)
 
 
 class _Session:
