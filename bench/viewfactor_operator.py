@@ -3,6 +3,9 @@
 Run:  PYTHONPATH=$PWD python bench/viewfactor_operator.py [--sizes 10000 25000 50000] [--big 100000]
       [--row-tolerance 0.003 0.01 0.03]  (also the row-relative operator, issue 24: each tolerance is a
       variant ``compressed-row@TOL`` built, timed and compared like the default one)
+      [--old-tree DIR --pairs P]  (the --big sizes built by another source tree's code and this one's,
+      alternating, old first: ``pairs`` in the JSON, with build time and peak ratios and whether the
+      products are bit for bit equal)
 
 Terrain: a synthetic crater-in-terrain height field (20 km square, a 10 km paraboloid crater 2 km deep
 with a raised rim, 20 m Gaussian roughness), two triangles per grid cell, at each size.  Every
@@ -120,10 +123,14 @@ def child(method: str, n: int, tol: float, out_npz: str) -> dict:
     return res
 
 
-def _run_child(method, n, tol, tmp) -> tuple[dict, str]:
-    npz = os.path.join(tmp, f"{method}_{tol:g}_{n}.npz")
-    cmd = [sys.executable, __file__, "--child", method, str(n), "--tolerance", str(tol), "--npz", npz]
-    p = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+def _run_child(method, n, tol, tmp, tree=None, tag="") -> tuple[dict, str]:
+    """One build in its own process; ``tree``: another source tree (its own copy of this script and its
+    package on ``PYTHONPATH``, this virtual environment), for ``--old-tree``."""
+    npz = os.path.join(tmp, f"{method}_{tol:g}_{n}{tag}.npz")
+    script = __file__ if tree is None else str(Path(tree) / "bench" / "viewfactor_operator.py")
+    cmd = [sys.executable, script, "--child", method, str(n), "--tolerance", str(tol), "--npz", npz]
+    env = os.environ.copy() if tree is None else dict(os.environ, PYTHONPATH=str(tree))
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if p.returncode != 0:
         return {"method": method, "facets": n, "error": p.stderr.strip().splitlines()[-1:]}, npz
     res = json.loads(p.stdout.strip().splitlines()[-1])
@@ -152,6 +159,13 @@ def main(argv=None) -> dict:
         default=[],
         help="also build the row-relative operator (tolerance_mode='row') at these tolerances",
     )
+    ap.add_argument(
+        "--old-tree",
+        default=None,
+        help="also build the default compressed operator of --big with the code of this source tree, "
+        "alternating with this one (old first), --pairs times: paired build time and peak memory",
+    )
+    ap.add_argument("--pairs", type=int, default=1)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "viewfactor_operator.json"))
     ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--npz", default=None, help=argparse.SUPPRESS)
@@ -190,7 +204,23 @@ def main(argv=None) -> dict:
                         err["memory_ratio"] = ex["nbytes"] / co["nbytes"]
                         errors.append(err)
                         print(json.dumps(err), file=sys.stderr, flush=True)
+        pairs = []
         for n in args.big:
+            if args.old_tree:
+                for q in range(args.pairs):
+                    old, npz_o = _run_child("compressed", n, tol, tmp, args.old_tree, "_old")
+                    new, npz_n = _run_child("compressed", n, tol, tmp, None, "_new")
+                    pair = {"facets": n, "pair": q, "old": old, "new": new}
+                    if "error" not in old and "error" not in new:
+                        with np.load(npz_o) as zo, np.load(npz_n) as zn:
+                            pair["products_equal"] = all(np.array_equal(zo[k], zn[k]) for k in zo.files)
+                        for k in ("build_s", "build_cpu_s", "peak_rss_mb", "nbytes"):
+                            pair[f"{k}_old_over_new"] = old[k] / new[k]
+                        pair["peak_over_stored_old"] = old["peak_rss_mb"] * 2**20 / old["nbytes"]
+                        pair["peak_over_stored_new"] = new["peak_rss_mb"] * 2**20 / new["nbytes"]
+                    pairs.append(pair)
+                    print(json.dumps({k: v for k, v in pair.items() if k not in ("old", "new")}), file=sys.stderr)
+                continue
             for m, t in variants:
                 co, _ = _run_child(m, n, t, tmp)
                 rows_comp[f"{m}@{t:g}"].append(co)
@@ -207,6 +237,7 @@ def main(argv=None) -> dict:
         **({"compressed_variants": rows_comp} if rows_comp else {}),
         "errors": errors,
         "exponents": exps,
+        **({"old_tree": str(args.old_tree), "pairs": pairs} if args.old_tree else {}),
         "load_average_start": load0,
         "load_average_end": os.getloadavg(),
         "cpu_count": os.cpu_count(),

@@ -70,6 +70,7 @@ several right-hand sides in :data:`PRODUCT_DTYPE` arithmetic.
 from __future__ import annotations
 
 import os
+import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -81,7 +82,7 @@ from threadpoolctl import threadpool_limits
 
 from crater_thermal import io
 from crater_thermal.choices import VIEW_FACTOR_METHODS as METHODS
-from crater_thermal.errors import ConfigError, MeshError
+from crater_thermal.errors import ConfigError, InternalError, MeshError
 from crater_thermal.geometry import Mesh
 from crater_thermal.pools import process_pool
 
@@ -752,6 +753,7 @@ def compressed_view_factors(
     admissibility: float = ADMISSIBILITY,
     max_block_entries: int = MAX_BLOCK_ENTRIES,
     tolerance_mode: str = "block",
+    spill_dir=None,
 ) -> CompressedViewFactors:
     """Build the compressed view-factor operator (module docstring) without holding the full matrix.
 
@@ -775,6 +777,10 @@ def compressed_view_factors(
         so that far blocks of tiny (grazing) entries are stored at low rank, truncated or dropped;
         the row sums come from :data:`ROWSUM_RAYS` cosine-weighted rays per facet.  Near blocks are
         exact in both modes.
+    spill_dir : path, optional
+        Folder of the build's temporary files (default: the system's temporary folder, ``TMPDIR``):
+        the blocks go to disk as they are made and are read back once, so the build needs free disk
+        about the operator's size (:attr:`~CompressedViewFactors.nbytes`) and holds it in memory once.
 
     Returns
     -------
@@ -783,26 +789,13 @@ def compressed_view_factors(
     t_start = time.perf_counter()
     plan = CompressedPlan(mesh, tracer, tolerance, leaf_size, admissibility, max_block_entries, tolerance_mode)
     nf = mesh.n_facets
-    lowrank, coo, rays, near_pairs = plan.build(plan.units(), n_threads, progress)
-    # sparse part: upper triangle (i < j by construction), CSR, float32 values
-    if coo:
-        ii = np.concatenate([c[0] for c in coo])
-        jj = np.concatenate([c[1] for c in coo])
-        gg = np.concatenate([c[2] for c in coo])
-    else:
-        ii = jj = np.empty(0, np.int64)
-        gg = np.empty(0)
-    del coo
-    if len(ii) and np.any(ii >= jj):
-        raise MeshError("internal: compressed view factors: a sparse entry below the diagonal")  # pragma: no cover
-    S = sp.csr_matrix((gg.astype(np.float32), (ii, jj)), shape=(nf, nf))
-    S.sum_duplicates()
-    sparse = (S.indptr.astype(np.int64), S.indices.astype(np.int32), S.data.astype(np.float32))
-    n_sparse = int(S.nnz)
-    del S, ii, jj, gg
-    # low-rank part, packed
-    packed = _pack_lowrank(lowrank)
-    del lowrank
+    with _Spill(nf, folder=spill_dir) as spill:
+        rays, near_pairs = plan.build(plan.units(), spill, n_threads, progress)
+        # sparse part: the upper triangle (i < j by construction), CSR, float32 values; then the low-rank
+        # part, packed: each read back from the spill files, so that nothing is held twice
+        sparse = spill.csr()
+        packed = spill.lowrank()
+    n_sparse = len(sparse[1])
     rank, U, V = packed[4], packed[7], packed[8]
     nb = len(rank)
     builder = plan.builder
@@ -857,22 +850,158 @@ def rowsum_scale(rowsums: np.ndarray) -> tuple[np.ndarray | None, float]:
     return np.minimum(1.0, 1.0 / np.maximum(rs, 1e-300)), excess
 
 
-def _pack_lowrank(lowrank: list) -> tuple:
-    """Low-rank blocks ``[(r0, c0, U (m, r) float32, V (n, r) float32)]`` packed into the arrays of
-    :class:`CompressedViewFactors` ``(r0, r1, c0, c1, rank, uoff, voff, U, V)``."""
-    nb = len(lowrank)
-    r0 = np.array([b[0] for b in lowrank], np.int64)
-    c0 = np.array([b[1] for b in lowrank], np.int64)
-    r1 = r0 + np.array([b[2].shape[0] for b in lowrank], np.int64)
-    c1 = c0 + np.array([b[3].shape[0] for b in lowrank], np.int64)
-    rank = np.array([b[2].shape[1] for b in lowrank], np.int64)
-    usz = (r1 - r0) * rank
-    vsz = (c1 - c0) * rank
+def _lowrank_arrays(meta: list, U: np.ndarray, V: np.ndarray) -> tuple:
+    """``(r0, r1, c0, c1, rank, uoff, voff, U, V)`` from ``meta = [(r0, c0, m, n, rank)]`` of blocks
+    whose factors follow each other in ``U`` and ``V`` (flat, row-major (m, rank) and (n, rank))."""
+    nb = len(meta)
+    info = np.array(meta, np.int64).reshape(nb, 5)
+    r0, c0, m, n, rank = (np.ascontiguousarray(info[:, q]) for q in range(5))
+    usz, vsz = m * rank, n * rank
     uoff = np.concatenate([[0], np.cumsum(usz)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
     voff = np.concatenate([[0], np.cumsum(vsz)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
-    U = np.concatenate([b[2].ravel() for b in lowrank]) if nb else np.empty(0, np.float32)
-    V = np.concatenate([b[3].ravel() for b in lowrank]) if nb else np.empty(0, np.float32)
-    return r0, r1, c0, c1, rank, uoff, voff, U, V
+    if int(usz.sum()) != len(U) or int(vsz.sum()) != len(V):
+        raise InternalError("compressed view factors: the low-rank factors do not match their blocks")
+    return r0, r0 + m, c0, c0 + n, rank, uoff, voff, U, V
+
+
+class _Spill:
+    """Where a build puts its blocks as they are made: on disk, in a temporary folder, so that the build
+    holds what it stores once, and not its pieces besides (issue 24: before, the lists of pieces and
+    their concatenation held 2.7x the stored operator at 400k facets).
+
+    Low-rank blocks append their float32 factors to two files, in the order they come, and sparse
+    entries ``(row, column, value)`` (int32, int32, float32) to three; :meth:`lowrank` reads the factors
+    back as the packed arrays, :meth:`csr` counts, places and sorts the entries into canonical CSR arrays
+    (:func:`kernels.vfoperator.csr_scatter`, :func:`~kernels.vfoperator.csr_sort_merge`: those of scipy's
+    COO to CSR conversion), a bounded number of entries at a time.
+
+    ``rows=(a, b)`` keeps rows ``a .. b-1`` of a symmetric operator of ``n`` rows stored above its
+    diagonal, as a worker's row block needs them: each entry ``(i, j)`` lands in row ``i - a`` if ``i``
+    is one of the rows and, transposed, in row ``j - a`` if ``j`` is; the low-rank blocks that meet
+    neither the rows nor, transposed, the columns are not kept. ``folder``: where the temporary folder
+    goes (default: the system's, ``TMPDIR``); it needs free space about the size of what is kept.
+    """
+
+    #: entries per read while assembling the CSR arrays (12 bytes each)
+    CHUNK = 1 << 22
+    NAMES = ("U", "V", "I", "J", "G")
+
+    def __init__(self, n: int, rows: tuple[int, int] | None = None, folder=None):
+        self.n = int(n)
+        self.a, self.b = (0, self.n) if rows is None else (int(rows[0]), int(rows[1]))
+        self.whole = rows is None
+        try:
+            self._tmp = tempfile.TemporaryDirectory(prefix="crater_thermal-operator-", dir=folder)
+        except OSError as exc:
+            where = folder or tempfile.gettempdir()
+            raise ConfigError(
+                f"view-factor operator: cannot make a temporary folder in {where} ({exc.strerror}); "
+                "set TMPDIR to a writable folder"
+            ) from None
+        self._files = {}
+        self._where = self._tmp.name
+        try:
+            for name in self.NAMES:
+                self._files[name] = open(os.path.join(self._where, name), "wb", buffering=1 << 22)
+        except BaseException:
+            self.close()
+            raise
+        self.meta: list = []  # (r0, c0, m, n, rank) of each kept low-rank block
+        self.entries = 0
+
+    def _write(self, name: str, arr: np.ndarray) -> None:
+        try:
+            self._files[name].write(np.ascontiguousarray(arr).data)
+        except OSError as exc:
+            self.close()
+            raise ConfigError(
+                f"view-factor operator: cannot write the build's blocks in {self._where} ({exc.strerror}); "
+                "set TMPDIR to a folder with free space about the size of the operator"
+            ) from None
+
+    def add(self, lowrank: list, coo: list) -> None:
+        """One work unit's results: ``[(r0, c0, U, V)]`` and ``[(i, j, g)]`` (cluster order, i < j)."""
+        a, b = self.a, self.b
+        for r0, c0, U, V in lowrank:
+            if not self.whole and not ((r0 < b and r0 + U.shape[0] > a) or (c0 < b and c0 + V.shape[0] > a)):
+                continue
+            self.meta.append((int(r0), int(c0), U.shape[0], V.shape[0], U.shape[1]))
+            self._write("U", np.asarray(U, np.float32))
+            self._write("V", np.asarray(V, np.float32))
+        for i, j, g in coo:
+            if len(i) and bool(np.any(i >= j)):
+                raise InternalError("compressed view factors: a sparse entry below the diagonal")
+            g = np.asarray(g, np.float32)
+            if self.whole:
+                parts = [(i, j, g)]
+            else:
+                up = (i >= a) & (i < b)
+                down = (j >= a) & (j < b)
+                parts = [(i[up] - a, j[up], g[up]), (j[down] - a, i[down], g[down])]
+            for rr, cc, vv in parts:
+                self._write("I", np.asarray(rr, np.int32))
+                self._write("J", np.asarray(cc, np.int32))
+                self._write("G", vv)
+                self.entries += len(rr)
+
+    def _flush(self) -> None:
+        for f in self._files.values():
+            if not f.closed:
+                f.close()
+
+    def _read(self, name: str, dtype, count: int = -1, f=None) -> np.ndarray:
+        if f is not None:
+            return np.fromfile(f, dtype, count)
+        return np.fromfile(os.path.join(self._where, name), dtype)
+
+    def lowrank(self) -> tuple:
+        """The kept low-rank blocks packed (:func:`_lowrank_arrays`), read back from disk."""
+        self._flush()
+        return _lowrank_arrays(self.meta, self._read("U", np.float32), self._read("V", np.float32))
+
+    def csr(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(indptr int64, indices int32, data float32)`` of the kept sparse entries, ``b - a`` rows,
+        columns sorted in each row and repeated entries summed."""
+        from crater_thermal.kernels import vfoperator as kv
+
+        self._flush()
+        rows, total, step = self.b - self.a, self.entries, self.CHUNK
+        counts = np.zeros(rows, np.int64)
+        with open(os.path.join(self._where, "I"), "rb") as fi:
+            for _ in range(0, total, step):
+                counts += np.bincount(self._read("I", np.int32, step, fi), minlength=rows)
+        indptr = np.zeros(rows + 1, np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        del counts
+        indices = np.empty(total, np.int32)
+        data = np.empty(total, np.float32)
+        cursor = indptr[:-1].copy()
+        with (
+            open(os.path.join(self._where, "I"), "rb") as fi,
+            open(os.path.join(self._where, "J"), "rb") as fj,
+            open(os.path.join(self._where, "G"), "rb") as fg,
+        ):
+            for _ in range(0, total, step):
+                i = self._read("I", np.int32, step, fi)
+                j = self._read("J", np.int32, step, fj)
+                g = self._read("G", np.float32, step, fg)
+                kv.csr_scatter(i, j, g, cursor, indices, data)
+        del cursor
+        kept = kv.csr_sort_merge(indptr, indices, data)
+        if kept < total:  # repeated entries were summed (none by construction: the blocks are disjoint)
+            indices, data = indices[:kept].copy(), data[:kept].copy()
+        return indptr, indices, data
+
+    def close(self) -> None:
+        """Remove the temporary folder (also when the build failed or was interrupted)."""
+        self._flush()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> "_Spill":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 class CompressedPlan:
@@ -953,13 +1082,14 @@ class CompressedPlan:
             units.append(("near", batch))
         return units
 
-    def build(self, units: list, n_threads: int | None = None, progress: Callable | None = None):
-        """Compute work units on ``n_threads`` threads (default: the tracer's).
+    def build(self, units: list, spill: "_Spill", n_threads: int | None = None, progress: Callable | None = None):
+        """Compute work units on ``n_threads`` threads (default: the tracer's), each unit's blocks handed
+        to ``spill`` (:meth:`_Spill.add`: low-rank blocks ``(r0, c0, U, V)`` in cluster order, sparse
+        entries ``(i, j, g)`` above the diagonal [m2]) as it finishes, in the order of ``units``.
 
         Returns
         -------
-        (lowrank, coo, rays, near_pairs) : the low-rank blocks ``[(r0, c0, U, V)]`` (cluster order),
-            the sparse entries ``[(i, j, g)]`` above the diagonal [m2], rays traced, near pairs kept.
+        (rays, near_pairs) : rays traced, near pairs kept.
         """
         builder = self.builder
 
@@ -968,7 +1098,6 @@ class CompressedPlan:
             return builder.far_block(*arg) if kind == "far" else builder.near_blocks(arg)
 
         n_threads = max(1, int(n_threads or self.tracer.n_threads))
-        lowrank, coo = [], []
         rays = near_pairs = done = 0
         pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
         # the units run on this pool's threads, each tracing its batches itself (measured at 30k facets,
@@ -982,8 +1111,7 @@ class CompressedPlan:
             with threadpool_limits(1, user_api="blas"):
                 results = pool.map(work, units) if pool is not None else map(work, units)
                 for lr, cc, nr, npairs in results:
-                    lowrank += lr
-                    coo += cc
+                    spill.add(lr, cc)
                     rays += nr
                     near_pairs += npairs
                     done += 1
@@ -993,9 +1121,9 @@ class CompressedPlan:
             builder.serial_trace = False
             if pool is not None:
                 pool.shutdown()
-        return lowrank, coo, rays, near_pairs
+        return rays, near_pairs
 
-    def row_block(self, a: int, b: int, n_threads: int | None = None) -> "RowBlock":
+    def row_block(self, a: int, b: int, n_threads: int | None = None, spill_dir=None) -> "RowBlock":
         """Rows ``a .. b-1`` (cluster order, :func:`row_order`) of the operator built alone, without the
         rest of it: the units of :meth:`units` (a block meeting other rows too is built here as well as
         there), kept as :func:`load_row_block` keeps them from the whole operator (its near rows and,
@@ -1011,32 +1139,14 @@ class CompressedPlan:
             raise ConfigError(f"row block {a}:{b} outside the operator's {n} rows")
         t0, c0 = time.perf_counter(), time.process_time()
         units = self.units(a, b)
-        lowrank, coo, rays, near_pairs = self.build(units, n_threads)
-        # near part: rows a..b-1 of S + S^T, S the entries above the diagonal (float32 as stored)
-        rows_, cols_, vals_ = [], [], []
-        for i, j, g in coo:
-            g = g.astype(np.float32)
-            up = (i >= a) & (i < b)
-            down = (j >= a) & (j < b)
-            rows_ += [i[up] - a, j[down] - a]
-            cols_ += [j[up], i[down]]
-            vals_ += [g[up], g[down]]
-        del coo
-        if rows_:
-            near = sp.csr_matrix(
-                (np.concatenate(vals_), (np.concatenate(rows_), np.concatenate(cols_))), shape=(b - a, n)
-            )
-        else:
-            near = sp.csr_matrix((b - a, n))
-        del rows_, cols_, vals_
-        # far part: the low-rank blocks that meet the rows or, transposed, the columns (a far block
-        # split into children may leave some that meet neither)
-        keep = [
-            blk
-            for blk in lowrank
-            if (blk[0] < b and blk[0] + blk[2].shape[0] > a) or (blk[1] < b and blk[1] + blk[3].shape[0] > a)
-        ]
-        del lowrank
+        # near part: rows a..b-1 of S + S^T, S the entries above the diagonal (float32 as stored); far
+        # part: the low-rank blocks that meet the rows or, transposed, the columns (a far block split
+        # into children may leave some that meet neither); both kept by the spill as the units finish
+        with _Spill(n, rows=(a, b), folder=spill_dir) as spill:
+            rays, near_pairs = self.build(units, spill, n_threads)
+            indptr, indices, data = spill.csr()
+            near = sp.csr_matrix((data, indices, indptr), shape=(b - a, n))
+            lowrank = spill.lowrank()
         perm = self.tree.perm
         block = RowBlock(
             n,
@@ -1046,7 +1156,7 @@ class CompressedPlan:
             b=b,
             areas=np.ascontiguousarray(np.asarray(self.mesh.areas)[perm[a:b]], np.float64),
             perm=np.ascontiguousarray(perm, np.int64),
-            lowrank=_pack_lowrank(keep),
+            lowrank=lowrank,
         )
         block.stats = {"units": len(units), "rays": int(rays), "near_pairs": int(near_pairs)}
         block.stats["build_s"] = time.perf_counter() - t0

@@ -4,6 +4,8 @@ import copy
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from crater_thermal import illumination, radiosity, thermal
 from crater_thermal import vfoperator as vo
@@ -527,3 +529,115 @@ def test_build_recompresses_on_one_blas_thread(monkeypatch):
         vo.compressed_view_factors(m, tr, n_threads=n)
         assert seen and all(s == [1] for s in seen)
         assert blas_threads() == before
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_spill_assembles_what_scipy_assembles(data, tmp_path, monkeypatch):
+    """The build's blocks go to disk as they are made and come back as the operator's arrays
+    (``vfoperator._Spill``). Reference: scipy's COO -> CSR conversion of the same entries gathered in
+    memory (sorted columns, repeated entries summed) and numpy's concatenation of the factors, for the
+    whole operator and for row blocks (rows ``a .. b-1`` of ``S + S^T``). Values are multiples of 1/8,
+    so sums of repeated entries are exact in any order: the arrays must be equal, not close. Reads in
+    chunks of 7 entries, so that the chunked assembly is exercised."""
+    import scipy.sparse as sparse
+
+    monkeypatch.setattr(vo._Spill, "CHUNK", 7)
+    n = data.draw(st.integers(1, 40), label="n")
+    a = data.draw(st.integers(0, n - 1), label="a")
+    b = data.draw(st.integers(a + 1, n), label="b")
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**31), label="seed"))
+    units = []
+    for _ in range(data.draw(st.integers(0, 6), label="units")):
+        k = int(rng.integers(0, 30)) if n > 1 else 0
+        i = rng.integers(0, max(n - 1, 1), k)
+        j = np.minimum(i + 1 + rng.integers(0, n, k), n - 1) if n > 1 else i
+        coo = [(i.astype(np.int64), j.astype(np.int64), rng.integers(-40, 40, k) / 8.0)]
+        lowrank = []
+        for _ in range(int(rng.integers(0, 3))):
+            r0, c0 = (int(x) for x in rng.integers(0, n, 2))
+            m_, n_, r = int(rng.integers(1, n - r0 + 1)), int(rng.integers(1, n - c0 + 1)), int(rng.integers(1, 4))
+            lowrank.append((r0, c0, rng.random((m_, r)).astype(np.float32), rng.random((n_, r)).astype(np.float32)))
+        units.append((lowrank, coo))
+    for rows in (None, (a, b)):
+        with vo._Spill(n, rows=rows, folder=tmp_path) as spill:
+            for lowrank, coo in units:
+                spill.add(lowrank, coo)
+            indptr, indices, data_ = spill.csr()
+            r0, r1, c0, c1, rank, uoff, voff, U, V = spill.lowrank()
+        assert list(tmp_path.iterdir()) == []  # the temporary folder is gone
+        ii = np.concatenate([c[0] for _, cc in units for c in cc] + [np.empty(0, np.int64)])
+        jj = np.concatenate([c[1] for _, cc in units for c in cc] + [np.empty(0, np.int64)])
+        gg = np.concatenate([c[2] for _, cc in units for c in cc] + [np.empty(0)]).astype(np.float32)
+        keep = list(lr for lowrank, _ in units for lr in lowrank)
+        lo, hi = (0, n) if rows is None else rows
+        if rows is None:
+            ref = sparse.csr_matrix((gg, (ii, jj)), shape=(n, n))
+        else:
+            up, down = (ii >= lo) & (ii < hi), (jj >= lo) & (jj < hi)
+            ref = sparse.csr_matrix(
+                (
+                    np.concatenate([gg[up], gg[down]]),
+                    (np.concatenate([ii[up], jj[down]]) - lo, np.concatenate([jj[up], ii[down]])),
+                ),
+                shape=(hi - lo, n),
+            )
+            keep = [
+                blk
+                for blk in keep
+                if (blk[0] < hi and blk[0] + len(blk[2]) > lo) or (blk[1] < hi and blk[1] + len(blk[3]) > lo)
+            ]
+        ref.sum_duplicates()
+        assert indptr.dtype == np.int64 and indices.dtype == np.int32 and data_.dtype == np.float32
+        assert np.array_equal(indptr, ref.indptr) and np.array_equal(indices, ref.indices)
+        assert np.array_equal(data_, ref.data)
+        assert np.array_equal(r0, [blk[0] for blk in keep]) and np.array_equal(c0, [blk[1] for blk in keep])
+        assert np.array_equal(r1 - r0, [len(blk[2]) for blk in keep]) and np.array_equal(
+            rank, [blk[2].shape[1] for blk in keep]
+        )
+        assert np.array_equal(c1 - c0, [len(blk[3]) for blk in keep])
+        for q, blk in enumerate(keep):
+            assert np.array_equal(U[uoff[q] : uoff[q] + blk[2].size], blk[2].ravel())
+            assert np.array_equal(V[voff[q] : voff[q] + blk[3].size], blk[3].ravel())
+        assert len(U) == sum(blk[2].size for blk in keep) and len(V) == sum(blk[3].size for blk in keep)
+
+
+def test_build_leaves_no_spill_files_and_says_when_the_disk_is_full(tmp_path, monkeypatch):
+    """The build's temporary folder is removed after a build, after a failed one, and when its disk is
+    full (a write to /dev/full: ENOSPC), which is a one-line ConfigError naming the folder and the fix;
+    an unusable folder too."""
+    m = terrain_mesh(1500, rough_m=20.0)
+    spill_dir = tmp_path / "spill"
+    spill_dir.mkdir()
+    op = vo.compressed_view_factors(m, spill_dir=spill_dir)
+    assert op.stats["lowrank_blocks"] > 0 and op.stats["sparse_pairs"] > 0
+    assert list(spill_dir.iterdir()) == []
+    vo.CompressedPlan(m).row_block(0, 700, spill_dir=spill_dir)
+    assert list(spill_dir.iterdir()) == []
+
+    calls = []
+    far_block = vo._Builder.far_block
+
+    def failing(self, s, t):
+        calls.append(1)
+        if len(calls) > 3:
+            raise RuntimeError("a unit failed")
+        return far_block(self, s, t)
+
+    monkeypatch.setattr(vo._Builder, "far_block", failing)
+    with pytest.raises(RuntimeError, match="a unit failed"):
+        vo.compressed_view_factors(m, spill_dir=spill_dir)
+    assert list(spill_dir.iterdir()) == []
+    monkeypatch.undo()
+
+    spill = vo._Spill(10, folder=spill_dir)
+    spill._files["G"].close()
+    spill._files["G"] = open("/dev/full", "wb", buffering=0)
+    entries = [(np.array([0, 1]), np.array([2, 3]), np.array([1.0, 2.0]))]
+    with pytest.raises(ConfigError, match=r"No space left on device.*TMPDIR") as err:
+        spill.add([], entries)
+    assert "\n" not in str(err.value) and str(spill_dir) in str(err.value)
+    assert list(spill_dir.iterdir()) == []
+
+    with pytest.raises(ConfigError, match="cannot make a temporary folder.*TMPDIR"):
+        vo.compressed_view_factors(m, spill_dir=tmp_path / "not-there")

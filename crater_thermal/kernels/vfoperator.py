@@ -365,3 +365,45 @@ def recompress(U, V, R, budget):
         for q in range(best):
             Vk[j, q] = B[j, q]
     return best, Uk, Vk
+
+
+@njit(nogil=True, cache=True)
+def csr_scatter(rows, cols, vals, cursor, indices, data):
+    """Place entries ``(rows[q], cols[q], vals[q])`` in CSR arrays whose row starts are ``cursor``
+    (advanced past each placed entry): the counting sort of a CSR assembly from unsorted entries."""
+    for q in range(len(rows)):
+        p = cursor[rows[q]]
+        indices[p] = cols[q]
+        data[p] = vals[q]
+        cursor[rows[q]] = p + 1
+
+
+@njit(nogil=True, cache=True)
+def csr_sort_merge(indptr, indices, data):
+    """Make CSR arrays canonical in place: each row's entries sorted by column, entries of one column
+    summed (in the values' type), the rows packed to the front; ``indptr`` is rewritten. Returns the
+    entries kept (as scipy's ``sum_duplicates`` leaves them)."""
+    n = len(indptr) - 1
+    w = 0
+    lo = indptr[0]
+    for r in range(n):
+        hi = indptr[r + 1]
+        seg = indices[lo:hi]
+        order = np.argsort(seg, kind="mergesort")
+        ci = seg[order]
+        cd = data[lo:hi][order]
+        indptr[r] = w
+        k = 0
+        while k < len(ci):
+            c = ci[k]
+            v = cd[k]
+            k += 1
+            while k < len(ci) and ci[k] == c:
+                v += cd[k]
+                k += 1
+            indices[w] = c
+            data[w] = v
+            w += 1
+        lo = hi
+    indptr[n] = w
+    return w
