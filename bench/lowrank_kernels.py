@@ -9,7 +9,8 @@ compressed operator (``--cache DIR`` keeps it for a second run; default: a tempo
 blocks) and 16 (a lagged window's rows at the product samples), float32 arithmetic as a run makes them,
 with ``kernels.vfoperator.lowrank_matvec`` as shipped and as in ``--old`` (its source compiled in this
 process), alternating, ``--repeat`` times each; and the low-rank kernel alone on one thread. Accuracy: the
-largest relative difference of the two products (facets above 1e-6 of the column's largest). Writes
+largest relative difference of the two products (facets above 1e-6 of the column's largest). ``--old``
+must have the kernels' present signature (int16 factors and their weights, ALGORITHM_VERSION c3 on). Writes
 ``bench/results/lowrank_kernels_<size>.json``; the last stdout line is the same JSON.
 """
 
@@ -100,7 +101,7 @@ def main() -> None:
             lit = ref > 1e-6 * ref.max(axis=0)
             rel = float((np.abs(out["new"] - ref)[lit] / ref[lit]).max())
             # the low-rank kernel alone, one thread, float32 operands in cluster order
-            lr = (F.r0, F.r1, F.c0, F.c1, F.rank, F.uoff, F.voff, F.U, F.V)
+            lr = (F.r0, F.r1, F.c0, F.c1, F.rank, F.uoff, F.voff, F.woff, F.U, F.V, F.W)
             xc = np.ascontiguousarray(x[F.perm], np.float32)
             tmp_ = np.empty((2 * F._max_rank, k), np.float32)
             alone = {"old": [], "new": []}

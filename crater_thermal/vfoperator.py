@@ -25,8 +25,13 @@ its symmetry), in blocks of a hierarchical partition:
   approximation with full pivoting (the block is in memory, so the residual and its Frobenius norm are
   exact at every step): crosses are added until ``||M - U V^T||_F <= tolerance * ||M||_F``, then the
   factors are recompressed to the shortest truncated SVD whose exact error against ``M`` is still within
-  that bound (:func:`_recompress`; crosses are not orthogonal).  The factors are kept (float32) when
-  they take less memory than the block's non-zeros would as sparse entries; otherwise the block is split
+  that bound (:func:`_recompress`; crosses are not orthogonal).  The factors are stored as int16, each
+  column scaled to the int16 range, with one float32 weight per term (``U D V^T``, :func:`_quantized`;
+  half the bytes of float32 factors, issue 24): the truncation leaves 2 % of the block's squared budget
+  to that rounding, and the stored block's error against ``M`` is computed exactly and must stay within
+  the whole budget (else the truncation is redone with half, then the block is split).  The factors
+  are kept when they take less memory than the block's non-zeros would as sparse entries; otherwise the
+  block is split
   into its children blocks (reusing the computed entries, no new rays) and, at leaf level, kept sparse.
   All-zero blocks (facets that face away from each other, coplanar plains, fully occluded pairs) cost
   nothing.
@@ -130,14 +135,19 @@ PRODUCT_THREADS = max(1, min(os.cpu_count() or 1, 8))
 #: pool's threads are kept, so a split costs little; the threshold was set by timing products on the
 #: generator crater at 5k and 10k facets (docs/performance.md).
 PARALLEL_MIN_WORK = 500_000
-#: Arithmetic of the products with several right-hand sides (the stored values are float32 either way;
+#: Arithmetic of the products with several right-hand sides (the stored values are float32 or int16 either way;
 #: inputs and results stay float64; one right-hand side is always float64). float32: 1.57x faster with 64
 #: right-hand sides at 30k facets, each facet within 3.2e-6 of its float64 product (docs/performance.md),
 #: far below the operator's own error (its tolerance 1e-3; ~1e-4 measured against the exact matrix).
 #: np.float64 gives the float64 products.
 PRODUCT_DTYPE = np.float32
+#: Largest magnitude of a stored low-rank factor's int16 numbers (each column scaled to it).
+QUANT_MAX = 32767
+#: Shares of a far block's error budget left to its truncated SVD before the factors are rounded to int16
+#: (the stored block's exact error must stay within the whole budget; the second share is a retry).
+QUANT_SHARES = (0.98, 0.5)
 #: Part of the cache key of a compressed operator: bump it when the numbers change.
-ALGORITHM_VERSION = "c2"
+ALGORITHM_VERSION = "c3"
 
 
 # --------------------------------------------------------------------------------------------- interface
@@ -282,7 +292,9 @@ class CompressedViewFactors(ViewFactorOperator):
         self.perm = np.ascontiguousarray(perm, np.int64)
         self.areas_perm = np.ascontiguousarray(areas[self.perm], np.float64)
         self.indptr, self.indices, self.data = sparse
-        (self.r0, self.r1, self.c0, self.c1, self.rank, self.uoff, self.voff, self.U, self.V) = lowrank
+        (self.r0, self.r1, self.c0, self.c1, self.rank, self.uoff, self.voff, self.woff, self.U, self.V, self.W) = (
+            lowrank
+        )
         self.scale = scale  # None or (n,) in cluster order
         self.tolerance = float(tolerance)
         self.stats = dict(stats)
@@ -307,8 +319,10 @@ class CompressedViewFactors(ViewFactorOperator):
             self.rank,
             self.uoff,
             self.voff,
+            self.woff,
             self.U,
             self.V,
+            self.W,
         ]
         if self.scale is not None:
             arrs.append(self.scale)
@@ -347,7 +361,12 @@ class CompressedViewFactors(ViewFactorOperator):
 
         i0, i1, b0, b1 = part
         b = slice(b0, b1)
-        lr = (self.r0[b], self.r1[b], self.c0[b], self.c1[b], self.rank[b], self.uoff[b], self.voff[b], self.U, self.V)
+        lr = (
+            *(x[b] for x in (self.r0, self.r1, self.c0, self.c1, self.rank, self.uoff, self.voff, self.woff)),
+            self.U,
+            self.V,
+            self.W,
+        )
         Y = np.zeros_like(X)
         if X.shape[1] == 1:
             x1, y1 = np.ascontiguousarray(X[:, 0]), np.zeros(X.shape[0], X.dtype)
@@ -521,6 +540,20 @@ def _recompress(U: np.ndarray, V: np.ndarray, R: np.ndarray, budget: float) -> t
     return Uk, Vk
 
 
+def _quantized(Uk: np.ndarray, Vk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Factors ``Uk`` (m, r), ``Vk`` (n, r) [float] as stored: ``Uk Vk^T ~ Uq diag(w) Vq^T`` with each
+    column of ``Uq``, ``Vq`` (int16, C order) rounded from its column scaled to the largest magnitude
+    :data:`QUANT_MAX`, and ``w`` (r,) float32 the product of the two scales [units of ``Uk Vk^T``].
+    Each number is then within ``0.5 / QUANT_MAX`` (1.5e-5) of its column's largest."""
+    su = np.abs(Uk).max(axis=0)
+    sv = np.abs(Vk).max(axis=0)
+    su[su == 0.0] = 1.0
+    sv[sv == 0.0] = 1.0
+    Uq = np.ascontiguousarray(np.rint(Uk * (QUANT_MAX / su)).astype(np.int16))
+    Vq = np.ascontiguousarray(np.rint(Vk * (QUANT_MAX / sv)).astype(np.int16))
+    return Uq, Vq, (su * sv / (QUANT_MAX * QUANT_MAX)).astype(np.float32)
+
+
 class _Builder:
     """Computes the blocks of one operator (shared geometry in cluster order, the tracer, settings)."""
 
@@ -550,6 +583,7 @@ class _Builder:
         self.g2cum = None  # row mode: prefix sums of the estimated G row sums squared [m4]
         self.dropped_blocks = 0
         self.dropped_pairs = 0
+        self.quantized_retries = 0  # far blocks whose int16 factors needed a tighter truncation, or failed
         self._count_lock = threading.Lock()  # the counters above are updated from the build's threads
 
     # ---- row-relative budgets
@@ -656,24 +690,26 @@ class _Builder:
                 self.dropped_blocks += 1
                 self.dropped_pairs += nz
             return
-        # float32 factors (4 bytes per number) against 8 bytes per sparse non-zero (value + column)
-        rmax = min(int(8 * nz / (4 * (m + n))), min(m, n) // 2)
+        # int16 factors (2 bytes per number) and a float32 weight per term against 8 bytes per sparse
+        # non-zero (value + column)
+        rmax = min(int(8 * nz / (2 * (m + n) + 4)), min(m, n) // 2)
         if rmax >= 1:
             U = np.empty((m, rmax))
             V = np.empty((n, rmax))
             R = M.copy()
             r = kv.aca_full(R, budget, rmax, U, V)
             if r >= 0:
-                Uk, Vk = _recompress(U[:, :r], V[:, :r], R, budget)
-                lowrank.append(
-                    (
-                        int(tr.lo[s]),
-                        int(tr.lo[t]),
-                        np.ascontiguousarray(Uk, np.float32),
-                        np.ascontiguousarray(Vk, np.float32),
-                    )
-                )
-                return
+                # the truncation leaves a little of the budget to the rounding of the factors to int16,
+                # and the error of what is stored is then computed exactly; if over (seldom), the
+                # truncation leaves half, then the block is split as below
+                for share in QUANT_SHARES:
+                    Uq, Vq, w = _quantized(*_recompress(U[:, :r], V[:, :r], R, share * budget))
+                    D = M - (Uq * w.astype(np.float64)) @ Vq.T.astype(np.float64)
+                    if float(np.einsum("ij,ij->", D, D)) <= budget:
+                        lowrank.append((int(tr.lo[s]), int(tr.lo[t]), Uq, Vq, w))
+                        return
+                    with self._count_lock:
+                        self.quantized_retries += 1
         cs, ct = tr.children(s), tr.children(t)
         if len(cs) > 1 or len(ct) > 1:
             for a in cs:
@@ -816,6 +852,7 @@ def compressed_view_factors(
         "tolerance_mode": tolerance_mode,
         "dropped_blocks": int(builder.dropped_blocks),
         "dropped_pairs": int(builder.dropped_pairs),
+        "quantized_retries": int(builder.quantized_retries),
         "rowsum_estimate_s": plan.rowsum_estimate_s,
     }
     op = CompressedViewFactors(plan.tree.perm, np.asarray(mesh.areas), sparse, packed, None, plan.tolerance, stats)
@@ -850,18 +887,20 @@ def rowsum_scale(rowsums: np.ndarray) -> tuple[np.ndarray | None, float]:
     return np.minimum(1.0, 1.0 / np.maximum(rs, 1e-300)), excess
 
 
-def _lowrank_arrays(meta: list, U: np.ndarray, V: np.ndarray) -> tuple:
-    """``(r0, r1, c0, c1, rank, uoff, voff, U, V)`` from ``meta = [(r0, c0, m, n, rank)]`` of blocks
-    whose factors follow each other in ``U`` and ``V`` (flat, row-major (m, rank) and (n, rank))."""
+def _lowrank_arrays(meta: list, U: np.ndarray, V: np.ndarray, W: np.ndarray) -> tuple:
+    """``(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W)`` from ``meta = [(r0, c0, m, n, rank)]`` of
+    blocks whose factors follow each other in ``U`` and ``V`` (flat, row-major (m, rank) and (n, rank),
+    int16) and their weights in ``W`` (rank each, float32)."""
     nb = len(meta)
     info = np.array(meta, np.int64).reshape(nb, 5)
     r0, c0, m, n, rank = (np.ascontiguousarray(info[:, q]) for q in range(5))
     usz, vsz = m * rank, n * rank
     uoff = np.concatenate([[0], np.cumsum(usz)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
     voff = np.concatenate([[0], np.cumsum(vsz)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
-    if int(usz.sum()) != len(U) or int(vsz.sum()) != len(V):
+    woff = np.concatenate([[0], np.cumsum(rank)[:-1]]).astype(np.int64) if nb else np.empty(0, np.int64)
+    if int(usz.sum()) != len(U) or int(vsz.sum()) != len(V) or int(rank.sum()) != len(W):
         raise InternalError("compressed view factors: the low-rank factors do not match their blocks")
-    return r0, r0 + m, c0, c0 + n, rank, uoff, voff, U, V
+    return r0, r0 + m, c0, c0 + n, rank, uoff, voff, woff, U, V, W
 
 
 class _Spill:
@@ -869,7 +908,8 @@ class _Spill:
     holds what it stores once, and not its pieces besides (issue 24: before, the lists of pieces and
     their concatenation held 2.7x the stored operator at 400k facets).
 
-    Low-rank blocks append their float32 factors to two files, in the order they come, and sparse
+    Low-rank blocks append their int16 factors and float32 weights to three files, in the order they
+    come, and sparse
     entries ``(row, column, value)`` (int32, int32, float32) to three; :meth:`lowrank` reads the factors
     back as the packed arrays, :meth:`csr` counts, places and sorts the entries into canonical CSR arrays
     (:func:`kernels.vfoperator.csr_scatter`, :func:`~kernels.vfoperator.csr_sort_merge`: those of scipy's
@@ -884,7 +924,7 @@ class _Spill:
 
     #: entries per read while assembling the CSR arrays (12 bytes each)
     CHUNK = 1 << 22
-    NAMES = ("U", "V", "I", "J", "G")
+    NAMES = ("U", "V", "W", "I", "J", "G")
 
     def __init__(self, n: int, rows: tuple[int, int] | None = None, folder=None):
         self.n = int(n)
@@ -920,14 +960,16 @@ class _Spill:
             ) from None
 
     def add(self, lowrank: list, coo: list) -> None:
-        """One work unit's results: ``[(r0, c0, U, V)]`` and ``[(i, j, g)]`` (cluster order, i < j)."""
+        """One work unit's results: ``[(r0, c0, U, V, W)]`` (int16 factors (m, r) and (n, r), float32
+        weights (r,)) and ``[(i, j, g)]`` (cluster order, i < j)."""
         a, b = self.a, self.b
-        for r0, c0, U, V in lowrank:
+        for r0, c0, U, V, W in lowrank:
             if not self.whole and not ((r0 < b and r0 + U.shape[0] > a) or (c0 < b and c0 + V.shape[0] > a)):
                 continue
             self.meta.append((int(r0), int(c0), U.shape[0], V.shape[0], U.shape[1]))
-            self._write("U", np.asarray(U, np.float32))
-            self._write("V", np.asarray(V, np.float32))
+            self._write("U", np.asarray(U, np.int16))
+            self._write("V", np.asarray(V, np.int16))
+            self._write("W", np.asarray(W, np.float32))
         for i, j, g in coo:
             if len(i) and bool(np.any(i >= j)):
                 raise InternalError("compressed view factors: a sparse entry below the diagonal")
@@ -957,7 +999,9 @@ class _Spill:
     def lowrank(self) -> tuple:
         """The kept low-rank blocks packed (:func:`_lowrank_arrays`), read back from disk."""
         self._flush()
-        return _lowrank_arrays(self.meta, self._read("U", np.float32), self._read("V", np.float32))
+        return _lowrank_arrays(
+            self.meta, self._read("U", np.int16), self._read("V", np.int16), self._read("W", np.float32)
+        )
 
     def csr(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(indptr int64, indices int32, data float32)`` of the kept sparse entries, ``b - a`` rows,
@@ -1233,8 +1277,10 @@ _COMPRESSED_ARRAYS = (
     "rank",
     "uoff",
     "voff",
+    "woff",
     "U",
     "V",
+    "W",
 )
 
 
@@ -1331,17 +1377,14 @@ def load_row_block(folder, a: int, b: int) -> "RowBlock":
     # far part: the low-rank blocks whose rows or columns meet a..b-1, factors copied out
     r0, r1, c0, c1 = (np.asarray(arr(k)) for k in ("r0", "r1", "c0", "c1"))
     keep = np.flatnonzero(((r0 < b) & (r1 > a)) | ((c0 < b) & (c1 > a)))
-    rank, uoff, voff = (np.asarray(arr(k))[keep] for k in ("rank", "uoff", "voff"))
-    U, V = arr("U"), arr("V")
-    m, nn = (r1[keep] - r0[keep]) * rank, (c1[keep] - c0[keep]) * rank
-    new_u = np.concatenate([[0], np.cumsum(m)]).astype(np.int64)
-    new_v = np.concatenate([[0], np.cumsum(nn)]).astype(np.int64)
-    Uk = np.empty(int(new_u[-1]), np.float32)
-    Vk = np.empty(int(new_v[-1]), np.float32)
-    for q in range(len(keep)):
-        Uk[new_u[q] : new_u[q + 1]] = U[uoff[q] : uoff[q] + m[q]]
-        Vk[new_v[q] : new_v[q + 1]] = V[voff[q] : voff[q] + nn[q]]
-    lowrank = (r0[keep], r1[keep], c0[keep], c1[keep], rank, new_u[:-1], new_v[:-1], Uk, Vk)
+    rank, uoff, voff, woff = (np.asarray(arr(k))[keep] for k in ("rank", "uoff", "voff", "woff"))
+    U, V, W = arr("U"), arr("V"), arr("W")
+    meta = np.column_stack([r0[keep], c0[keep], r1[keep] - r0[keep], c1[keep] - c0[keep], rank])
+    m, nn = meta[:, 2] * rank, meta[:, 3] * rank
+    Uk = np.concatenate([U[uoff[q] : uoff[q] + m[q]] for q in range(len(keep))] + [np.empty(0, np.int16)])
+    Vk = np.concatenate([V[voff[q] : voff[q] + nn[q]] for q in range(len(keep))] + [np.empty(0, np.int16)])
+    Wk = np.concatenate([W[woff[q] : woff[q] + rank[q]] for q in range(len(keep))] + [np.empty(0, np.float32)])
+    lowrank = _lowrank_arrays(meta.tolist(), Uk, Vk, Wk)
     return RowBlock(
         n, np.array(perm[a:b]), near, a=a, b=b, areas=areas, perm=np.array(perm), scale=scale, lowrank=lowrank
     )

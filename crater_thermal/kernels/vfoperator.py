@@ -6,7 +6,8 @@ entries.  Kernels never raise and never do I/O.
 
 All arrays are in the operator's *cluster order* (facets permuted so that every cluster of the tree
 is a contiguous index range).  The operator stores the symmetric matrix ``G_ij = A_i F_ij = A_i A_j
-K_ij`` [m2]: far blocks as low-rank factors ``U V^T`` (float32), everything else as the upper triangle
+K_ij`` [m2]: far blocks as low-rank factors ``U D V^T`` (int16 factors whose columns are scaled to
+the int16 range, D the diagonal of their float32 weights), everything else as the upper triangle
 ``i < j`` of a sparse matrix (float32 values, CSR rows).
 """
 
@@ -159,12 +160,24 @@ def _expand(W, off, r, tmp, t0, Y, y0, ii0, ii1):
 
 
 @njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
-def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
-    """``y += sum_b (U_b V_b^T) x[c] (into rows r) + (V_b U_b^T) x[r] (into columns c)``.
+def _weigh(wts, wo, r, tmp, t0):
+    """``tmp[t0 + q, :] *= wts[wo + q]`` for q < r: the weights of a block's terms (the scales of its
+    int16 factors' columns), applied between projection and expansion."""
+    k = tmp.shape[1]
+    for q in range(r):
+        w = wts[wo + q]
+        for c in range(k):
+            tmp[t0 + q, c] *= w
+
+
+@njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
+def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, tmp):
+    """``y += sum_b (U_b D_b V_b^T) x[c] (into rows r) + (V_b D_b U_b^T) x[r] (into columns c)``.
 
     Block b covers rows r0[b]..r1[b]-1 and columns c0[b]..c1[b]-1; ``U_b`` is (m, rank) row-major at
-    ``U[uoff[b]:]``, ``V_b`` (n, rank) at ``V[voff[b]:]`` (float32).  x, y: (n, k), float64 or float32
-    (the arithmetic in their type); tmp: a work array of their type, at least (2 * max rank, k).
+    ``U[uoff[b]:]``, ``V_b`` (n, rank) at ``V[voff[b]:]`` (int16), ``D_b`` the diagonal of the rank
+    weights at ``W[woff[b]:]`` (float32).  x, y: (n, k), float64 or float32 (the arithmetic in their type);
+    tmp: a work array of their type, at least (2 * max rank, k).
     """
     k = x.shape[1]
     for b in range(r0.shape[0]):
@@ -172,20 +185,22 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
         for q in range(2 * r):
             for c in range(k):
                 tmp[q, c] = 0.0
-        # tmp[:r] = V^T x[c-range], tmp[r:2r] = U^T x[r-range]
+        # tmp[:r] = D V^T x[c-range], tmp[r:2r] = D U^T x[r-range]
         _project(V, voff[b], r, x, c0[b], c1[b] - c0[b], tmp, 0)
         _project(U, uoff[b], r, x, r0[b], r1[b] - r0[b], tmp, r)
+        _weigh(W, woff[b], r, tmp, 0)
+        _weigh(W, woff[b], r, tmp, r)
         _expand(U, uoff[b], r, tmp, 0, y, r0[b], 0, r1[b] - r0[b])
         _expand(V, voff[b], r, tmp, r, y, c0[b], 0, c1[b] - c0[b])
 
 
 @njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
-def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp, a, b):
+def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, tmp, a, b):
     """The rows ``a .. b-1`` of :func:`lowrank_matvec`'s product, into ``y`` ((b - a, k), zeroed by the
-    caller): of each block only the halves that land in those rows, ``U_b (V_b^T x[c])`` where its rows
-    meet them and ``V_b (U_b^T x[r])`` where its columns do (a row block of a distributed run: a far block
-    spanning two chunks is then applied half by each, not whole by both). Each row receives the same
-    terms in the same order as from :func:`lowrank_matvec` (the same :func:`_project` and
+    caller): of each block only the halves that land in those rows, ``U_b D_b (V_b^T x[c])`` where its rows
+    meet them and ``V_b D_b (U_b^T x[r])`` where its columns do (a row block of a distributed run: a far
+    block spanning two chunks is then applied half by each, not whole by both). Each row receives the same
+    terms in the same order as from :func:`lowrank_matvec` (the same :func:`_project`, :func:`_weigh` and
     :func:`_expand`), so the rows equal its rows bit for bit. Arrays as :func:`lowrank_matvec`."""
     k = x.shape[1]
     for blk in range(r0.shape[0]):
@@ -199,11 +214,13 @@ def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp, a, b)
         for q in range(2 * r):
             for c in range(k):
                 tmp[q, c] = 0.0
-        if rows_meet:  # tmp[:r] = V^T x[c-range], into rows row_lo..row_hi-1
+        if rows_meet:  # tmp[:r] = D V^T x[c-range], into rows row_lo..row_hi-1
             _project(V, voff[blk], r, x, c0[blk], c1[blk] - c0[blk], tmp, 0)
+            _weigh(W, woff[blk], r, tmp, 0)
             _expand(U, uoff[blk], r, tmp, 0, y, r0[blk] - a, row_lo - r0[blk], row_hi - r0[blk])
-        if cols_meet:  # tmp[r:2r] = U^T x[r-range], into columns col_lo..col_hi-1
+        if cols_meet:  # tmp[r:2r] = D U^T x[r-range], into columns col_lo..col_hi-1
             _project(U, uoff[blk], r, x, r0[blk], r1[blk] - r0[blk], tmp, r)
+            _weigh(W, woff[blk], r, tmp, r)
             _expand(V, voff[blk], r, tmp, r, y, c0[blk] - a, col_lo - c0[blk], col_hi - c0[blk])
 
 
@@ -286,13 +303,14 @@ def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
 
 
 @njit(nogil=True, cache=True, fastmath=ONE_RHS_FASTMATH)
-def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
+def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, tmp):
     """One right-hand side of :func:`lowrank_matvec` (x, y: (n,) float64 or float32; tmp: (2 * max rank,) of
     their type)."""
     for b in range(r0.shape[0]):
         r = rank[b]
         uo = uoff[b]
         vo = voff[b]
+        wo = woff[b]
         for q in range(2 * r):
             tmp[q] = 0.0
         for jj in range(c1[b] - c0[b]):
@@ -300,6 +318,8 @@ def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
             base = vo + jj * r
             for q in range(r):
                 tmp[q] += V[base + q] * xj
+        for q in range(r):
+            tmp[q] *= W[wo + q]
         # one pass over U: tmp[r:] = U^T x[r-range] and y[r-range] += U tmp[:r]
         for ii in range(r1[b] - r0[b]):
             i = r0[b] + ii
@@ -311,6 +331,8 @@ def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, U, V, x, y, tmp):
                 acc += u * tmp[q]
                 tmp[r + q] += u * xi
             y[i] += acc
+        for q in range(r):
+            tmp[r + q] *= W[wo + q]
         for jj in range(c1[b] - c0[b]):
             base = vo + jj * r
             acc = 0.0
