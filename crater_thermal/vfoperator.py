@@ -146,6 +146,9 @@ QUANT_MAX = 32767
 #: Shares of a far block's error budget left to its truncated SVD before the factors are rounded to int16
 #: (the stored block's exact error must stay within the whole budget; the second share is a retry).
 QUANT_SHARES = (0.98, 0.5)
+#: Bytes per low-rank number that the choice between a far block's factors and its sparse entries
+#: (8 bytes each) assumes.
+LOWRANK_CHOICE_BYTES = 4
 #: Part of the cache key of a compressed operator: bump it when the numbers change.
 ALGORITHM_VERSION = "c3"
 
@@ -692,7 +695,7 @@ class _Builder:
             return
         # int16 factors (2 bytes per number) and a float32 weight per term against 8 bytes per sparse
         # non-zero (value + column)
-        rmax = min(int(8 * nz / (2 * (m + n) + 4)), min(m, n) // 2)
+        rmax = min(int(8 * nz / (LOWRANK_CHOICE_BYTES * (m + n) + 4)), min(m, n) // 2)
         if rmax >= 1:
             U = np.empty((m, rmax))
             V = np.empty((n, rmax))
@@ -832,7 +835,7 @@ def compressed_view_factors(
         sparse = spill.csr()
         packed = spill.lowrank()
     n_sparse = len(sparse[1])
-    rank, U, V = packed[4], packed[7], packed[8]
+    rank, U, V = packed[4], packed[8], packed[9]
     nb = len(rank)
     builder = plan.builder
     stats = {

@@ -104,21 +104,24 @@ MULTI_RHS_FASTMATH = {"contract"}
 
 
 @njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
-def _project(W, off, r, X, x0, count, tmp, t0):
+def _project(W, off, r, X, x0, count, tmp, t0, wb):
     """``tmp[t0 + q, :] += sum_jj W[off + jj * r + q] X[x0 + jj, :]`` for q < r, jj < count: the
     projection ``W^T X`` of a low-rank factor (row-major (count, r) at ``W[off:]``), four rows of X per
     update of ``tmp`` (a quarter of the loads and stores of one at a time: 1.3x with 64 right-hand
-    sides, docs/performance.md)."""
+    sides, docs/performance.md). The four rows' numbers are converted to X's type at once into ``wb``
+    (at least 4 r), not one by one in the updates."""
     k = X.shape[1]
     jj = 0
     while jj + 3 < count:
         j = x0 + jj
         base = off + jj * r
+        for q in range(4 * r):
+            wb[q] = W[base + q]
         for q in range(r):
-            w0 = W[base + q]
-            w1 = W[base + r + q]
-            w2 = W[base + 2 * r + q]
-            w3 = W[base + 3 * r + q]
+            w0 = wb[q]
+            w1 = wb[r + q]
+            w2 = wb[2 * r + q]
+            w3 = wb[3 * r + q]
             for c in range(k):
                 tmp[t0 + q, c] += (w0 * X[j, c] + w1 * X[j + 1, c]) + (w2 * X[j + 2, c] + w3 * X[j + 3, c])
         jj += 4
@@ -133,27 +136,29 @@ def _project(W, off, r, X, x0, count, tmp, t0):
 
 
 @njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
-def _expand(W, off, r, tmp, t0, Y, y0, ii0, ii1):
+def _expand(W, off, r, tmp, t0, Y, y0, ii0, ii1, wb):
     """``Y[y0 + ii, :] += sum_q W[off + ii * r + q] tmp[t0 + q, :]`` for ii0 <= ii < ii1, four terms of q
-    per update of a row of Y. Each row's arithmetic does not depend on the range, so a row computed in
-    any range is the same bit for bit."""
+    per update of a row of Y (the row's numbers converted at once into ``wb``, at least r). Each row's
+    arithmetic does not depend on the range, so a row computed in any range is the same bit for bit."""
     k = Y.shape[1]
     for ii in range(ii0, ii1):
         i = y0 + ii
         base = off + ii * r
+        for q in range(r):
+            wb[q] = W[base + q]
         q = 0
         while q + 3 < r:
-            w0 = W[base + q]
-            w1 = W[base + q + 1]
-            w2 = W[base + q + 2]
-            w3 = W[base + q + 3]
+            w0 = wb[q]
+            w1 = wb[q + 1]
+            w2 = wb[q + 2]
+            w3 = wb[q + 3]
             for c in range(k):
                 Y[i, c] += (w0 * tmp[t0 + q, c] + w1 * tmp[t0 + q + 1, c]) + (
                     w2 * tmp[t0 + q + 2, c] + w3 * tmp[t0 + q + 3, c]
                 )
             q += 4
         while q < r:
-            w = W[base + q]
+            w = wb[q]
             for c in range(k):
                 Y[i, c] += w * tmp[t0 + q, c]
             q += 1
@@ -180,18 +185,19 @@ def lowrank_matvec(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, tmp):
     tmp: a work array of their type, at least (2 * max rank, k).
     """
     k = x.shape[1]
+    wb = np.empty(2 * tmp.shape[0], tmp.dtype)  # tmp has 2 * max rank rows
     for b in range(r0.shape[0]):
         r = rank[b]
         for q in range(2 * r):
             for c in range(k):
                 tmp[q, c] = 0.0
         # tmp[:r] = D V^T x[c-range], tmp[r:2r] = D U^T x[r-range]
-        _project(V, voff[b], r, x, c0[b], c1[b] - c0[b], tmp, 0)
-        _project(U, uoff[b], r, x, r0[b], r1[b] - r0[b], tmp, r)
+        _project(V, voff[b], r, x, c0[b], c1[b] - c0[b], tmp, 0, wb)
+        _project(U, uoff[b], r, x, r0[b], r1[b] - r0[b], tmp, r, wb)
         _weigh(W, woff[b], r, tmp, 0)
         _weigh(W, woff[b], r, tmp, r)
-        _expand(U, uoff[b], r, tmp, 0, y, r0[b], 0, r1[b] - r0[b])
-        _expand(V, voff[b], r, tmp, r, y, c0[b], 0, c1[b] - c0[b])
+        _expand(U, uoff[b], r, tmp, 0, y, r0[b], 0, r1[b] - r0[b], wb)
+        _expand(V, voff[b], r, tmp, r, y, c0[b], 0, c1[b] - c0[b], wb)
 
 
 @njit(nogil=True, cache=True, fastmath=MULTI_RHS_FASTMATH)
@@ -203,6 +209,7 @@ def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, t
     terms in the same order as from :func:`lowrank_matvec` (the same :func:`_project`, :func:`_weigh` and
     :func:`_expand`), so the rows equal its rows bit for bit. Arrays as :func:`lowrank_matvec`."""
     k = x.shape[1]
+    wb = np.empty(2 * tmp.shape[0], tmp.dtype)  # tmp has 2 * max rank rows
     for blk in range(r0.shape[0]):
         r = rank[blk]
         row_lo, row_hi = max(r0[blk], a), min(r1[blk], b)
@@ -215,13 +222,13 @@ def lowrank_matvec_rows(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, t
             for c in range(k):
                 tmp[q, c] = 0.0
         if rows_meet:  # tmp[:r] = D V^T x[c-range], into rows row_lo..row_hi-1
-            _project(V, voff[blk], r, x, c0[blk], c1[blk] - c0[blk], tmp, 0)
+            _project(V, voff[blk], r, x, c0[blk], c1[blk] - c0[blk], tmp, 0, wb)
             _weigh(W, woff[blk], r, tmp, 0)
-            _expand(U, uoff[blk], r, tmp, 0, y, r0[blk] - a, row_lo - r0[blk], row_hi - r0[blk])
+            _expand(U, uoff[blk], r, tmp, 0, y, r0[blk] - a, row_lo - r0[blk], row_hi - r0[blk], wb)
         if cols_meet:  # tmp[r:2r] = D U^T x[r-range], into columns col_lo..col_hi-1
-            _project(U, uoff[blk], r, x, r0[blk], r1[blk] - r0[blk], tmp, r)
+            _project(U, uoff[blk], r, x, r0[blk], r1[blk] - r0[blk], tmp, r, wb)
             _weigh(W, woff[blk], r, tmp, r)
-            _expand(V, voff[blk], r, tmp, r, y, c0[blk] - a, col_lo - c0[blk], col_hi - c0[blk])
+            _expand(V, voff[blk], r, tmp, r, y, c0[blk] - a, col_lo - c0[blk], col_hi - c0[blk], wb)
 
 
 @njit(nogil=True, cache=True)
