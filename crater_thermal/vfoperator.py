@@ -146,6 +146,8 @@ QUANT_MAX = 32767
 #: Shares of a far block's error budget left to its truncated SVD before the factors are rounded to int16
 #: (the stored block's exact error must stay within the whole budget; the second share is a retry).
 QUANT_SHARES = (0.98, 0.5)
+#: Seconds between the checkpoints of a resumable build (:func:`compressed_view_factors` ``resume_dir``).
+CHECKPOINT_S = 30.0
 #: Bytes per low-rank number that the choice between a far block's factors and its sparse entries
 #: (8 bytes each) assumes.
 LOWRANK_CHOICE_BYTES = 4
@@ -584,10 +586,20 @@ class _Builder:
         self.serial_trace = False
         self.mode = mode
         self.g2cum = None  # row mode: prefix sums of the estimated G row sums squared [m4]
+        # build totals, set by CompressedPlan.build from the units' own counts (:meth:`_count`)
         self.dropped_blocks = 0
         self.dropped_pairs = 0
         self.quantized_retries = 0  # far blocks whose int16 factors needed a tighter truncation, or failed
-        self._count_lock = threading.Lock()  # the counters above are updated from the build's threads
+        self._unit = threading.local()  # the counts of the unit that this thread computes
+
+    def _count(self, name: str, k: int = 1) -> None:
+        counts = self._unit.__dict__.setdefault("counts", {})
+        counts[name] = counts.get(name, 0) + k
+
+    def unit_counts(self) -> dict:
+        """The counts of the unit this thread just computed (dropped blocks and pairs, quantization
+        retries), reset: each unit carries its own, so that a resumed build counts each unit once."""
+        return self._unit.__dict__.pop("counts", {})
 
     # ---- row-relative budgets
     def estimate_row_sums(self, n_rays: int = ROWSUM_RAYS, seed: int = 0) -> np.ndarray:
@@ -689,9 +701,8 @@ class _Builder:
         fro2 = float(np.einsum("ij,ij->", M, M))
         budget = self.budget(s, t, fro2)
         if fro2 <= budget:  # row mode only: the whole block is within its share of the rows' budget
-            with self._count_lock:
-                self.dropped_blocks += 1
-                self.dropped_pairs += nz
+            self._count("dropped_blocks")
+            self._count("dropped_pairs", nz)
             return
         # int16 factors (2 bytes per number) and a float32 weight per term against 8 bytes per sparse
         # non-zero (value + column)
@@ -711,8 +722,7 @@ class _Builder:
                     if float(np.einsum("ij,ij->", D, D)) <= budget:
                         lowrank.append((int(tr.lo[s]), int(tr.lo[t]), Uq, Vq, w))
                         return
-                    with self._count_lock:
-                        self.quantized_retries += 1
+                    self._count("quantized_retries")
         cs, ct = tr.children(s), tr.children(t)
         if len(cs) > 1 or len(ct) > 1:
             for a in cs:
@@ -726,8 +736,7 @@ class _Builder:
         if self.mode == "row":  # drop the smallest entries while their sum of squares is within budget
             order = np.argsort(v * v)
             keep = order[np.cumsum(v[order] ** 2) > budget]
-            with self._count_lock:
-                self.dropped_pairs += len(v) - len(keep)
+            self._count("dropped_pairs", len(v) - len(keep))
             i, j, v = i[keep], j[keep], v[keep]
         coo.append((i + int(tr.lo[s]), j + int(tr.lo[t]), v))
 
@@ -793,6 +802,7 @@ def compressed_view_factors(
     max_block_entries: int = MAX_BLOCK_ENTRIES,
     tolerance_mode: str = "block",
     spill_dir=None,
+    resume_dir=None,
 ) -> CompressedViewFactors:
     """Build the compressed view-factor operator (module docstring) without holding the full matrix.
 
@@ -820,6 +830,13 @@ def compressed_view_factors(
         Folder of the build's temporary files (default: the system's temporary folder, ``TMPDIR``):
         the blocks go to disk as they are made and are read back once, so the build needs free disk
         about the operator's size (:attr:`~CompressedViewFactors.nbytes`) and holds it in memory once.
+    resume_dir : path, optional
+        Make the build resumable: its files go to a folder in ``resume_dir`` named for the mesh and the
+        settings (instead of ``spill_dir``), with a checkpoint every :data:`CHECKPOINT_S` seconds; the
+        folder is removed when the build finishes and kept when it fails or is interrupted, and the next
+        build of the same operator continues from its last checkpoint (bit for bit the operator of an
+        uninterrupted build). A folder in use by another process is left alone (that build starts
+        afresh in ``spill_dir``). :func:`view_factor_operator` uses its ``cache_dir``.
 
     Returns
     -------
@@ -828,7 +845,14 @@ def compressed_view_factors(
     t_start = time.perf_counter()
     plan = CompressedPlan(mesh, tracer, tolerance, leaf_size, admissibility, max_block_entries, tolerance_mode)
     nf = mesh.n_facets
-    with _Spill(nf, folder=spill_dir) as spill:
+    settings = (ALGORITHM_VERSION, plan.tolerance, tolerance_mode, leaf_size, admissibility, max_block_entries)
+    key = "-".join(str(x) for x in (mesh.hash, *settings))
+    resume = None
+    if resume_dir is not None:
+        import hashlib
+
+        resume = os.path.join(str(resume_dir), "compressed-build-" + hashlib.sha1(key.encode()).hexdigest()[:16])
+    with _Spill(nf, folder=spill_dir, resume=resume, key=key) as spill:
         rays, near_pairs = plan.build(plan.units(), spill, n_threads, progress)
         # sparse part: the upper triangle (i < j by construction), CSR, float32 values; then the low-rank
         # part, packed: each read back from the spill files, so that nothing is held twice
@@ -927,36 +951,97 @@ class _Spill:
 
     #: entries per read while assembling the CSR arrays (12 bytes each)
     CHUNK = 1 << 22
-    NAMES = ("U", "V", "W", "I", "J", "G")
+    NAMES = ("U", "V", "W", "M", "I", "J", "G")  # M: (r0, c0, m, n, rank) int64 of each kept block
+    MANIFEST = "manifest.json"
 
-    def __init__(self, n: int, rows: tuple[int, int] | None = None, folder=None):
+    def __init__(self, n: int, rows: tuple[int, int] | None = None, folder=None, resume=None, key: str = ""):
         self.n = int(n)
         self.a, self.b = (0, self.n) if rows is None else (int(rows[0]), int(rows[1]))
         self.whole = rows is None
+        self.key = key
+        self.entries = 0
+        self.blocks = 0
+        #: what an interrupted build of the same operator had finished (:meth:`checkpoint`), if resumed
+        self.resumed: dict = {}
+        self._tmp = None
+        self._lock = None
+        self._files: dict = {}
+        self._where = self._resumable(resume) if resume is not None else None
+        if self._where is None:
+            try:
+                self._tmp = tempfile.TemporaryDirectory(prefix="crater_thermal-operator-", dir=folder)
+            except OSError as exc:
+                where = folder or tempfile.gettempdir()
+                raise ConfigError(
+                    f"view-factor operator: cannot make a temporary folder in {where} ({exc.strerror}); "
+                    "set TMPDIR to a writable folder"
+                ) from None
+            self._where = self._tmp.name
         try:
-            self._tmp = tempfile.TemporaryDirectory(prefix="crater_thermal-operator-", dir=folder)
-        except OSError as exc:
-            where = folder or tempfile.gettempdir()
-            raise ConfigError(
-                f"view-factor operator: cannot make a temporary folder in {where} ({exc.strerror}); "
-                "set TMPDIR to a writable folder"
-            ) from None
-        self._files = {}
-        self._where = self._tmp.name
-        try:
+            sizes = self.resumed.get("bytes", {})
             for name in self.NAMES:
-                self._files[name] = open(os.path.join(self._where, name), "wb", buffering=1 << 22)
+                path = os.path.join(self._where, name)
+                f = open(path, "r+b" if name in sizes else "wb", buffering=1 << 22)
+                if name in sizes:  # drop what was written after the last checkpoint
+                    f.truncate(int(sizes[name]))
+                    f.seek(0, os.SEEK_END)
+                self._files[name] = f
         except BaseException:
             self.close()
             raise
-        self.meta: list = []  # (r0, c0, m, n, rank) of each kept low-rank block
-        self.entries = 0
+
+    def _resumable(self, folder) -> str | None:
+        """Use ``folder`` (kept after a failed or interrupted build) and what it holds of this build;
+        None if it cannot be made or another process holds it (the build then spills to a temporary
+        folder and starts from the beginning)."""
+        import fcntl
+        import json
+
+        try:
+            os.makedirs(folder, exist_ok=True)
+            lock = open(os.path.join(folder, "lock"), "a")
+        except OSError:
+            return None
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            lock.close()
+            return None
+        self._lock = lock
+        try:
+            state = json.loads(open(os.path.join(folder, self.MANIFEST)).read())
+            sizes = state["bytes"]
+            if state.get("key") == self.key and all(
+                os.path.getsize(os.path.join(folder, name)) >= int(sizes[name]) for name in self.NAMES
+            ):
+                self.resumed = state
+                self.entries, self.blocks = int(state["entries"]), int(state["blocks"])
+        except (OSError, ValueError, KeyError, TypeError):
+            self.resumed = {}
+        return str(folder)
+
+    def checkpoint(self, state: dict) -> None:
+        """Record that what was added so far is a finished prefix of the build (``state``: the units done
+        and the build's counters), for a resumed build (only with ``resume``)."""
+        import json
+
+        if self._lock is None:
+            return
+        sizes = {}
+        for name, f in self._files.items():
+            f.flush()
+            sizes[name] = f.tell()
+        record = {**state, "key": self.key, "bytes": sizes, "entries": self.entries, "blocks": self.blocks}
+        tmp = os.path.join(self._where, self.MANIFEST + ".tmp")
+        with open(tmp, "w") as f:
+            f.write(json.dumps(record))
+        os.replace(tmp, os.path.join(self._where, self.MANIFEST))
 
     def _write(self, name: str, arr: np.ndarray) -> None:
         try:
             self._files[name].write(np.ascontiguousarray(arr).data)
         except OSError as exc:
-            self.close()
+            self.close(finished=False)
             raise ConfigError(
                 f"view-factor operator: cannot write the build's blocks in {self._where} ({exc.strerror}); "
                 "set TMPDIR to a folder with free space about the size of the operator"
@@ -969,7 +1054,8 @@ class _Spill:
         for r0, c0, U, V, W in lowrank:
             if not self.whole and not ((r0 < b and r0 + U.shape[0] > a) or (c0 < b and c0 + V.shape[0] > a)):
                 continue
-            self.meta.append((int(r0), int(c0), U.shape[0], V.shape[0], U.shape[1]))
+            self._write("M", np.array([r0, c0, U.shape[0], V.shape[0], U.shape[1]], np.int64))
+            self.blocks += 1
             self._write("U", np.asarray(U, np.int16))
             self._write("V", np.asarray(V, np.int16))
             self._write("W", np.asarray(W, np.float32))
@@ -994,17 +1080,24 @@ class _Spill:
             if not f.closed:
                 f.close()
 
+    def _meta(self) -> list:
+        return self._read("M", np.int64).reshape(-1, 5)[: self.blocks].tolist()
+
     def _read(self, name: str, dtype, count: int = -1, f=None) -> np.ndarray:
         if f is not None:
             return np.fromfile(f, dtype, count)
-        return np.fromfile(os.path.join(self._where, name), dtype)
+        return np.fromfile(os.path.join(self._where, name), dtype, count)
 
     def lowrank(self) -> tuple:
         """The kept low-rank blocks packed (:func:`_lowrank_arrays`), read back from disk."""
         self._flush()
-        return _lowrank_arrays(
-            self.meta, self._read("U", np.int16), self._read("V", np.int16), self._read("W", np.float32)
-        )
+        meta = self._meta()
+        rank = np.array([m[4] for m in meta], np.int64)
+        nu = int(sum(m[2] * m[4] for m in meta))
+        nv = int(sum(m[3] * m[4] for m in meta))
+        U, V = self._read("U", np.int16, nu), self._read("V", np.int16, nv)
+        W = self._read("W", np.float32, int(rank.sum()))
+        return _lowrank_arrays(meta, U, V, W)
 
     def csr(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(indptr int64, indices int32, data float32)`` of the kept sparse entries, ``b - a`` rows,
@@ -1039,16 +1132,29 @@ class _Spill:
             indices, data = indices[:kept].copy(), data[:kept].copy()
         return indptr, indices, data
 
-    def close(self) -> None:
-        """Remove the temporary folder (also when the build failed or was interrupted)."""
+    def close(self, finished: bool = True) -> None:
+        """Remove the folder: a temporary one always (also when the build failed or was interrupted), a
+        ``resume`` folder only when the build ``finished`` (else it is kept, with its last checkpoint,
+        for the next build of the same operator)."""
         self._flush()
-        self._tmp.cleanup()
+        if self._tmp is not None:
+            self._tmp.cleanup()
+        elif self._lock is not None:
+            if finished:
+                import shutil
+
+                for name in (*self.NAMES, self.MANIFEST):
+                    if os.path.exists(os.path.join(self._where, name)):
+                        os.unlink(os.path.join(self._where, name))
+                shutil.rmtree(self._where, ignore_errors=True)
+            self._lock.close()
+            self._lock = None
 
     def __enter__(self) -> "_Spill":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        self.close(finished=exc_type is None)
 
 
 class CompressedPlan:
@@ -1131,8 +1237,10 @@ class CompressedPlan:
 
     def build(self, units: list, spill: "_Spill", n_threads: int | None = None, progress: Callable | None = None):
         """Compute work units on ``n_threads`` threads (default: the tracer's), each unit's blocks handed
-        to ``spill`` (:meth:`_Spill.add`: low-rank blocks ``(r0, c0, U, V)`` in cluster order, sparse
-        entries ``(i, j, g)`` above the diagonal [m2]) as it finishes, in the order of ``units``.
+        to ``spill`` (:meth:`_Spill.add`: low-rank blocks ``(r0, c0, U, V, W)`` in cluster order, sparse
+        entries ``(i, j, g)`` above the diagonal [m2]) as it finishes, in the order of ``units``; every
+        :data:`CHECKPOINT_S` seconds the finished prefix is recorded (:meth:`_Spill.checkpoint`), and a
+        spill resumed from a kept folder starts after the units it had finished.
 
         Returns
         -------
@@ -1142,10 +1250,19 @@ class CompressedPlan:
 
         def work(u):
             kind, arg = u
-            return builder.far_block(*arg) if kind == "far" else builder.near_blocks(arg)
+            builder.unit_counts()  # nothing left over from a unit that failed in this thread
+            out = builder.far_block(*arg) if kind == "far" else builder.near_blocks(arg)
+            return (*out, builder.unit_counts())
 
         n_threads = max(1, int(n_threads or self.tracer.n_threads))
-        rays = near_pairs = done = 0
+        # a resumed build (spill.resumed: a kept folder's last checkpoint) skips the units it had finished
+        counters = ("dropped_blocks", "dropped_pairs", "quantized_retries")
+        state = dict.fromkeys(("units", "rays", "near_pairs", *counters), 0)
+        state.update({k: int(v) for k, v in spill.resumed.items() if k in state})
+        if state["units"] > len(units):
+            raise InternalError("compressed view factors: a kept build has more units than this one")
+        rays, near_pairs, done = state["rays"], state["near_pairs"], state["units"]
+        last = time.monotonic()
         pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
         # the units run on this pool's threads, each tracing its batches itself (measured at 30k facets,
         # alternating: 12.4 / 12.5 s against 14.7 / 17.0 s with the tracer's threads started inside them)
@@ -1156,18 +1273,26 @@ class CompressedPlan:
         # -> 0.5 s in all, the operator 9.6 -> 7.2 s; the same numbers)
         try:
             with threadpool_limits(1, user_api="blas"):
-                results = pool.map(work, units) if pool is not None else map(work, units)
-                for lr, cc, nr, npairs in results:
+                todo = units[done:]
+                results = pool.map(work, todo) if pool is not None else map(work, todo)
+                for lr, cc, nr, npairs, counts in results:
                     spill.add(lr, cc)
                     rays += nr
                     near_pairs += npairs
                     done += 1
+                    for name, k in counts.items():
+                        state[name] += k
+                    if time.monotonic() - last >= CHECKPOINT_S:
+                        last = time.monotonic()
+                        spill.checkpoint({**state, "units": done, "rays": rays, "near_pairs": near_pairs})
                     if progress is not None:
                         progress(done, len(units))
         finally:
             builder.serial_trace = False
+            for name in counters:
+                setattr(builder, name, state[name])
             if pool is not None:
-                pool.shutdown()
+                pool.shutdown(cancel_futures=True)
         return rays, near_pairs
 
     def row_block(self, a: int, b: int, n_threads: int | None = None, spill_dir=None) -> "RowBlock":
@@ -1243,7 +1368,9 @@ def view_factor_operator(
     tolerance : float [-]
         Compressed operator only: relative Frobenius error per far block.
     cache_dir : path-like, optional
-        Exact matrix only: its ``.npz`` cache folder.
+        Exact matrix: its ``.npz`` cache folder. Compressed operator: where an interrupted build keeps
+        what it had finished, for the next build to continue (``resume_dir`` of
+        :func:`compressed_view_factors`).
     progress : callable, optional
         ``progress(done, total)`` (:mod:`crater_thermal.progress` contract).
     tolerance_mode : {"block", "row"}
@@ -1260,7 +1387,9 @@ def view_factor_operator(
     kind = resolve_method(method, mesh.n_facets)
     if kind == "exact":
         return SparseViewFactors(vf.view_factor_matrix(mesh, tracer, cache_dir=cache_dir, progress=progress))
-    return compressed_view_factors(mesh, tracer, tolerance, progress=progress, tolerance_mode=tolerance_mode)
+    return compressed_view_factors(
+        mesh, tracer, tolerance, progress=progress, tolerance_mode=tolerance_mode, resume_dir=cache_dir
+    )
 
 
 # --------------------------------------------------------------------------------------------- row blocks

@@ -681,3 +681,81 @@ def test_build_leaves_no_spill_files_and_says_when_the_disk_is_full(tmp_path, mo
 
     with pytest.raises(ConfigError, match="cannot make a temporary folder.*TMPDIR"):
         vo.compressed_view_factors(m, spill_dir=tmp_path / "not-there")
+
+
+def test_interrupted_build_resumes_where_it_stopped(tmp_path, monkeypatch):
+    """A build with ``resume_dir`` that is interrupted keeps what it had finished (its last checkpoint);
+    the next build of the same operator computes only the rest, and gives the operator of an
+    uninterrupted build bit for bit (reference: a build without ``resume_dir``). Its folder is then
+    removed. A kept folder of other settings (its key) is not used, and one held by another process is
+    left alone (the build spills to a temporary folder and starts afresh)."""
+    import fcntl
+
+    from crater_thermal.errors import Interrupted
+
+    m = terrain_mesh(3000, rough_m=20.0)
+    tr = RayTracer(m, n_threads=2)
+    ref = vo.compressed_view_factors(m, tr)
+    n_far = len(vo.CompressedPlan(m, tr).far)
+    monkeypatch.setattr(vo, "CHECKPOINT_S", 0.0)  # a checkpoint after every unit
+    calls = []
+    far_block = vo._Builder.far_block
+
+    def counting(self, s, t):
+        calls.append(1)
+        if stop_after is not None and len(calls) > stop_after:
+            raise Interrupted(2)
+        return far_block(self, s, t)
+
+    monkeypatch.setattr(vo._Builder, "far_block", counting)
+
+    def same(op):
+        for name in ("indptr", "indices", "data", "r0", "r1", "c0", "c1", "rank", "U", "V", "W"):
+            assert np.array_equal(getattr(op, name), getattr(ref, name)), name
+        for k in ("rays", "near_pairs", "lowrank_blocks", "sparse_pairs", "quantized_retries"):
+            assert op.stats[k] == ref.stats[k], k
+
+    stop_after = n_far // 2
+    with pytest.raises(Interrupted):
+        vo.compressed_view_factors(m, tr, resume_dir=tmp_path)
+    kept = list(tmp_path.iterdir())
+    assert len(kept) == 1 and (kept[0] / "manifest.json").exists()
+    # a second interruption, later on: the build goes on from the first one's checkpoint
+    calls.clear()
+    stop_after = n_far // 4
+    with pytest.raises(Interrupted):
+        vo.compressed_view_factors(m, tr, resume_dir=tmp_path)
+    calls.clear()
+    stop_after = None
+    op = vo.compressed_view_factors(m, tr, resume_dir=tmp_path)
+    # only the rest: at most the units not finished at the second checkpoint (the threads may have
+    # computed a few units beyond the last one handed over, which are done again)
+    assert len(calls) <= n_far - (n_far // 2 + n_far // 4) + 4
+    same(op)
+    assert list(tmp_path.iterdir()) == []
+
+    # a kept folder whose key is another's: started afresh, and the same operator
+    stop_after = n_far // 2
+    with pytest.raises(Interrupted):
+        vo.compressed_view_factors(m, tr, resume_dir=tmp_path)
+    (folder,) = tmp_path.iterdir()
+    manifest = folder / "manifest.json"
+    manifest.write_text(manifest.read_text().replace('"key": "', '"key": "other-'))
+    calls.clear()
+    stop_after = None
+    same(vo.compressed_view_factors(m, tr, resume_dir=tmp_path))
+    assert len(calls) == n_far
+
+    # a folder held by another process: left alone, the build starts afresh elsewhere
+    stop_after = n_far // 2
+    with pytest.raises(Interrupted):
+        vo.compressed_view_factors(m, tr, resume_dir=tmp_path)
+    (folder,) = tmp_path.iterdir()
+    before = sorted((p.name, p.stat().st_size) for p in folder.iterdir())
+    with open(folder / "lock", "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        calls.clear()
+        stop_after = None
+        same(vo.compressed_view_factors(m, tr, resume_dir=tmp_path))
+        assert len(calls) == n_far
+    assert sorted((p.name, p.stat().st_size) for p in folder.iterdir()) == before
