@@ -1287,6 +1287,8 @@ class CompressedPlan:
                         spill.checkpoint({**state, "units": done, "rays": rays, "near_pairs": near_pairs})
                     if progress is not None:
                         progress(done, len(units))
+                # every unit done: a failure while the arrays are assembled then redoes none of them
+                spill.checkpoint({**state, "units": done, "rays": rays, "near_pairs": near_pairs})
         finally:
             builder.serial_trace = False
             for name in counters:

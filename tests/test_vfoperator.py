@@ -734,6 +734,20 @@ def test_interrupted_build_resumes_where_it_stopped(tmp_path, monkeypatch):
     same(op)
     assert list(tmp_path.iterdir()) == []
 
+    # interrupted after the last unit, while the arrays are assembled: the next build traces nothing
+    csr = vo._Spill.csr
+
+    def interrupted_csr(self):
+        raise Interrupted(15)
+
+    monkeypatch.setattr(vo._Spill, "csr", interrupted_csr)
+    with pytest.raises(Interrupted):
+        vo.compressed_view_factors(m, tr, resume_dir=tmp_path)
+    monkeypatch.setattr(vo._Spill, "csr", csr)
+    calls.clear()
+    same(vo.compressed_view_factors(m, tr, resume_dir=tmp_path))
+    assert calls == [] and list(tmp_path.iterdir()) == []
+
     # a kept folder whose key is another's: started afresh, and the same operator
     stop_after = n_far // 2
     with pytest.raises(Interrupted):
