@@ -148,6 +148,10 @@ QUANT_MAX = 32767
 QUANT_SHARES = (0.98, 0.5)
 #: Seconds between the checkpoints of a resumable build (:func:`compressed_view_factors` ``resume_dir``).
 CHECKPOINT_S = 30.0
+#: A run's compressed operator whose build took at least this long [s] is kept in its view-factor cache
+#: (:func:`view_factor_operator`): 100k facets build in ~2 minutes and are rebuilt; 400k take ~34 minutes
+#: and are kept (~2.4 GB on disk), 1M would take hours.
+KEEP_BUILD_S = 600.0
 #: Bytes per low-rank number that the choice between a far block's factors and its sparse entries
 #: (8 bytes each) assumes.
 LOWRANK_CHOICE_BYTES = 4
@@ -803,6 +807,7 @@ def compressed_view_factors(
     tolerance_mode: str = "block",
     spill_dir=None,
     resume_dir=None,
+    keep_after_s: float | None = None,
 ) -> CompressedViewFactors:
     """Build the compressed view-factor operator (module docstring) without holding the full matrix.
 
@@ -837,6 +842,11 @@ def compressed_view_factors(
         build of the same operator continues from its last checkpoint (bit for bit the operator of an
         uninterrupted build). A folder in use by another process is left alone (that build starts
         afresh in ``spill_dir``). :func:`view_factor_operator` uses its ``cache_dir``.
+    keep_after_s : float [s], optional
+        With ``resume_dir``: keep the folder of a finished build whose units took at least this long (over
+        every build that contributed), so that the next build of the same operator only reads it back
+        (seconds, instead of the build's minutes or hours); it then holds about the operator's size on
+        disk. :func:`view_factor_operator` keeps builds of :data:`KEEP_BUILD_S` and more.
 
     Returns
     -------
@@ -854,6 +864,7 @@ def compressed_view_factors(
         resume = os.path.join(str(resume_dir), "compressed-build-" + hashlib.sha1(key.encode()).hexdigest()[:16])
     with _Spill(nf, folder=spill_dir, resume=resume, key=key) as spill:
         rays, near_pairs = plan.build(plan.units(), spill, n_threads, progress)
+        spill.keep = keep_after_s is not None and spill.units_s >= float(keep_after_s)
         # sparse part: the upper triangle (i < j by construction), CSR, float32 values; then the low-rank
         # part, packed: each read back from the spill files, so that nothing is held twice
         sparse = spill.csr()
@@ -881,6 +892,9 @@ def compressed_view_factors(
         "dropped_pairs": int(builder.dropped_pairs),
         "quantized_retries": int(builder.quantized_retries),
         "rowsum_estimate_s": plan.rowsum_estimate_s,
+        "resumed_units": int(spill.resumed_units),
+        "units_s": float(spill.units_s),
+        "kept": bool(spill.keep and resume is not None),
     }
     op = CompressedViewFactors(plan.tree.perm, np.asarray(mesh.areas), sparse, packed, None, plan.tolerance, stats)
     op.product_dtype = np.float64  # the rescale from float64 row sums, as the workers' row blocks sum them
@@ -963,6 +977,11 @@ class _Spill:
         self.blocks = 0
         #: what an interrupted build of the same operator had finished (:meth:`checkpoint`), if resumed
         self.resumed: dict = {}
+        self.resumed_units = 0  # units skipped (set by CompressedPlan.build)
+        self.units_s = 0.0  # seconds of the build's units, over every build of this folder (the same)
+        #: keep a ``resume`` folder after a finished build (its files are then the operator, which the
+        #: next build of the same operator reads back instead of building it)
+        self.keep = False
         self._tmp = None
         self._lock = None
         self._files: dict = {}
@@ -1140,7 +1159,7 @@ class _Spill:
         if self._tmp is not None:
             self._tmp.cleanup()
         elif self._lock is not None:
-            if finished:
+            if finished and not self.keep:
                 import shutil
 
                 for name in (*self.NAMES, self.MANIFEST):
@@ -1259,6 +1278,9 @@ class CompressedPlan:
         counters = ("dropped_blocks", "dropped_pairs", "quantized_retries")
         state = dict.fromkeys(("units", "rays", "near_pairs", *counters), 0)
         state.update({k: int(v) for k, v in spill.resumed.items() if k in state})
+        state["units_s"] = float(spill.resumed.get("units_s", 0.0))  # the units' seconds, over every build
+        spill.resumed_units = state["units"]
+        t0 = time.perf_counter() - state["units_s"]
         if state["units"] > len(units):
             raise InternalError("compressed view factors: a kept build has more units than this one")
         rays, near_pairs, done = state["rays"], state["near_pairs"], state["units"]
@@ -1284,10 +1306,12 @@ class CompressedPlan:
                         state[name] += k
                     if time.monotonic() - last >= CHECKPOINT_S:
                         last = time.monotonic()
+                        state["units_s"] = time.perf_counter() - t0
                         spill.checkpoint({**state, "units": done, "rays": rays, "near_pairs": near_pairs})
                     if progress is not None:
                         progress(done, len(units))
                 # every unit done: a failure while the arrays are assembled then redoes none of them
+                state["units_s"] = spill.units_s = time.perf_counter() - t0
                 spill.checkpoint({**state, "units": done, "rays": rays, "near_pairs": near_pairs})
         finally:
             builder.serial_trace = False
@@ -1371,7 +1395,8 @@ def view_factor_operator(
         Compressed operator only: relative Frobenius error per far block.
     cache_dir : path-like, optional
         Exact matrix: its ``.npz`` cache folder. Compressed operator: where an interrupted build keeps
-        what it had finished, for the next build to continue (``resume_dir`` of
+        what it had finished, for the next build to continue, and where a build of
+        :data:`KEEP_BUILD_S` or more is kept (``resume_dir``, ``keep_after_s`` of
         :func:`compressed_view_factors`).
     progress : callable, optional
         ``progress(done, total)`` (:mod:`crater_thermal.progress` contract).
@@ -1390,7 +1415,13 @@ def view_factor_operator(
     if kind == "exact":
         return SparseViewFactors(vf.view_factor_matrix(mesh, tracer, cache_dir=cache_dir, progress=progress))
     return compressed_view_factors(
-        mesh, tracer, tolerance, progress=progress, tolerance_mode=tolerance_mode, resume_dir=cache_dir
+        mesh,
+        tracer,
+        tolerance,
+        progress=progress,
+        tolerance_mode=tolerance_mode,
+        resume_dir=cache_dir,
+        keep_after_s=KEEP_BUILD_S,
     )
 
 

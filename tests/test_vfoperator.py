@@ -773,3 +773,38 @@ def test_interrupted_build_resumes_where_it_stopped(tmp_path, monkeypatch):
         same(vo.compressed_view_factors(m, tr, resume_dir=tmp_path))
         assert len(calls) == n_far
     assert sorted((p.name, p.stat().st_size) for p in folder.iterdir()) == before
+
+
+def test_a_long_build_is_kept_and_read_back(tmp_path, monkeypatch):
+    """With ``keep_after_s``, a finished build whose units took at least that long keeps its folder, and
+    the next build of the same operator reads it back without computing a unit, the same operator bit
+    for bit (reference: a build without ``resume_dir``); a shorter build is removed as before; the
+    cache's ``clear`` removes a kept build."""
+    from crater_thermal import cache
+
+    m = terrain_mesh(1500, rough_m=20.0)
+    tr = RayTracer(m)
+    ref = vo.compressed_view_factors(m, tr)
+    calls = []
+    far_block = vo._Builder.far_block
+    monkeypatch.setattr(vo._Builder, "far_block", lambda self, s, t: calls.append(1) or far_block(self, s, t))
+    short = vo.compressed_view_factors(m, tr, resume_dir=tmp_path, keep_after_s=1e9)
+    assert not short.stats["kept"] and list(tmp_path.iterdir()) == []
+    first = vo.compressed_view_factors(m, tr, resume_dir=tmp_path, keep_after_s=0.0)
+    assert first.stats["kept"] and first.stats["resumed_units"] == 0 and len(list(tmp_path.iterdir())) == 1
+    n_units = len(calls)
+    calls.clear()
+    again = vo.compressed_view_factors(m, tr, resume_dir=tmp_path, keep_after_s=0.0)
+    assert calls == [] and again.stats["resumed_units"] > 0 and again.stats["kept"]
+    for op in (short, first, again):
+        for name in ("indptr", "indices", "data", "r0", "rank", "U", "V", "W"):
+            assert np.array_equal(getattr(op, name), getattr(ref, name)), name
+    assert n_units > 0
+    monkeypatch.setenv("CRATER_THERMAL_CACHE", str(tmp_path / "cache"))
+    folder = cache.folder("viewfactors")
+    vo.view_factor_operator(m, tr, method="compressed", cache_dir=folder)  # a short build: not kept
+    assert list(folder.iterdir()) == []
+    vo.compressed_view_factors(m, tr, resume_dir=folder, keep_after_s=0.0)
+    assert cache.info()["kinds"]["viewfactors"]["bytes"] > 0.5 * ref.nbytes
+    cache.clear("viewfactors")
+    assert not folder.exists() or list(folder.iterdir()) == []
