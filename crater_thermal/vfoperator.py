@@ -35,6 +35,15 @@ its symmetry), in blocks of a hierarchical partition:
   into its children blocks (reusing the computed entries, no new rays) and, at leaf level, kept sparse.
   All-zero blocks (facets that face away from each other, coplanar plains, fully occluded pairs) cost
   nothing.
+* **Occlusion proved, not traced** (:data:`OCCLUSION_PROOF`, issue 24). On a mesh that is a height field
+  (:class:`_HeightFloor`: every facet facing up, no two facets over the same point), a lower bound of
+  the terrain per cell of half a facet's size lets a far block, then its children's pairs down to
+  :data:`PROOF_MIN_PAIRS` pairs, be proven occluded: on one of :data:`PROOF_CUTS` lines across the
+  corridor between the two clusters, the terrain's bound everywhere a segment between them can cross
+  exceeds the highest that segment can be there (the clusters' xy discs and highest points bound it).
+  A segment that starts and ends above the surface and passes below it crosses it, so no ray is traced
+  for those pairs; the rest of the block is traced as before. The operator is the same, bit for bit
+  (tested): only the rays are fewer, about 45 % fewer at 20k facets of rough crater terrain.
 
 Row-relative variant (``tolerance_mode="row"``, issue 24): each far block's budget is instead a share
 of ``tolerance`` times the row sums of the rows it touches (:meth:`_Builder.budget`; row sums estimated
@@ -157,6 +166,13 @@ KEEP_BUILD_S = 600.0
 LOWRANK_CHOICE_BYTES = 4
 #: Part of the cache key of a compressed operator: bump it when the numbers change.
 ALGORITHM_VERSION = "c3"
+#: Prove far sub-blocks occluded by the terrain before tracing them (:class:`_HeightFloor`), on meshes
+#: that are height fields; the operator is the same, with fewer rays.
+OCCLUSION_PROOF = True
+#: Lines across the corridor between two clusters tried by the proof, and the smallest sub-block (pairs)
+#: it is tried on.
+PROOF_CUTS = 16
+PROOF_MIN_PAIRS = 256
 
 
 # --------------------------------------------------------------------------------------------- interface
@@ -489,6 +505,68 @@ class _Tree:
         return float(np.sqrt(gap @ gap))
 
 
+class _HeightFloor:
+    """A lower bound of the terrain's height on a grid of cells, for proving far sub-blocks occluded
+    (:func:`kernels.vfoperator.hidden`): every segment between two clusters that passes below a
+    continuous height field, starting and ending above it, crosses it.
+
+    Only for meshes that are height fields: every facet faces up (normal z > 0), every edge is shared by
+    at most two facets, and no cell centre lies inside two facets' xy projections. Per cell
+    the lowest vertex of the facets that meet it; cells that the mesh's boundary
+    meets, or that no facet meets, have no bound (-inf). Cells are half a facet's size, so that a cell's
+    bound comes from the few facets around it.
+    """
+
+    def __init__(self, x0, y0, h, floor, tree, cx, cy, rho, ztop, margin):
+        self.x0, self.y0, self.h, self.floor = x0, y0, h, floor
+        self.tree, self.cx, self.cy, self.rho, self.ztop, self.margin = tree, cx, cy, rho, ztop, margin
+
+    @classmethod
+    def of(cls, mesh: Mesh, V: np.ndarray, P: np.ndarray, tree: "_Tree") -> "_HeightFloor | None":
+        """The floor of ``mesh`` (vertices ``V`` and ray origins ``P`` [m] in the tracer's centred frame,
+        ``P`` in cluster order), or None when the mesh is not a height field."""
+        from crater_thermal.kernels import vfoperator as kv
+
+        faces = np.ascontiguousarray(mesh.faces, np.int64)
+        if len(faces) < 2 or not bool(np.all(np.asarray(mesh.normals)[:, 2] > 1e-6)):
+            return None
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        edges, count = np.unique(edges, axis=0, return_counts=True)
+        if count.max() > 2:
+            return None
+        h = 0.5 * float(np.sqrt(2.0 * np.median(mesh.areas)))  # half a grid step of a triangulated grid
+        lo, hi = V[:, :2].min(axis=0), V[:, :2].max(axis=0)
+        nx, ny = (int(np.floor(w / h)) + 1 for w in hi - lo)
+        if h <= 0.0 or nx * ny > 64 * len(faces) + 1024:  # a few long thin facets: no useful grid
+            return None
+        zmin = np.full((ny, nx), np.inf)
+        cover = np.zeros((ny, nx), np.int32)
+        kv.height_floor(V, faces, float(lo[0]), float(lo[1]), h, nx, ny, zmin, cover)
+        if cover.max() > 1:
+            return None
+        kv.floor_unknown(V, np.ascontiguousarray(edges[count == 1]), float(lo[0]), float(lo[1]), h, nx, ny, zmin)
+        zmin[~np.isfinite(zmin)] = -np.inf
+        k = len(tree.lo)
+        cx, cy, rho, ztop = (np.empty(k) for _ in range(4))
+        kv.node_discs(tree.lo, tree.hi, P, cx, cy, rho, ztop)
+        # float32 rays: a segment must pass clearly below the bound (1e-5 of the extent; 0.2 m over 20 km)
+        margin = max(1e-3, 1e-5 * float(np.max(hi - lo)))
+        return cls(float(lo[0]), float(lo[1]), h, zmin, tree, cx, cy, rho, ztop, margin)
+
+    def unproven(self, s: int, t: int) -> np.ndarray:
+        """Rows ``(r0, r1, c0, c1)`` (cluster order) covering the far block (s, t) less its sub-blocks
+        proven occluded."""
+        from crater_thermal.kernels import vfoperator as kv
+
+        tr = self.tree
+        out = np.empty((tr.size(s) * tr.size(t) // 16 + 4, 4), np.int64)
+        k = kv.unproven_rects(
+            s, t, tr.left, tr.right, tr.lo, tr.hi, self.cx, self.cy, self.rho, self.ztop,
+            self.x0, self.y0, self.h, self.floor, PROOF_CUTS, self.margin, PROOF_MIN_PAIRS, out,
+        )  # fmt: skip
+        return out[:k]
+
+
 def _partition(tree: _Tree, near_factor: float, admissibility: float, max_entries: int):
     """Upper-triangle block partition: (far blocks [(s, t)], near blocks [(s, t, diagonal)])."""
     far, near = [], []
@@ -580,6 +658,7 @@ class _Builder:
         self.A = np.ascontiguousarray(mesh.areas[p])
         self.P = np.ascontiguousarray((tracer.origins - centre)[p])
         self.V = np.ascontiguousarray(mesh.vertices - centre)
+        self.floor = _HeightFloor.of(mesh, self.V, self.P, tree) if OCCLUSION_PROOF else None
         self.Fc = np.ascontiguousarray(mesh.faces[p])
         self.bary = vf.subtriangle_barycentrics(vf.NEAR_SUBDIVISIONS)
         self.near_factor = float(vf.NEAR_DISTANCE_FACTOR)
@@ -674,19 +753,23 @@ class _Builder:
         r0, r1, c0, c1 = int(tr.lo[s]), int(tr.hi[s]), int(tr.lo[t]), int(tr.hi[t])
         m, n = r1 - r0, c1 - c0
         M = np.zeros(m * n)
-        rows = max(1, RAY_CHUNK // n)
-        cap = min(RAY_CHUNK, rows * n)
+        # the rectangles of the block not proven occluded by the terrain (all of it without a proof)
+        if self.floor is None:
+            rects = np.array([[r0, r1, c0, c1]], np.int64)
+        else:
+            rects = self.floor.unproven(s, t)
+        cap = max(n, min(RAY_CHUNK, m * n))
         o32 = np.empty((cap, 3), np.float32)
         d32 = np.empty((cap, 3), np.float32)
         pos = np.empty(cap, np.int64)
         val = np.empty(cap)
-        rays = 0
-        for a in range(r0, r1, rows):
-            b = min(r1, a + rows)
-            k = kv.far_block_rays(a, b, c0, c1, self.C, self.N, self.P, self.A, self.cos_cut, o32, d32, pos, val)
+        rays, q, a = 0, 0, -1
+        while q < len(rects):
+            k, q, a = kv.far_rects_rays(
+                rects, q, a, r0, c0, n, self.C, self.N, self.P, self.A, self.cos_cut, o32, d32, pos, val
+            )
             if k:
                 blocked = self._trace(o32, d32, k)
-                pos[:k] += (a - r0) * n
                 kv.scatter_visible(k, pos, val, blocked, M)
                 rays += k
         M = M.reshape(m, n)

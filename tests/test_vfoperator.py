@@ -808,3 +808,103 @@ def test_a_long_build_is_kept_and_read_back(tmp_path, monkeypatch):
     assert cache.info()["kinds"]["viewfactors"]["bytes"] > 0.5 * ref.nbytes
     cache.clear("viewfactors")
     assert not folder.exists() or list(folder.iterdir()) == []
+
+
+# ---- far sub-blocks proven occluded by the terrain (vfoperator._HeightFloor)
+
+_OPERATOR_ARRAYS = ("indptr", "indices", "data", "r0", "r1", "c0", "c1", "rank", "uoff", "voff", "woff", "U", "V", "W")
+
+
+def test_occlusion_proof_gives_the_same_operator_with_fewer_rays(terrain5k, monkeypatch):
+    m, tr, _, comp = terrain5k
+    assert vo.OCCLUSION_PROOF and vo.CompressedPlan(m, tr).builder.floor is not None
+    monkeypatch.setattr(vo, "OCCLUSION_PROOF", False)
+    plain = vo.compressed_view_factors(m, tr)
+    # a proof only skips pairs that every ray would find blocked: the very same operator
+    for name in _OPERATOR_ARRAYS:
+        assert np.array_equal(getattr(comp, name), getattr(plain, name)), name
+    # measured: 2.16 M rays against 2.58 M at 5k facets (20k: 26.2 M against 46.9 M)
+    assert comp.stats["rays"] < 0.9 * plain.stats["rays"]
+
+
+def _ridge_mesh(n, width_m, ridge_m, rough_m, seed):
+    x = np.linspace(-width_m / 2, width_m / 2, n)
+    X, Y = np.meshgrid(x, x)
+    rng = np.random.default_rng(seed)
+    z = ridge_m * np.exp(-(((X - 0.1 * width_m * rng.uniform(-1, 1)) / (0.08 * width_m)) ** 2))
+    z += 0.3 * ridge_m * np.exp(-((Y / (0.1 * width_m)) ** 2)) * rng.uniform(0, 1)
+    z += rough_m * rng.standard_normal(z.shape)
+    return grid_mesh(x, x, z)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    n=st.integers(10, 22),
+    ridge_m=st.floats(0.0, 400.0),
+    rough_m=st.floats(0.0, 40.0),
+    seed=st.integers(0, 10_000),
+)
+def test_occlusion_proof_never_hides_a_visible_pair(n, ridge_m, rough_m, seed):
+    """Every pair of tree nodes the proof calls occluded is occluded for Embree, ray by ray."""
+    from crater_thermal.kernels import vfoperator as kv
+
+    m = _ridge_mesh(n, 2000.0, ridge_m, rough_m, seed)
+    tr = RayTracer(m)
+    tree = vo._Tree(np.asarray(m.centroids), np.asarray(m.facet_size), 8)
+    P = np.ascontiguousarray((tr.origins - tr.centre)[tree.perm])
+    fl = vo._HeightFloor.of(m, np.ascontiguousarray(m.vertices - tr.centre), P, tree)
+    assert fl is not None  # a grid mesh is a height field
+    nodes = range(len(tree.lo))
+    for s in nodes:
+        for t in nodes:
+            if s >= t or not kv.hidden(
+                s, t, fl.cx, fl.cy, fl.rho, fl.ztop, fl.x0, fl.y0, fl.h, fl.floor, 16, fl.margin
+            ):
+                continue
+            i = np.repeat(np.arange(tree.lo[s], tree.hi[s]), tree.size(t))
+            j = np.tile(np.arange(tree.lo[t], tree.hi[t]), tree.size(s))
+            o = np.ascontiguousarray(P[i], np.float32)
+            d = np.ascontiguousarray(P[j] - P[i], np.float32)
+            blocked = tr.run_raw(o, d, np.ones(len(i), np.float32), "OCCLUDED")
+            assert np.all(blocked != -1), (s, t)
+
+
+def test_occlusion_proof_finds_pairs_behind_a_ridge():
+    """Not vacuous: behind a 300 m ridge the proof finds occluded node pairs, which Embree confirms."""
+    from crater_thermal.kernels import vfoperator as kv
+
+    m = _ridge_mesh(24, 2000.0, 300.0, 0.0, 3)
+    tr = RayTracer(m)
+    tree = vo._Tree(np.asarray(m.centroids), np.asarray(m.facet_size), 8)
+    P = np.ascontiguousarray((tr.origins - tr.centre)[tree.perm])
+    fl = vo._HeightFloor.of(m, np.ascontiguousarray(m.vertices - tr.centre), P, tree)
+    hits = [
+        (s, t)
+        for s in range(len(tree.lo))
+        for t in range(s + 1, len(tree.lo))
+        if kv.hidden(s, t, fl.cx, fl.cy, fl.rho, fl.ztop, fl.x0, fl.y0, fl.h, fl.floor, 16, fl.margin)
+    ]
+    assert len(hits) >= 10
+
+
+def test_no_occlusion_proof_on_a_mesh_that_is_not_a_height_field():
+    m = terrain_mesh(800)
+    tr = RayTracer(m)
+    tree = vo._Tree(np.asarray(m.centroids), np.asarray(m.facet_size), 32)
+    P = np.ascontiguousarray((tr.origins - tr.centre)[tree.perm])
+    V = np.ascontiguousarray(m.vertices - tr.centre)
+    assert vo._HeightFloor.of(m, V, P, tree) is not None
+    # a facet facing down
+    faces = np.array(m.faces)
+    faces[0] = faces[0, ::-1]
+    from crater_thermal.geometry import Mesh
+
+    down = Mesh(m.vertices, faces, {"kind": "file"})
+    assert vo._HeightFloor.of(down, V, P, tree) is None
+    # two sheets, one above the other: every facet faces up, but the projections overlap
+    V2 = np.concatenate([m.vertices, m.vertices + [0.0, 0.0, 500.0]])
+    two = Mesh(V2, np.concatenate([m.faces, np.asarray(m.faces) + len(m.vertices)]), {"kind": "file"})
+    tr2 = RayTracer(two)
+    tree2 = vo._Tree(np.asarray(two.centroids), np.asarray(two.facet_size), 32)
+    P2 = np.ascontiguousarray((tr2.origins - tr2.centre)[tree2.perm])
+    assert vo._HeightFloor.of(two, np.ascontiguousarray(V2 - tr2.centre), P2, tree2) is None

@@ -31,8 +31,16 @@ def far_block_rays(r0, r1, c0, c1, C, N, P, A, cos_cut, o32, d32, pos, val):
     position ``(i - r0) * (c1 - c0) + (j - c0)`` in the block and ``G_ij`` from the centroid kernel
     ``A_i A_j cos_i cos_j / (pi d^2) / d^2`` [m2].  Returns the number of pairs.
     """
-    n = 0
-    nc = c1 - c0
+    return far_rect_rays(r0, r1, c0, c1, r0, c0, c1 - c0, C, N, P, A, cos_cut, o32, d32, pos, val, 0)
+
+
+@njit(nogil=True, cache=True)
+def far_rect_rays(r0, r1, c0, c1, R0, C0, NC, C, N, P, A, cos_cut, o32, d32, pos, val, n0):
+    """:func:`far_block_rays` for the rectangle rows r0..r1-1 x columns c0..c1-1 of a block whose first
+    row and column are R0, C0 and whose width is NC: the pairs are written from index ``n0`` on, their
+    positions ``(i - R0) * NC + (j - C0)`` in the whole block. Returns ``n0`` + the number of pairs."""
+    n = n0
+    nc = NC
     cc2 = cos_cut * cos_cut
     for i in range(r0, r1):
         cix = C[i, 0]
@@ -50,7 +58,7 @@ def far_block_rays(r0, r1, c0, c1, C, N, P, A, cos_cut, o32, d32, pos, val):
             cj = -(N[j, 0] * dx + N[j, 1] * dy + N[j, 2] * dz)
             if ci > 0.0 and cj > 0.0 and ci * ci > cc2 * d2 and cj * cj > cc2 * d2:
                 val[n] = A[i] * A[j] * ci * cj / (math.pi * d2 * d2)
-                pos[n] = (i - r0) * nc + (j - c0)
+                pos[n] = (i - R0) * nc + (j - C0)
                 o32[n, 0] = P[i, 0]
                 o32[n, 1] = P[i, 1]
                 o32[n, 2] = P[i, 2]
@@ -59,6 +67,30 @@ def far_block_rays(r0, r1, c0, c1, C, N, P, A, cos_cut, o32, d32, pos, val):
                 d32[n, 2] = P[j, 2] - P[i, 2]
                 n += 1
     return n
+
+
+@njit(nogil=True, cache=True)
+def far_rects_rays(rects, q, a, R0, C0, NC, C, N, P, A, cos_cut, o32, d32, pos, val):
+    """:func:`far_rect_rays` over the rectangles ``rects`` (rows ``r0, r1, c0, c1``) of one block, from
+    rectangle ``q``, row ``a`` on (``a = -1``: its first row), row by row until the buffers are full.
+
+    Returns ``(n, q, a)``: the pairs written, and where to go on (``q == len(rects)``: all written).
+    """
+    n = 0
+    cap = o32.shape[0]
+    while q < rects.shape[0]:
+        c0 = rects[q, 2]
+        c1 = rects[q, 3]
+        if a < rects[q, 0]:
+            a = rects[q, 0]
+        while a < rects[q, 1]:
+            if cap - n < c1 - c0:
+                return n, q, a
+            n = far_rect_rays(a, a + 1, c0, c1, R0, C0, NC, C, N, P, A, cos_cut, o32, d32, pos, val, n)
+            a += 1
+        q += 1
+        a = -1
+    return n, q, a
 
 
 @njit(nogil=True, cache=True)
@@ -436,3 +468,171 @@ def csr_sort_merge(indptr, indices, data):
         lo = hi
     indptr[n] = w
     return w
+
+
+# ------------------------------------------------------------------------------- occlusion by the terrain
+# A proof that every segment between two clusters passes under a height field (``vfoperator._HeightFloor``).
+
+
+@njit(nogil=True, cache=True)
+def height_floor(V, F, x0, y0, h, nx, ny, zmin, cover):
+    """For each cell ``[x0 + ix h, x0 + (ix + 1) h) x [y0 + iy h, ...)``: ``zmin[iy, ix]`` the lowest vertex
+    height [m] of the triangles whose xy bounding box meets the cell (a lower bound of a height-field
+    surface anywhere in the cell), ``cover[iy, ix]`` how many triangles hold the cell's centre strictly
+    inside their xy projection (more than one: the mesh is not a height field)."""
+    for f in range(F.shape[0]):
+        a, b, c = F[f, 0], F[f, 1], F[f, 2]
+        xa, ya, za = V[a, 0], V[a, 1], V[a, 2]
+        xb, yb, zb = V[b, 0], V[b, 1], V[b, 2]
+        xc, yc, zc = V[c, 0], V[c, 1], V[c, 2]
+        zlow = min(za, zb, zc)
+        ix0 = max(0, int(math.floor((min(xa, xb, xc) - x0) / h)))
+        ix1 = min(nx - 1, int(math.floor((max(xa, xb, xc) - x0) / h)))
+        iy0 = max(0, int(math.floor((min(ya, yb, yc) - y0) / h)))
+        iy1 = min(ny - 1, int(math.floor((max(ya, yb, yc) - y0) / h)))
+        det = (xb - xa) * (yc - ya) - (xc - xa) * (yb - ya)
+        for iy in range(iy0, iy1 + 1):
+            py = y0 + (iy + 0.5) * h
+            for ix in range(ix0, ix1 + 1):
+                if zlow < zmin[iy, ix]:
+                    zmin[iy, ix] = zlow
+                if det != 0.0:
+                    px = x0 + (ix + 0.5) * h
+                    l1 = ((xb - px) * (yc - py) - (xc - px) * (yb - py)) / det
+                    l2 = ((xc - px) * (ya - py) - (xa - px) * (yc - py)) / det
+                    l3 = 1.0 - l1 - l2
+                    if l1 > 1e-9 and l2 > 1e-9 and l3 > 1e-9:
+                        cover[iy, ix] += 1
+
+
+@njit(nogil=True, cache=True)
+def floor_unknown(V, E, x0, y0, h, nx, ny, zmin):
+    """Cells that the xy bounding box of an edge ``E[k]`` (the mesh's boundary) meets get ``-inf``: no
+    lower bound where the surface may end."""
+    for k in range(E.shape[0]):
+        a, b = E[k, 0], E[k, 1]
+        ix0 = max(0, int(math.floor((min(V[a, 0], V[b, 0]) - x0) / h)))
+        ix1 = min(nx - 1, int(math.floor((max(V[a, 0], V[b, 0]) - x0) / h)))
+        iy0 = max(0, int(math.floor((min(V[a, 1], V[b, 1]) - y0) / h)))
+        iy1 = min(ny - 1, int(math.floor((max(V[a, 1], V[b, 1]) - y0) / h)))
+        for iy in range(iy0, iy1 + 1):
+            for ix in range(ix0, ix1 + 1):
+                zmin[iy, ix] = -np.inf
+
+
+@njit(nogil=True, cache=True)
+def node_discs(lo, hi, P, cx, cy, rho, ztop):
+    """Per tree node: the xy centre [m] of its points ``P[lo:hi]``, the xy radius about it [m] and the
+    highest z [m]."""
+    for k in range(lo.shape[0]):
+        a, b = lo[k], hi[k]
+        sx = 0.0
+        sy = 0.0
+        zt = -np.inf
+        for i in range(a, b):
+            sx += P[i, 0]
+            sy += P[i, 1]
+            zt = max(zt, P[i, 2])
+        mx = sx / (b - a)
+        my = sy / (b - a)
+        r2 = 0.0
+        for i in range(a, b):
+            r2 = max(r2, (P[i, 0] - mx) ** 2 + (P[i, 1] - my) ** 2)
+        cx[k] = mx
+        cy[k] = my
+        rho[k] = math.sqrt(r2)
+        ztop[k] = zt
+
+
+@njit(nogil=True, cache=True)
+def hidden(s, t, cx, cy, rho, ztop, x0, y0, h, floor, ncut, margin):
+    """True if every segment from a point of node s to a point of node t (points within ``rho`` of the
+    node's xy centre, no higher than ``ztop``) passes below the height field somewhere: on one of
+    ``ncut`` lines across the corridor between the two nodes, the floor (``floor``: per cell of size
+    ``h``, a lower bound of the surface) of every cell the line crosses exceeds, by ``margin`` [m], the
+    highest such a segment can be where it crosses the line. A segment that starts and ends above a
+    continuous height field and passes below it crosses it: the pair is occluded. False when not proven.
+    The line is sampled every h / 4 and each sample checks the cells within h / 8 of it, so every cell
+    that the line crosses is checked."""
+    dx = cx[t] - cx[s]
+    dy = cy[t] - cy[s]
+    dist = math.sqrt(dx * dx + dy * dy)
+    rs, rt = rho[s], rho[t]
+    if dist <= rs + rt:
+        return False
+    ex, ey = dx / dist, dy / dist
+    ny, nx = floor.shape
+    zs, zt = ztop[s], ztop[t]
+    e = 0.125 * h
+    for c in range(1, ncut + 1):
+        u = rs + (dist - rt - rs) * c / (ncut + 1.0)
+        # a segment from u_p in [-rs, rs] to u_q in [dist - rt, dist + rt] crosses the line u at the
+        # fraction a = (u - u_p) / (u_q - u_p) of its length, a in [amin, amax]; there its height is at
+        # most (1 - a) zs + a zt and its offset across the axis at most (1 - a) rs + a rt
+        amin = max(0.0, (u - rs) / (dist + rt - rs))
+        amax = min(1.0, (u + rs) / (dist - rt + rs))
+        zc = max((1.0 - amin) * zs + amin * zt, (1.0 - amax) * zs + amax * zt) + margin
+        vmax = max((1.0 - amin) * rs + amin * rt, (1.0 - amax) * rs + amax * rt)
+        ns = int(math.ceil(8.0 * vmax / h)) + 2  # samples at most h / 4 apart
+        proven = True
+        for k in range(ns):
+            v = -vmax + 2.0 * vmax * k / (ns - 1)
+            px = cx[s] + u * ex - v * ey - x0
+            py = cy[s] + u * ey + v * ex - y0
+            if not (px - e >= 0.0 and py - e >= 0.0 and px + e < nx * h and py + e < ny * h):
+                proven = False
+                break
+            ix0 = int((px - e) / h)
+            ix1 = int((px + e) / h)
+            iy0 = int((py - e) / h)
+            iy1 = int((py + e) / h)
+            if min(floor[iy0, ix0], floor[iy0, ix1], floor[iy1, ix0], floor[iy1, ix1]) <= zc:
+                proven = False
+                break
+        if proven:
+            return True
+    return False
+
+
+@njit(nogil=True, cache=True)
+def unproven_rects(s, t, left, right, lo, hi, cx, cy, rho, ztop, x0, y0, h, floor, ncut, margin, min_pairs, out):
+    """The rectangles (r0, r1, c0, c1) of the far block (s, t) left after the sub-blocks proven occluded
+    (:func:`hidden`, tried on the block and then on its children's pairs down to ``min_pairs`` pairs)
+    are taken out. Writes them to ``out`` (rows of 4) and returns their number."""
+    stack = np.empty((512, 2), np.int64)
+    stack[0, 0] = s
+    stack[0, 1] = t
+    top = 1
+    n = 0
+    while top > 0:
+        top -= 1
+        a = stack[top, 0]
+        b = stack[top, 1]
+        if hidden(a, b, cx, cy, rho, ztop, x0, y0, h, floor, ncut, margin):
+            continue
+        split_a = left[a] >= 0
+        split_b = left[b] >= 0
+        if (hi[a] - lo[a]) * (hi[b] - lo[b]) > min_pairs and (split_a or split_b) and top + 4 <= 512:
+            if split_a and split_b:
+                for p in (left[a], right[a]):
+                    for q in (left[b], right[b]):
+                        stack[top, 0] = p
+                        stack[top, 1] = q
+                        top += 1
+            elif split_a:
+                for p in (left[a], right[a]):
+                    stack[top, 0] = p
+                    stack[top, 1] = b
+                    top += 1
+            else:
+                for q in (left[b], right[b]):
+                    stack[top, 0] = a
+                    stack[top, 1] = q
+                    top += 1
+            continue
+        out[n, 0] = lo[a]
+        out[n, 1] = hi[a]
+        out[n, 2] = lo[b]
+        out[n, 3] = hi[b]
+        n += 1
+    return n
