@@ -5,7 +5,8 @@ Run:  PYTHONPATH=$PWD python bench/far_block_rays.py [--sizes 5000 20000 100000]
 
 For each size, the terrain of ``bench/viewfactor_operator.py`` is built into the compressed operator
 (tolerance 1e-3, one thread) with ``vfoperator._Builder.far_block`` wrapped by an instrumented copy that
-traces every candidate pair of each far block as the build does, then compresses the block with the
+traces every candidate pair of each far block as the build did before the occlusion proof
+(``vfoperator.OCCLUSION_PROOF``; this script measures what that proof could save), then compresses the block with the
 build's own ``_compress``. Per far block it records:
 
 * the outcome: the whole block stored as one low-rank term (``lowrank_whole``), split with some low-rank
