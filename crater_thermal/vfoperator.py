@@ -564,6 +564,8 @@ class _HeightFloor:
             s, t, tr.left, tr.right, tr.lo, tr.hi, self.cx, self.cy, self.rho, self.ztop,
             self.x0, self.y0, self.h, self.floor, PROOF_CUTS, self.margin, PROOF_MIN_PAIRS, out,
         )  # fmt: skip
+        if k < 0:  # more rectangles than room for them (cannot happen with leaves of 16 facets or more)
+            return np.array([[tr.lo[s], tr.hi[s], tr.lo[t], tr.hi[t]]], np.int64)
         return out[:k]
 
 

@@ -908,3 +908,19 @@ def test_no_occlusion_proof_on_a_mesh_that_is_not_a_height_field():
     tree2 = vo._Tree(np.asarray(two.centroids), np.asarray(two.facet_size), 32)
     P2 = np.ascontiguousarray((tr2.origins - tr2.centre)[tree2.perm])
     assert vo._HeightFloor.of(two, np.ascontiguousarray(V2 - tr2.centre), P2, tree2) is None
+
+
+def test_occlusion_proof_with_no_room_for_its_rectangles_traces_the_whole_block(terrain5k):
+    """The kernel never writes past its output: with room for one rectangle it says so, and the block is
+    then traced whole."""
+    from crater_thermal.kernels import vfoperator as kv
+
+    m, tr, _, _ = terrain5k
+    plan = vo.CompressedPlan(m, tr)
+    fl, tree = plan.builder.floor, plan.tree
+    s, t = max(plan.far, key=lambda st: tree.size(st[0]) * tree.size(st[1]))
+    args = (tree.left, tree.right, tree.lo, tree.hi, fl.cx, fl.cy, fl.rho, fl.ztop, fl.x0, fl.y0, fl.h, fl.floor)
+    full = np.empty((tree.size(s) * tree.size(t) // 16 + 4, 4), np.int64)
+    k = kv.unproven_rects(s, t, *args, 16, fl.margin, vo.PROOF_MIN_PAIRS, full)
+    assert k > 1
+    assert kv.unproven_rects(s, t, *args, 16, fl.margin, vo.PROOF_MIN_PAIRS, np.empty((1, 4), np.int64)) == -1

@@ -598,7 +598,8 @@ def hidden(s, t, cx, cy, rho, ztop, x0, y0, h, floor, ncut, margin):
 def unproven_rects(s, t, left, right, lo, hi, cx, cy, rho, ztop, x0, y0, h, floor, ncut, margin, min_pairs, out):
     """The rectangles (r0, r1, c0, c1) of the far block (s, t) left after the sub-blocks proven occluded
     (:func:`hidden`, tried on the block and then on its children's pairs down to ``min_pairs`` pairs)
-    are taken out. Writes them to ``out`` (rows of 4) and returns their number."""
+    are taken out. Writes them to ``out`` (rows of 4) and returns their number, or -1 if ``out`` is too
+    short for them (then nothing is proven: the caller traces the whole block)."""
     stack = np.empty((512, 2), np.int64)
     stack[0, 0] = s
     stack[0, 1] = t
@@ -630,6 +631,8 @@ def unproven_rects(s, t, left, right, lo, hi, cx, cy, rho, ztop, x0, y0, h, floo
                     stack[top, 1] = q
                     top += 1
             continue
+        if n == out.shape[0]:
+            return -1
         out[n, 0] = lo[a]
         out[n, 1] = hi[a]
         out[n, 2] = lo[b]
