@@ -28,8 +28,6 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-ARRAYS = ("indptr", "indices", "data", "r0", "r1", "c0", "c1", "rank", "uoff", "voff", "woff", "U", "V", "W")
-
 
 def mesh_of(terrain_name: str, n: int):
     """The benchmark's mesh of ``n`` facets."""
@@ -64,7 +62,7 @@ def measure(terrain_name: str, n: int, order: list[str]) -> dict:
         print(terrain_name, n, mode, builds[mode][-1], flush=True)
     vo.OCCLUSION_PROOF = True
     a, b = last["off"], last["on"]
-    differ = [k for k in ARRAYS if not np.array_equal(getattr(a, k), getattr(b, k))]
+    differ = [k for k in vo._COMPRESSED_ARRAYS if not np.array_equal(getattr(a, k), getattr(b, k))]
     mean = {k: float(np.mean([x["build_s"] for x in v])) for k, v in builds.items()}
     return {
         "terrain": terrain_name,

@@ -530,10 +530,14 @@ class _HeightFloor:
         faces = np.ascontiguousarray(mesh.faces, np.int64)
         if len(faces) < 2 or not bool(np.all(np.asarray(mesh.normals)[:, 2] > 1e-6)):
             return None
+        # undirected edges as one integer each (as geometry's mesh check codes them): np.unique on codes
+        # instead of on rows takes a few ms rather than ~0.15 s at 100k facets
         edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-        edges, count = np.unique(edges, axis=0, return_counts=True)
+        nv = np.int64(len(V))
+        codes, count = np.unique(edges[:, 0] * nv + edges[:, 1], return_counts=True)
         if count.max() > 2:
             return None
+        boundary = np.column_stack(np.divmod(codes[count == 1], nv))  # edges of one facet: (a, b), a < b
         h = 0.5 * float(np.sqrt(2.0 * np.median(mesh.areas)))  # half a grid step of a triangulated grid
         lo, hi = V[:, :2].min(axis=0), V[:, :2].max(axis=0)
         nx, ny = (int(np.floor(w / h)) + 1 for w in hi - lo)
@@ -544,7 +548,7 @@ class _HeightFloor:
         kv.height_floor(V, faces, float(lo[0]), float(lo[1]), h, nx, ny, zmin, cover)
         if cover.max() > 1:
             return None
-        kv.floor_unknown(V, np.ascontiguousarray(edges[count == 1]), float(lo[0]), float(lo[1]), h, nx, ny, zmin)
+        kv.floor_unknown(V, boundary, float(lo[0]), float(lo[1]), h, nx, ny, zmin)
         zmin[~np.isfinite(zmin)] = -np.inf
         k = len(tree.lo)
         cx, cy, rho, ztop = (np.empty(k) for _ in range(4))
