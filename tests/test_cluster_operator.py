@@ -68,9 +68,7 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path, monkeypatc
             monkeypatch.setattr(radiosity, "ITERATIVE_BLOCK", 2)  # several blocks: two solves in flight
             E, Q = _scattering_through_the_workers(F, whole, rng)
             client = session.client
-            # the victim holds a row block (the scheduler may have put every block on one worker)
-            holders = sorted({a for addrs in client.who_has(F.rows).values() for a in addrs})
-            victim = dask_procs.process_of(client, holders[0], workers)
+            victim = dask_procs.process_of(client, _sole_holder(client, F.rows), workers)
             with distributed.get_task_stream(client) as stream:
                 os.killpg(victim.pid, signal.SIGKILL)
                 t0 = time.monotonic()
@@ -87,6 +85,21 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path, monkeypatc
             keys = [str(t["key"]) for t in stream.data]
             rebuilt = [k for k in keys if k.startswith(("ct-build-", "ct-rows-"))]
             assert rebuilt, f"no row block was made again: the test proves nothing (tasks run: {sorted(set(keys))})"
+
+
+def _sole_holder(client, futures, timeout_s=60.0):
+    """The address of a worker that alone holds one of ``futures``: killing it loses that block, so it must
+    be made again. The products copy blocks between the workers; dask's active memory manager (its
+    ReduceReplicas policy, on by default) drops the copies no task waits for, here asked to run now
+    instead of at its next 2-s pass."""
+    t0 = time.monotonic()
+    while True:
+        sole = sorted(addrs[0] for addrs in client.who_has(futures).values() if len(addrs) == 1)
+        if sole:
+            return sole[0]
+        assert time.monotonic() - t0 < timeout_s, "every row block is still held by both workers"
+        client.amm.run_once()
+        time.sleep(0.2)
 
 
 def _scattering_through_the_workers(F, whole, rng):
