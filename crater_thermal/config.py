@@ -714,13 +714,14 @@ SCHEMA: Tuple[Key, ...] = (
         "output",
         "chunk_mb",
         "float",
-        256.0,
+        None,
         "memory for the run's (time, facet) series: sunlight, temperatures "
         "and IR are computed, kept and written in blocks of time samples that fit it, whatever the run's length "
         "and size",
         unit="MB",
         lo=0.01,
         hi=1e6,
+        default_doc="256, or blocks of 48 samples above ~116k facets (≤ 4096: 2.2 GB at 1M facets)",
     ),
     K(
         "output",

@@ -123,7 +123,8 @@ def run_case(
 ):
     """``crater-thermal run``: the coupled crater simulation of a case, written to ``out_path``.
 
-    Memory stays bounded by ``[output] chunk_mb`` (default 256 MB) for the (time, facet) series, not by
+    Memory stays bounded by ``[output] chunk_mb`` (default :func:`simulate.default_chunk_mb`: 256 MB up to
+    ~116k facets) for the (time, facet) series, not by
     run length x facets: sunlight is computed, and temperatures and IR are kept, in blocks of time
     samples, in a crash-safe scratch store ``OUT.partial/`` (one file per block, written atomically);
     the netCDF file is written from it block by block at the end (temporary name, then rename).
@@ -178,7 +179,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
     timer = timer or simulate.Timer()
     mesh, tracer = simulate.case_scene(case, timer)
     spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
-    block = simulate.block_rows(mesh.n_facets, simulate.chunk_bytes(case))
+    block = simulate.block_rows(mesh.n_facets, simulate.chunk_bytes(case, mesh.n_facets))
     if ckpt is not None and int(ckpt.get("block", -1)) != block:
         raise ConfigError(
             f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "

@@ -53,8 +53,15 @@ from crater_thermal.constants import SIGMA
 # ----------------------------------------------------------------------------- memory budget
 
 
-#: Memory for (time, facet) blocks [MB] when a case does not set ``[output] chunk_mb``.
+#: Memory for (time, facet) blocks [MB] when a case does not set ``[output] chunk_mb`` (at least; see
+#: :func:`default_chunk_mb`).
 DEFAULT_CHUNK_MB = 256.0
+#: Time samples per block that the default budget keeps up to :data:`MAX_DEFAULT_CHUNK_MB`: the
+#: scattering solve and the lagged windows' IR products pass the whole operator once per block, so
+#: blocks of a few samples (256 MB gives 5 at 1M facets) multiply those passes.
+MIN_DEFAULT_BLOCK = 48
+#: The largest default budget [MB] (48 samples up to ~1.8M facets).
+MAX_DEFAULT_CHUNK_MB = 4096.0
 #: Float64 (block, n_facets) arrays alive at once in the worst stage of a run (sunlight: direct,
 #: scattered and the solver's work arrays; record: sunlight, T, IR and a block being merged).
 _RUN_BUFFERS = 6
@@ -69,10 +76,20 @@ def block_rows(n_cols: int, budget_bytes: float, n_buffers: int = _RUN_BUFFERS, 
     return rows // align * align if rows >= align else rows
 
 
-def chunk_bytes(case) -> float:
-    """The case's memory budget for (time, facet) blocks [bytes] (``[output] chunk_mb``)."""
+def default_chunk_mb(n_facets: int) -> float:
+    """The budget [MB] for (time, facet) blocks when a case sets none: :data:`DEFAULT_CHUNK_MB`, or what
+    blocks of :data:`MIN_DEFAULT_BLOCK` samples of ``n_facets`` columns need where that is more (above
+    ~116k facets), at most :data:`MAX_DEFAULT_CHUNK_MB`. It depends on the mesh only, not on the machine,
+    so a case gives the same blocks (and the same numbers) everywhere."""
+    need = MIN_DEFAULT_BLOCK * _RUN_BUFFERS * 8.0 * max(1, int(n_facets)) / 2**20
+    return float(min(MAX_DEFAULT_CHUNK_MB, max(DEFAULT_CHUNK_MB, need)))
+
+
+def chunk_bytes(case, n_facets: int) -> float:
+    """The case's memory budget for (time, facet) blocks [bytes] (``[output] chunk_mb``; when unset,
+    :func:`default_chunk_mb` of the mesh's ``n_facets``)."""
     mb = case.output.chunk_mb
-    return float(DEFAULT_CHUNK_MB if mb is None else mb) * 2**20
+    return float(default_chunk_mb(n_facets) if mb is None else mb) * 2**20
 
 
 # ----------------------------------------------------------------------------- progress

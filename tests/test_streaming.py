@@ -105,6 +105,41 @@ def test_segment_store_writes_in_place_only_over_a_block_of_the_same_shape(tmp_p
     np.testing.assert_array_equal(store.read("x", 0, 4), data[:4])
 
 
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 5_000_000))
+def test_default_budget_keeps_48_sample_blocks_until_its_cap(n_facets):
+    """The default (time, facet) budget: 256 MB while that holds 48 samples of six float64 rows of
+    ``n_facets`` (48 x 6 x 8 B = 2,304 B per facet: up to 116,508 facets), then what 48 samples need, up
+    to 4096 MB (1,864,135 facets), then 4096 MB (fewer samples). The blocks it gives, counted here from
+    the bytes: 48 or more samples up to the cap, and what fits 4 GB beyond."""
+    mb = simulate.default_chunk_mb(n_facets)
+    per_sample_mb = 6 * 8 * n_facets / 2**20
+    if n_facets <= 116_508:
+        assert mb == 256.0
+    elif n_facets <= 1_864_135:
+        assert mb == pytest.approx(48 * per_sample_mb, rel=1e-12)
+    else:
+        assert mb == 4096.0
+    rows = simulate.block_rows(n_facets, mb * 2**20)
+    fits = (4096 * 2**20) // (48 * n_facets)  # whole samples in 4 GB
+    assert rows >= 48 if n_facets <= 1_864_135 else rows == (fits // 24 * 24 if fits >= 24 else fits)
+    assert rows * per_sample_mb <= mb * (1 + 1e-12)  # within the budget
+
+
+def test_case_budget_default_and_override(tmp_path):
+    """A case without ``[output] chunk_mb`` gets the default of its mesh's size; one that sets it, that."""
+    unset = tmp_path / "unset.toml"
+    unset.write_text(
+        CASE.format(name="u", facets=60, end="2019-01-03", chunk_mb=1, every=0).replace("chunk_mb = 1\n", "")
+    )
+    case = config.load_case(unset)
+    assert case.output.chunk_mb is None
+    assert simulate.chunk_bytes(case, 60) == 256.0 * 2**20
+    assert simulate.chunk_bytes(case, 1_000_000) == 48 * 6 * 8 * 1_000_000
+    case = _case(tmp_path, "set", chunk_mb=64.0)
+    assert simulate.chunk_bytes(case, 1_000_000) == 64.0 * 2**20
+
+
 def test_tiny_budget_gives_the_same_run(tmp_path):
     """Blocks of a few samples (a tiny chunk_mb) change nothing: the same fluxes and temperatures to
     rounding (uniform start and fixed spin-up: no block-wise means; the scattering solve of a different
