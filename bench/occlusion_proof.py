@@ -19,7 +19,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,14 +34,9 @@ def mesh_of(terrain_name: str, n: int):
         from viewfactor_operator import terrain
 
         return terrain(n)
-    from scale import case_text
+    from scale import scale_mesh
 
-    from crater_thermal import config, simulate
-
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "case.toml"
-        path.write_text(case_text(n, end="2019-01-02T00:00"))
-        return simulate.case_mesh(config.load_case(path))
+    return scale_mesh(n)
 
 
 def measure(terrain_name: str, n: int, order: list[str]) -> dict:

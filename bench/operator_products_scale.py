@@ -16,16 +16,15 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from scale import case_text  # noqa: E402
+from scale import scale_mesh  # noqa: E402
 
-from crater_thermal import config, simulate, vfoperator  # noqa: E402
+from crater_thermal import vfoperator  # noqa: E402
 
 
 def main() -> None:
@@ -35,10 +34,7 @@ def main() -> None:
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "operator_products_scale.json"))
     args = ap.parse_args()
     cache = os.environ.get("CRATER_THERMAL_CACHE")
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "case.toml"
-        path.write_text(case_text(args.facets, end="2019-01-31T00:00"))
-        mesh = simulate.case_mesh(config.load_case(path))
+    mesh = scale_mesh(args.facets)
     t0 = time.perf_counter()
     F = vfoperator.view_factor_operator(mesh, cache_dir=None if cache is None else Path(cache) / "viewfactors")
     get_s = time.perf_counter() - t0

@@ -1,7 +1,7 @@
 """Benchmark: one recorded year of the same synthetic crater at ~10k, 30k and 100k facets (issue 13).
 
 Run:  PYTHONPATH=$PWD python bench/scale.py [--sizes 10000 30000 100000] [--sun-method horizon]
-                                              [--view-factors compressed] [--quick] [--chunk-mb 256]
+                                              [--view-factors compressed] [--quick] [--chunk-mb MB]
 
 Each size runs in its own process (``--one N``): the idealized 10 km crater of the mesh generator
 (thesis Table 7.1 profile) with a 5 km flat surround, N facets, at 86 S; everything from the mesh to
@@ -97,18 +97,28 @@ checkpoint_interval_steps = 0
 PERIODIC_SPINUP = 'spinup = "periodic"\nspinup_years = 1.0'
 
 
-def case_text(facets: int, end: str, spinup: str = PERIODIC_SPINUP, chunk_mb: float = 256.0) -> str:
+def format_case(chunk_mb: float | None, **fields) -> str:
+    """:data:`CASE` with ``fields``; ``chunk_mb`` [MB] None leaves ``[output] chunk_mb`` out (the run's
+    default budget, ``simulate.default_chunk_mb``)."""
+    text = CASE.format(chunk_mb=chunk_mb, **fields)
+    return text.replace("chunk_mb = None\n", "") if chunk_mb is None else text
+
+
+def scale_mesh(facets: int):
+    """The scale crater's mesh at ``facets`` facets (as a run of :func:`case_text` makes it)."""
+    from crater_thermal import config, simulate
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "case.toml"
+        path.write_text(case_text(facets, end="2019-01-02T00:00"))
+        return simulate.case_mesh(config.load_case(path))
+
+
+def case_text(facets: int, end: str, spinup: str = PERIODIC_SPINUP, chunk_mb: float | None = None) -> str:
     """The scale crater's case file (10 km crater, 5 km flat surround, 86 S, the defaults) at ``facets``
     facets, recorded from 2019-01-01 to ``end`` (ISO) after ``spinup`` (TOML lines of ``[period]``)."""
-    return CASE.format(
-        facets=facets,
-        diameter_km=10.0,
-        surround_km=5.0,
-        lat_deg=-86.0,
-        chunk_mb=chunk_mb,
-        extra="",
-        end=end,
-        spinup=spinup,
+    return format_case(
+        chunk_mb, facets=facets, diameter_km=10.0, surround_km=5.0, lat_deg=-86.0, extra="", end=end, spinup=spinup
     )
 
 
@@ -226,12 +236,12 @@ def run_one(args) -> dict:
         tmp = Path(tmp)
         case_path = tmp / "case.toml"
         case_path.write_text(
-            CASE.format(
+            format_case(
+                args.chunk_mb,
                 facets=args.one,
                 diameter_km=args.diameter_km,
                 surround_km=args.surround_km,
                 lat_deg=args.lat_deg,
-                chunk_mb=args.chunk_mb,
                 extra=extra,
                 end=end,
                 spinup=spinup,
@@ -241,12 +251,12 @@ def run_one(args) -> dict:
         # warm-up on a small crater (not timed): imports, numba compilation or cache loads, ephemeris tables
         warm = tmp / "warm.toml"
         warm.write_text(
-            CASE.format(
+            format_case(
+                args.chunk_mb,
                 facets=300,
                 diameter_km=args.diameter_km,
                 surround_km=args.surround_km,
                 lat_deg=args.lat_deg,
-                chunk_mb=args.chunk_mb,
                 extra=extra,
                 end="2019-01-02T00:00",
                 spinup='spinup = "fixed"\nspinup_days = 1.0',
@@ -411,7 +421,7 @@ def summarize(results: list, args, failed: list | None = None) -> dict:
             "windows_assumed": args.windows if args.quick else None,
             "sun_method": args.sun_method or "case default",
             "view_factors": args.view_factors or "case default",
-            "chunk_mb": args.chunk_mb,
+            "chunk_mb": args.chunk_mb if args.chunk_mb is not None else "case default",
         },
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
         "targets": {
@@ -433,7 +443,7 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--view-factors", default=None, help="[radiation] view_factors of the case (default: the case default)"
     )
-    ap.add_argument("--chunk-mb", type=float, default=256.0)
+    ap.add_argument("--chunk-mb", type=float, default=None, help="[output] chunk_mb [MB] (default: the run's own)")
     ap.add_argument("--quick", action="store_true", help="short run, the year extrapolated (module docstring)")
     ap.add_argument("--record-days", type=float, default=5.0, help="--quick: recorded days")
     ap.add_argument("--windows", type=int, default=5, help="--quick: periodic windows assumed for the start")
@@ -472,8 +482,6 @@ def main(argv=None) -> dict:
             str(args.surround_km),
             "--lat-deg",
             str(args.lat_deg),
-            "--chunk-mb",
-            str(args.chunk_mb),
             "--record-days",
             str(record_days),
             "--windows",
@@ -483,6 +491,7 @@ def main(argv=None) -> dict:
             ("--sun-method", args.sun_method),
             ("--view-factors", args.view_factors),
             ("--workdir", args.workdir),
+            ("--chunk-mb", None if args.chunk_mb is None else str(args.chunk_mb)),
         ):
             if value:
                 cmd += [flag, value]
