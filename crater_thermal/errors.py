@@ -7,8 +7,8 @@ Problems with the input (:class:`CraterThermalError`, a ``ValueError``; exit cod
     installation the user can fix. The message is one line naming the parameter, the value and
     what is allowed: :class:`ConfigError`, :class:`ProfileError`, :class:`MeshError`,
     :class:`EphemerisRangeError`, :class:`FluxFileError`, :class:`OutputExistsError`,
-    :class:`MissingExtraError`. Inputs are checked at the edge, before any ray is traced, so
-    these come early.
+    :class:`DiskSpaceError`, :class:`MissingExtraError`. Inputs are checked at the edge, before
+    any ray is traced, so these come early.
 Failures inside crater_thermal (:class:`InternalError`, a ``RuntimeError``; exit code 3)
     A consistency check or a numerical method failed on input that passed the checks: a bug (or
     a limit of a method) to report, not the user's fault. :class:`SolverError` (the conduction
@@ -57,6 +57,10 @@ class OutputExistsError(CraterThermalError):
 
 class OutputLockedError(CraterThermalError):
     """Another live process is writing the same output (its lock file is beside the output)."""
+
+
+class DiskSpaceError(CraterThermalError):
+    """The output's disk cannot hold what a run would write (refused before the work starts)."""
 
 
 class MissingExtraError(CraterThermalError):

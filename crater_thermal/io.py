@@ -754,6 +754,35 @@ class SegmentStore:
         # a copy in memory: no view of a file that a later write of the block replaces
         return np.array(parts[0], dtype=dtype) if len(parts) == 1 else np.concatenate(parts, dtype=dtype)
 
+    def _blocks(self, name: str) -> list[str]:
+        """The block files of series ``name``, in block order."""
+        prefix = f"{name}."
+        return sorted(
+            e.path
+            for e in os.scandir(self._dir)
+            if e.name.startswith(prefix) and e.name.endswith(".npy") and e.name[len(prefix) : -4].isdigit()
+        )
+
+    def drop(self, *names: str) -> None:
+        """Delete series ``names`` (absent ones ignored): their disk space is given back at once."""
+        for name in names:
+            for path in self._blocks(name):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(path)
+
+    def rename(self, name: str, new: str) -> None:
+        """Series ``name`` becomes series ``new`` (any blocks of ``new`` are deleted first): no copy, each
+        block file renamed. A process killed meanwhile can leave both names with part of the blocks: only
+        for series that an interrupted run makes again (as ``write(in_place=True)``)."""
+        self.drop(new)
+        for path in self._blocks(name):
+            b = os.path.basename(path)[len(name) + 1 : -4]
+            os.replace(path, os.path.join(self._dir, f"{new}.{b}.npy"))
+
+    def nbytes(self) -> int:
+        """Bytes of the store's files on disk [B] (its size as ``du`` would count the files' lengths)."""
+        return sum(e.stat().st_size for e in os.scandir(self._dir) if e.is_file())
+
     def mark(self, name: str) -> None:
         """Record that a stage finished (an empty marker file, written atomically)."""
         (self.folder / f"{name}.done").touch()

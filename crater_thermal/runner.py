@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import os
 import shutil
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -25,7 +27,7 @@ import numpy as np
 
 from crater_thermal import heap, io, profiles, radiosity, simulate, thermal, waveform
 from crater_thermal.constants import AU
-from crater_thermal.errors import ConfigError, FluxFileError, OutputExistsError
+from crater_thermal.errors import ConfigError, DiskSpaceError, FluxFileError, OutputExistsError
 
 
 def checkpoint_path(out_path) -> str:
@@ -111,6 +113,65 @@ def _scratch_path(out_path) -> str:
     return str(out_path) + ".partial"
 
 
+def scratch_estimate(case, n_facets: int, n_spin: int, n_record: int, coupling: str, remote: bool = False) -> dict:
+    """What a run of ``case`` writes to disk, at most [B]: ``{"store": the scratch store's peak (sunlight of
+    every sample, the spin-up windows' series, then the record's rows), "run_nc": run.nc's series
+    uncompressed (what compression then shrinks), "total": both, as they are while run.nc is written}``.
+
+    ``n_spin`` / ``n_record``: samples of the spin-up window and of the record; ``coupling``: the run's IR
+    coupling ("relaxed" keeps its passes' series in float64); ``remote``: the relaxed passes run on a
+    cluster's workers (their series stay there). The lagged spin-up is counted wherever it may be chosen
+    (an operator assumed): three series of the window. Every series of ``n`` samples takes ``n x
+    n_facets`` values of its type (:data:`crater_thermal.io.RUN_SERIES_DTYPE`, or float64)."""
+    f4 = np.dtype(io.RUN_SERIES_DTYPE).itemsize
+    nf, ns, nr = int(n_facets), int(n_spin), int(n_record)
+    incidence = case.surface.albedo_model != "constant"
+    save_spin = bool(case.output.save_spinup_fluxes) and ns > 0
+    sun = (2 + incidence) * (ns + nr) * nf * f4  # direct, solar (, absorbed) of every sample
+    if ns == 0:
+        spin, spin_ir = 0, 0
+    elif coupling == "relaxed":
+        spin_ir = save_spin * ns * nf * (f4 if remote else 8)
+        spin = (0 if remote else 4 * ns * nf * 8) + spin_ir  # wr_T0, wr_T1, wr_irc, wr_irn
+    else:
+        spin_ir = save_spin * ns * nf * f4
+        lagged = (
+            case.period.spinup == "periodic" and simulate.spinup_ir_method(case.period.spinup_ir, True, nf) == "lagged"
+        )
+        spin = 3 * ns * nf * f4 if lagged else spin_ir  # lag_ir0, lag_ir1, lag_T (one becomes spin_ir)
+    record = spin_ir + 2 * nr * nf * f4  # T and IR rows
+    store = sun + max(spin, record)
+    run_nc = ((2 + incidence + 2) * nr + save_spin * (2 + incidence) * ns) * nf * f4
+    return {"store": int(store), "run_nc": int(run_nc), "total": int(sun + record + run_nc)}
+
+
+def _check_disk(case, out_path: Path, n_facets: int, n_spin: int, n_record: int, coupling: str, remote: bool):
+    """Refuse a run whose scratch store cannot fit on the output's disk (``DiskSpaceError``, before any
+    ray is traced); warn when the store and run.nc together may not (run.nc is compressed, so it usually
+    takes less than counted). A resumed run's store already holds part of it."""
+    need = scratch_estimate(case, n_facets, n_spin, n_record, coupling, remote)
+    folder = out_path.parent if out_path.parent.exists() else Path(".")
+    free = shutil.disk_usage(folder).free
+    scratch = Path(_scratch_path(out_path))
+    if scratch.is_dir():
+        free += sum(e.stat().st_size for e in os.scandir(scratch) if e.is_file())
+    gb = 1e9
+    if need["store"] > free:
+        raise DiskSpaceError(
+            f"this run needs ~{need['store'] / gb:.1f} GB of scratch space beside {out_path} "
+            f"({scratch}, {n_facets} facets x {n_spin + n_record} samples) and run.nc up to "
+            f"{need['run_nc'] / gb:.1f} GB more, but {folder.resolve()} has {free / gb:.1f} GB free: free some "
+            "space, write the output to a larger disk (-o), or record a shorter period"
+        )
+    if need["total"] > free:
+        warnings.warn(
+            f"{out_path}: the scratch store (~{need['store'] / gb:.1f} GB) and run.nc (up to "
+            f"{need['run_nc'] / gb:.1f} GB before compression) may not fit in the {free / gb:.1f} GB free; "
+            "if the disk fills, the run stops with its checkpoint kept: free space and run it again with --resume",
+            stacklevel=2,
+        )
+
+
 def run_case(
     case,
     out_path,
@@ -180,6 +241,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
     mesh, tracer = simulate.case_scene(case, timer)
     spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
     block = simulate.block_rows(mesh.n_facets, simulate.chunk_bytes(case, mesh.n_facets))
+    _check_disk(case, out_path, mesh.n_facets, len(spin_times), len(times), coupling, columns is not None)
     if ckpt is not None and int(ckpt.get("block", -1)) != block:
         raise ConfigError(
             f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "

@@ -40,6 +40,7 @@ from crater_thermal import (
     cache,
     ephemeris,
     geometry,
+    io,
     radiosity,
     raytrace,
     sunlight,
@@ -798,7 +799,7 @@ class _SpinUpWindow:
 
     def _keep(self, series: str):
         def on_ir(k0, rows):
-            self.fc.store.write(series, k0, rows)
+            self.fc.store.write(series, k0, rows.astype(io.RUN_SERIES_DTYPE))  # run.nc's type
             if k0 + len(rows) == self.n:
                 self.ir_end = rows[-1].copy()
 
@@ -908,19 +909,19 @@ class _SpinUpWindow:
                 e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
                 if first:
                     ir, T, rows, ir_held = self._held_ir_block(b0, b1, ir_held)
-                    fc.store.write(self.lag_in, b0, ir, in_place=True)
                     # the windows' own series, written over the last window's (a resumed run starts the
-                    # spin-up again): in place
-                    fc.store.write(self.lag_out, b0, rows, in_place=True)
+                    # spin-up again): in place, in run.nc's type (the last input is the saved spin-up IR)
+                    fc.store.write(self.lag_in, b0, ir.astype(io.RUN_SERIES_DTYPE), in_place=True)
+                    fc.store.write(self.lag_out, b0, rows.astype(io.RUN_SERIES_DTYPE), in_place=True)
                     np.maximum(moved, np.max(np.abs(rows - ir), axis=0), out=moved)
                     if b1 == ns:
                         self.ir_end = rows[-1].copy()
                     del ir, rows
                 else:
-                    ir = fc.store.read(self.lag_in, b0, e)
+                    ir = fc.store.read(self.lag_in, b0, e, dtype=np.float64)
                     sol = fc.rows(fc.drive, b0, e)
                     if some:  # the skipped columns' temperatures are those of their last run
-                        T = fc.store.read("lag_T", b0, e)
+                        T = fc.store.read("lag_T", b0, e, dtype=np.float64)
                         T[:, run] = self.solver.run_columns(
                             run, t[b0:e], self.stepper.absorbed(sol[:, run], ir[:, run])
                         )
@@ -930,7 +931,7 @@ class _SpinUpWindow:
                     if b1 == ns:  # the IR of the window's last state: the record's first sample
                         self.ir_end = self.stepper.ir_rows(T[-1:])[0]
                     T = T[: b1 - b0]
-                fc.store.write("lag_T", b0, T, in_place=True)
+                fc.store.write("lag_T", b0, T.astype(io.RUN_SERIES_DTYPE), in_place=True)
                 np.minimum(t_min, np.min(T[:, run], axis=0), out=t_min)
                 del T
                 if on_step is not None:
@@ -949,8 +950,8 @@ class _SpinUpWindow:
         for b0 in range(0, ns, block):
             b1 = min(ns, b0 + block)
             e = min(ns, b1 + 1)
-            T = fc.store.read("lag_T", b0, e)
-            rows = self._lagged_ir_rows(b0, e, T)[: b1 - b0]
+            T = fc.store.read("lag_T", b0, e, dtype=np.float64)
+            rows = self._lagged_ir_rows(b0, e, T)[: b1 - b0].astype(io.RUN_SERIES_DTYPE)
             del T
             np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
             fc.store.write(self.lag_out, b0, rows, in_place=True)
@@ -975,9 +976,10 @@ class _SpinUpWindow:
 
     def save_lagged_spin_ir(self) -> None:
         """Save as ``spin_ir`` the IR series the last lagged pass ran with (replays re-run the spin-up from
-        it): a lagged pass's input, named ``lag_out`` after its swap."""
-        if not self.save_spin:
-            return
+        it): a lagged pass's input, named ``lag_out`` after its swap; renamed, not copied, in run.nc's
+        type as the passes were driven. The windows' other series are deleted (the record does not need
+        them; a resumed run that starts the spin-up again makes them again)."""
         used = self.lag_in if self.products_due else self.lag_out  # (not swapped when no products followed)
-        for b0 in range(0, self.n, self.block):
-            self.fc.store.write("spin_ir", b0, self.fc.store.read(used, b0, min(self.n, b0 + self.block)))
+        if self.save_spin and used is not None:
+            self.fc.store.rename(used, "spin_ir")
+        self.fc.store.drop("lag_ir0", "lag_ir1", "lag_T")

@@ -592,4 +592,7 @@ class SpinUp:
                     b1 = min(self.n, b0 + self.block)
                     self.store.write_rows("spin_ir", b0, self.columns.pass_ir(b0, b1))
             self.columns.end_spinup()
+        # the passes' own series: the record does not need them (a resumed run that starts the spin-up
+        # again makes them again)
+        self.store.drop("wr_T0", "wr_T1", "wr_irc", "wr_irn")
         return info
