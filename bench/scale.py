@@ -9,7 +9,9 @@ run.nc through ``runner.run_case`` (mesh and ray-tracing scene, view factors / r
 horizon map, Sun directions, direct sunlight, scattering, spin-up, record, I/O). Per stage: wall time
 and the peak resident set reached inside it (the kernel's high-water mark, reset at each stage start
 through ``/proc/self/clear_refs``); per size: the process's peak resident set (``VmHWM``;
-``ru_maxrss`` of the children as a cross-check).
+``ru_maxrss`` of the children as a cross-check), and the run's peak on disk (``disk_peak_mb``: the
+scratch store and run.nc, the cache left out, sampled every second) beside ``runner.scratch_estimate``'s
+count (``disk_estimate_mb``).
 
 Full mode (default): one recorded year (2019) at 4 h steps from the converged start, the periodic
 state over the preceding year; the numbers are measured, nothing is scaled.
@@ -120,6 +122,53 @@ def case_text(facets: int, end: str, spinup: str = PERIODIC_SPINUP, chunk_mb: fl
     return format_case(
         chunk_mb, facets=facets, diameter_km=10.0, surround_km=5.0, lat_deg=-86.0, extra="", end=end, spinup=spinup
     )
+
+
+class DiskSampler:
+    """The largest total size [B] of the files under ``folder`` (the run's scratch store and run.nc;
+    ``skip``: top-level names not counted, e.g. the cache), sampled every ``every_s`` seconds on a thread
+    while in the ``with`` block."""
+
+    def __init__(self, folder: Path, skip=(), every_s: float = 1.0):
+        import threading
+
+        self.folder, self.skip, self.every_s = Path(folder), set(skip), every_s
+        self.peak_B, self._stop = 0, threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _size(self) -> int:
+        total = 0
+        for root, dirs, files in os.walk(self.folder):
+            if root == str(self.folder):
+                dirs[:] = [d for d in dirs if d not in self.skip]
+            for f in files:
+                try:
+                    total += os.stat(os.path.join(root, f)).st_size
+                except FileNotFoundError:  # renamed or deleted meanwhile
+                    pass
+        return total
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peak_B = max(self.peak_B, self._size())
+            self._stop.wait(self.every_s)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak_B = max(self.peak_B, self._size())
+
+
+def _disk_estimate_mb(case, nf: int, ns: int, nt: int) -> dict | None:
+    """``runner.scratch_estimate`` of the run [MB] (None for code that has none)."""
+    from crater_thermal import runner
+
+    est = getattr(runner, "scratch_estimate", None)
+    return None if est is None else {k: v / 2**20 for k, v in est(case, nf, ns, nt, case.steps.ir_coupling).items()}
 
 
 def _status_kb(key: str) -> float:
@@ -270,7 +319,8 @@ def run_one(args) -> dict:
         load0 = os.getloadavg()
         reporter = progress.reporter(True) if args.progress else None
         t0 = time.perf_counter()
-        out = runner.run_case(case, tmp / "run.nc", progress=reporter, timer=timer)
+        with DiskSampler(tmp, skip=("cache",)) as disk:
+            out = runner.run_case(case, tmp / "run.nc", progress=reporter, timer=timer)
         total = time.perf_counter() - t0
         # VmHWM is reset at each stage's start: the run's peak is the largest seen before any reset
         peak = max(timer.run_peak_mb, _status_kb("VmHWM") / 1024.0)
@@ -294,6 +344,8 @@ def run_one(args) -> dict:
         "spinup_passes": passes,
         "residual_history_K": [float(h) for h in shooting.get("history_K", [])],
         "run_nc_mb": size_mb,
+        "disk_peak_mb": disk.peak_B / 2**20,
+        "disk_estimate_mb": _disk_estimate_mb(case, nf, ns, nt),
         "rss_before_run_mb": rss0,
         "loadavg": [list(load0), list(os.getloadavg())],
     }
@@ -408,6 +460,8 @@ def summarize(results: list, args, failed: list | None = None) -> dict:
         "residual_history_K": [r.get("residual_history_K") for r in results],
         "samples": [r["samples"] for r in results],
         "run_nc_mb": [r["run_nc_mb"] for r in results],
+        "disk_peak_mb": [r.get("disk_peak_mb") for r in results],
+        "disk_estimate_mb": [r.get("disk_estimate_mb") for r in results],
         "rss_before_run_mb": [r["rss_before_run_mb"] for r in results],
         "ru_maxrss_children_mb": [r["ru_maxrss_children_mb"] for r in results],
         "loadavg": [r["loadavg"] for r in results],
