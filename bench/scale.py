@@ -168,7 +168,12 @@ def _disk_estimate_mb(case, nf: int, ns: int, nt: int) -> dict | None:
     from crater_thermal import runner
 
     est = getattr(runner, "scratch_estimate", None)
-    return None if est is None else {k: v / 2**20 for k, v in est(case, nf, ns, nt, case.steps.ir_coupling).items()}
+    if est is None:
+        return None
+    from crater_thermal import simulate
+
+    block = simulate.block_rows(nf, simulate.chunk_bytes(case, nf))
+    return {k: v / 2**20 for k, v in est(case, nf, ns, nt, case.steps.ir_coupling, block=block).items()}
 
 
 def _status_kb(key: str) -> float:
@@ -295,6 +300,7 @@ def run_one(args) -> dict:
                 end=end,
                 spinup=spinup,
             )
+            + ("save_spinup_fluxes = false\n" if args.no_spinup_fluxes else "")
         )
         os.environ.setdefault("CRATER_THERMAL_CACHE", str(tmp / "cache"))  # a cold cache: every stage is paid
         # warm-up on a small crater (not timed): imports, numba compilation or cache loads, ephemeris tables
@@ -476,6 +482,7 @@ def summarize(results: list, args, failed: list | None = None) -> dict:
             "sun_method": args.sun_method or "case default",
             "view_factors": args.view_factors or "case default",
             "chunk_mb": args.chunk_mb if args.chunk_mb is not None else "case default",
+            "save_spinup_fluxes": not args.no_spinup_fluxes,
         },
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
         "targets": {
@@ -496,6 +503,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--sun-method", default=None, help="[sun] method of the case (default: the case default)")
     ap.add_argument(
         "--view-factors", default=None, help="[radiation] view_factors of the case (default: the case default)"
+    )
+    ap.add_argument(
+        "--no-spinup-fluxes",
+        action="store_true",
+        help="[output] save_spinup_fluxes = false (run.nc without the spin-up year's fluxes; less disk)",
     )
     ap.add_argument("--chunk-mb", type=float, default=None, help="[output] chunk_mb [MB] (default: the run's own)")
     ap.add_argument("--quick", action="store_true", help="short run, the year extrapolated (module docstring)")
@@ -551,6 +563,7 @@ def main(argv=None) -> dict:
                 cmd += [flag, value]
         cmd += ["--quick"] if quick else []
         cmd += ["--progress"] if args.progress else []
+        cmd += ["--no-spinup-fluxes"] if args.no_spinup_fluxes else []
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
         wall = time.perf_counter() - t0

@@ -770,6 +770,13 @@ class SegmentStore:
                 with contextlib.suppress(FileNotFoundError):
                     os.unlink(path)
 
+    def drop_before(self, k: int, *names: str) -> None:
+        """Delete the blocks of series ``names`` that hold only rows before row ``k``."""
+        for name in names:
+            for b in range(int(k) // self.block):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(self._file(name, b))
+
     def rename(self, name: str, new: str) -> None:
         """Series ``name`` becomes series ``new`` (any blocks of ``new`` are deleted first): no copy, each
         block file renamed. A process killed meanwhile can leave both names with part of the blocks: only

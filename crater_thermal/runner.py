@@ -113,7 +113,9 @@ def _scratch_path(out_path) -> str:
     return str(out_path) + ".partial"
 
 
-def scratch_estimate(case, n_facets: int, n_spin: int, n_record: int, coupling: str, remote: bool = False) -> dict:
+def scratch_estimate(
+    case, n_facets: int, n_spin: int, n_record: int, coupling: str, remote: bool = False, block: int = 1
+) -> dict:
     """What a run of ``case`` writes to disk, at most [B]: ``{"store": the scratch store's peak (sunlight of
     every sample, the spin-up windows' series, then the record's rows), "run_nc": run.nc's series
     uncompressed (what compression then shrinks), "total": both, as they are while run.nc is written}``.
@@ -122,7 +124,9 @@ def scratch_estimate(case, n_facets: int, n_spin: int, n_record: int, coupling: 
     coupling ("relaxed" keeps its passes' series in float64); ``remote``: the relaxed passes run on a
     cluster's workers (their series stay there). The lagged spin-up is counted wherever it may be chosen
     (an operator assumed): three series of the window. Every series of ``n`` samples takes ``n x
-    n_facets`` values of its type (:data:`crater_thermal.io.RUN_SERIES_DTYPE`, or float64)."""
+    n_facets`` values of its type (:data:`crater_thermal.io.RUN_SERIES_DTYPE`, or float64). Without saved
+    spin-up fluxes the spin-up's sunlight is deleted in whole blocks of ``block`` samples when the start
+    ends, before run.nc is written."""
     f4 = np.dtype(io.RUN_SERIES_DTYPE).itemsize
     nf, ns, nr = int(n_facets), int(n_spin), int(n_record)
     incidence = case.surface.albedo_model != "constant"
@@ -142,14 +146,18 @@ def scratch_estimate(case, n_facets: int, n_spin: int, n_record: int, coupling: 
     record = spin_ir + 2 * nr * nf * f4  # T and IR rows
     store = sun + max(spin, record)
     run_nc = ((2 + incidence + 2) * nr + save_spin * (2 + incidence) * ns) * nf * f4
-    return {"store": int(store), "run_nc": int(run_nc), "total": int(sun + record + run_nc)}
+    # without saved spin-up fluxes the spin-up's sunlight goes when the start ends (whole blocks of it)
+    sun_kept = sun if save_spin or ns == 0 else (2 + incidence) * nf * f4 * (ns + nr - ns // block * block)
+    return {"store": int(store), "run_nc": int(run_nc), "total": int(sun_kept + record + run_nc)}
 
 
-def _check_disk(case, out_path: Path, n_facets: int, n_spin: int, n_record: int, coupling: str, remote: bool):
+def _check_disk(
+    case, out_path: Path, n_facets: int, n_spin: int, n_record: int, coupling: str, remote: bool, block: int
+):
     """Refuse a run whose scratch store cannot fit on the output's disk (``DiskSpaceError``, before any
     ray is traced); warn when the store and run.nc together may not (run.nc is compressed, so it usually
     takes less than counted). A resumed run's store already holds part of it."""
-    need = scratch_estimate(case, n_facets, n_spin, n_record, coupling, remote)
+    need = scratch_estimate(case, n_facets, n_spin, n_record, coupling, remote, block)
     folder = out_path.parent if out_path.parent.exists() else Path(".")
     free = shutil.disk_usage(folder).free
     scratch = Path(_scratch_path(out_path))
@@ -241,7 +249,7 @@ def _run_case(case, out_path, *, resume: bool, overwrite: bool, progress, timer,
     mesh, tracer = simulate.case_scene(case, timer)
     spin_times, times, sun_dirs, sun_dist = simulate.case_sun(case, timer)
     block = simulate.block_rows(mesh.n_facets, simulate.chunk_bytes(case, mesh.n_facets))
-    _check_disk(case, out_path, mesh.n_facets, len(spin_times), len(times), coupling, columns is not None)
+    _check_disk(case, out_path, mesh.n_facets, len(spin_times), len(times), coupling, columns is not None, block)
     if ckpt is not None and int(ckpt.get("block", -1)) != block:
         raise ConfigError(
             f"checkpoint {ckpt_path} was written with blocks of {int(ckpt.get('block', -1))} "
@@ -444,6 +452,8 @@ def _start_of_record(case, fc, solver, stepper, store, block, ckpt, checkpoints,
         store.write("T", 0, solver.surface_temperature[None, :].astype(io.RUN_SERIES_DTYPE))
         store.write("ir", 0, ir_k[None, :].astype(io.RUN_SERIES_DTYPE))
     checkpoints.save(0, spin_info, ir_k)
+    if not save_spin:  # the spin-up's sunlight is read no more (a resumed run starts from the checkpoint)
+        store.drop_before(fc.record_offset, "direct", "solar", "absorbed")
     return spin_info, 0, ir_k
 
 

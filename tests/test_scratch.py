@@ -38,7 +38,11 @@ save_spinup_fluxes = {save}
 
 #: spin-up and IR-coupling variants: every way the store is filled
 VARIANTS = {
-    "periodic_lagged": ('spinup = "periodic"\nspinup_days = 29.53\nperiodic_tol_K = 0.05\nspinup_ir = "lagged"', "", ""),
+    "periodic_lagged": (
+        'spinup = "periodic"\nspinup_days = 29.53\nperiodic_tol_K = 0.05\nspinup_ir = "lagged"',
+        "",
+        "",
+    ),
     "periodic_coupled": (
         'spinup = "periodic"\nspinup_days = 29.53\nperiodic_tol_K = 0.05\nspinup_ir = "coupled"',
         "",
@@ -126,20 +130,29 @@ def test_scratch_estimate_bounds_the_store_measured_in_a_run(tmp_path, monkeypat
 def test_lagged_spinup_leaves_only_the_saved_ir_in_the_store(tmp_path, monkeypatch):
     """The lagged start's own series go when it ends: the last input is renamed the saved spin-up IR (no
     copy), the others deleted, so the record's store is the sunlight, that IR and its rows; without
-    saved spin-up fluxes nothing of the spin-up stays."""
+    saved spin-up fluxes nothing of the spin-up stays, its sunlight included (whole blocks before the
+    record's first row)."""
     seen = []
     start = runner._start_of_record
 
     def after_start(case, fc, *a, **k):
         out = start(case, fc, *a, **k)
-        seen.append(sorted({e.name.split(".")[0] for e in os.scandir(fc.store.folder) if e.name.endswith(".npy")}))
+        names = [e.name.split(".")[0] for e in os.scandir(fc.store.folder) if e.name.endswith(".npy")]
+        block, n_all = fc.store.block, len(fc.sun_dirs)
+        # the sunlight's blocks that must stay: every one holding a row of the record
+        kept = -(-n_all // block) - (fc.record_offset // block if not case.output.save_spinup_fluxes else 0)
+        seen.append((sorted(set(names)), names.count("direct"), names.count("solar"), kept))
         return out
 
     monkeypatch.setattr(runner, "_start_of_record", after_start)
     for save in (True, False):
         runner.run_case(_case(tmp_path, "periodic_lagged", save), tmp_path / f"lag_{save}.nc", progress=False)
-    assert seen[0] == ["T", "direct", "ir", "solar", "spin_ir"], seen
-    assert seen[1] == ["T", "direct", "ir", "solar"], seen
+    assert seen[0][0] == ["T", "direct", "ir", "solar", "spin_ir"], seen
+    assert seen[1][0] == ["T", "direct", "ir", "solar"], seen
+    # without saved spin-up fluxes the spin-up's sunlight goes too (the blocks before the record's)
+    for _, direct, solar, kept in seen:
+        assert direct == solar == kept, seen
+    assert seen[1][3] < seen[0][3], seen
 
 
 Usage = namedtuple("Usage", "total used free")
