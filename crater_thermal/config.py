@@ -708,7 +708,8 @@ SCHEMA: Tuple[Key, ...] = (
         "save_spinup_fluxes",
         "bool",
         True,
-        "also store the spin-up window's fluxes, so that replays start exactly as the run did",
+        "also store the spin-up window's fluxes, so that replays start exactly as the run did (false: "
+        "run.nc and the scratch store hold less: the spin-up's sunlight leaves the store when the start ends)",
     ),
     K(
         "output",
