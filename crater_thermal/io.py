@@ -786,10 +786,6 @@ class SegmentStore:
             b = os.path.basename(path)[len(name) + 1 : -4]
             os.replace(path, os.path.join(self._dir, f"{new}.{b}.npy"))
 
-    def nbytes(self) -> int:
-        """Bytes of the store's files on disk [B] (its size as ``du`` would count the files' lengths)."""
-        return sum(e.stat().st_size for e in os.scandir(self._dir) if e.is_file())
-
     def mark(self, name: str) -> None:
         """Record that a stage finished (an empty marker file, written atomically)."""
         (self.folder / f"{name}.done").touch()

@@ -158,7 +158,7 @@ def _check_disk(
     ray is traced); warn when the store and run.nc together may not (run.nc is compressed, so it usually
     takes less than counted). A resumed run's store already holds part of it."""
     need = scratch_estimate(case, n_facets, n_spin, n_record, coupling, remote, block)
-    folder = out_path.parent if out_path.parent.exists() else Path(".")
+    folder = out_path.parent  # made by the output's lock
     free = shutil.disk_usage(folder).free
     scratch = Path(_scratch_path(out_path))
     if scratch.is_dir():

@@ -980,6 +980,6 @@ class _SpinUpWindow:
         type as the passes were driven. The windows' other series are deleted (the record does not need
         them; a resumed run that starts the spin-up again makes them again)."""
         used = self.lag_in if self.products_due else self.lag_out  # (not swapped when no products followed)
-        if self.save_spin and used is not None:
+        if self.save_spin:
             self.fc.store.rename(used, "spin_ir")
         self.fc.store.drop("lag_ir0", "lag_ir1", "lag_T")
