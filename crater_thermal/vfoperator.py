@@ -1685,6 +1685,12 @@ class RowBlock:
             total += 0 if x is None else x.nbytes
         return int(total)
 
+    def _max_rank(self) -> int:
+        """The largest rank of the far blocks held (computed once)."""
+        if getattr(self, "_rmax", None) is None:
+            self._rmax = int(self.lowrank[4].max())
+        return self._rmax
+
     def apply(self, X: np.ndarray) -> np.ndarray:
         """``(F @ X)[facets]``: X (n, k) over all facets in facet order -> (len(facets), k) float64.
 
@@ -1704,11 +1710,20 @@ class RowBlock:
         if self.scale is not None:
             Xc *= self.scale.astype(dtype)[:, None]
         Y = np.zeros((self.b - self.a, Xc.shape[1]), Xc.dtype)
-        kv.csr_matmat(self.near.indptr, self.near.indices, self.near.data, Xc, Y)
+        one = Xc.shape[1] == 1  # one right-hand side: the one-vector kernels (the held pass's products)
+        if one:
+            kv.csr_matvec1(self.near.indptr, self.near.indices, self.near.data, Xc.reshape(-1), Y.reshape(-1))
+        else:
+            kv.csr_matmat(self.near.indptr, self.near.indices, self.near.data, Xc, Y)
         if len(self.lowrank[4]):  # only the halves of the far blocks that land in these rows
             far = np.zeros_like(Y)
-            tmp = np.empty((2 * int(self.lowrank[4].max()), Xc.shape[1]), Xc.dtype)
-            kv.lowrank_matvec_rows(*self.lowrank, Xc, far, tmp, self.a, self.b)
+            rmax = 2 * self._max_rank()
+            if one:
+                tmp = np.empty(rmax, Xc.dtype)
+                kv.lowrank_matvec_rows1(*self.lowrank, Xc.reshape(-1), far.reshape(-1), tmp, self.a, self.b)
+            else:
+                tmp = np.empty((rmax, Xc.shape[1]), Xc.dtype)
+                kv.lowrank_matvec_rows(*self.lowrank, Xc, far, tmp, self.a, self.b)
             Y += far
         Y = Y.astype(np.float64, copy=False)
         if self.scale is not None:

@@ -4,6 +4,7 @@ import copy
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -516,6 +517,41 @@ def test_row_restricted_far_blocks_equal_the_whole_product_rows(terrain5k):
             rows = np.zeros((b - a, k), dtype)
             kv.lowrank_matvec_rows(*lr, X, rows, tmp, a, b)
             np.testing.assert_array_equal(rows, whole[a:b])
+
+
+def test_one_vector_row_products_equal_numpy(terrain5k):
+    """The one-vector kernels of a row block (``lowrank_matvec_rows1``, ``csr_matvec1``: a distributed
+    run's held-pass products) against numpy: each far block rebuilt densely as ``U diag(w) V^T`` from its
+    int16 factors and applied both ways, the near rows as a scipy CSR product. Row ranges that cut through
+    blocks, one row, all rows; float64 sums in another order, so to round-off (1e-13 of the largest)."""
+    from crater_thermal.kernels import vfoperator as kv
+
+    _, _, _, comp = terrain5k
+    lr = (comp.r0, comp.r1, comp.c0, comp.c1, comp.rank, comp.uoff, comp.voff, comp.woff, comp.U, comp.V, comp.W)
+    n = comp.shape[0]
+    x = np.random.default_rng(6).random(n) * 300.0
+    ref = np.zeros(n)
+    for b in range(len(comp.rank)):
+        r0, r1, c0, c1, r = (int(v[b]) for v in (comp.r0, comp.r1, comp.c0, comp.c1, comp.rank))
+        U = comp.U[comp.uoff[b] : comp.uoff[b] + (r1 - r0) * r].reshape(r1 - r0, r).astype(np.float64)
+        V = comp.V[comp.voff[b] : comp.voff[b] + (c1 - c0) * r].reshape(c1 - c0, r).astype(np.float64)
+        w = comp.W[comp.woff[b] : comp.woff[b] + r].astype(np.float64)
+        ref[r0:r1] += U @ (w * (V.T @ x[c0:c1]))
+        ref[c0:c1] += V @ (w * (U.T @ x[r0:r1]))
+    tmp = np.empty(2 * int(comp.rank.max()))
+    rng = np.random.default_rng(7)
+    cuts = sorted({int(v) for v in rng.integers(1, n, 3)})
+    for a, b in [(0, n), (0, 1), (n - 1, n), *zip([0, *cuts], [*cuts, n])]:
+        rows = np.zeros(b - a)
+        kv.lowrank_matvec_rows1(*lr, x, rows, tmp, a, b)
+        np.testing.assert_allclose(rows, ref[a:b], rtol=0, atol=1e-13 * np.abs(ref).max())
+    S = sp.csr_matrix((comp.data.astype(np.float64), comp.indices, comp.indptr), shape=(n, n))
+    A = (S + S.T).tocsr()
+    A.sort_indices()
+    y = np.zeros(n)
+    kv.csr_matvec1(A.indptr, A.indices, A.data.astype(np.float32), x, y)
+    want = A @ x
+    np.testing.assert_allclose(y, want, rtol=0, atol=1e-13 * np.abs(want).max())
 
 
 def test_threaded_build_traces_in_its_own_threads(monkeypatch):
