@@ -342,42 +342,46 @@ def sym_sparse_matvec1(indptr, indices, data, x, y, i0, i1):
 
 
 @njit(nogil=True, cache=True, fastmath=ONE_RHS_FASTMATH)
+def _block_both_ways1(r0, r1, c0, c1, r, uo, vo, wo, U, V, W, x, y, tmp, a):
+    """One far block (rows r0..r1-1, columns c0..c1-1, rank r, factors at ``uo``, ``vo``, weights at
+    ``wo``) applied both ways to one vector: ``y[i - a] += (U D V^T x[c])_i`` over its rows and
+    ``y[j - a] += (V D U^T x[r])_j`` over its columns, with one pass over U (``y`` starts at row ``a``)."""
+    for q in range(2 * r):
+        tmp[q] = 0.0
+    for jj in range(c1 - c0):
+        xj = x[c0 + jj]
+        base = vo + jj * r
+        for q in range(r):
+            tmp[q] += V[base + q] * xj
+    for q in range(r):
+        tmp[q] *= W[wo + q]
+    # one pass over U: tmp[r:] = U^T x[r-range] and y[r-range] += U tmp[:r]
+    for ii in range(r1 - r0):
+        i = r0 + ii
+        xi = x[i]
+        base = uo + ii * r
+        acc = 0.0
+        for q in range(r):
+            u = U[base + q]
+            acc += u * tmp[q]
+            tmp[r + q] += u * xi
+        y[i - a] += acc
+    for q in range(r):
+        tmp[r + q] *= W[wo + q]
+    for jj in range(c1 - c0):
+        base = vo + jj * r
+        acc = 0.0
+        for q in range(r):
+            acc += V[base + q] * tmp[r + q]
+        y[c0 + jj - a] += acc
+
+
+@njit(nogil=True, cache=True, fastmath=ONE_RHS_FASTMATH)
 def lowrank_matvec1(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, tmp):
     """One right-hand side of :func:`lowrank_matvec` (x, y: (n,) float64 or float32; tmp: (2 * max rank,) of
     their type)."""
     for b in range(r0.shape[0]):
-        r = rank[b]
-        uo = uoff[b]
-        vo = voff[b]
-        wo = woff[b]
-        for q in range(2 * r):
-            tmp[q] = 0.0
-        for jj in range(c1[b] - c0[b]):
-            xj = x[c0[b] + jj]
-            base = vo + jj * r
-            for q in range(r):
-                tmp[q] += V[base + q] * xj
-        for q in range(r):
-            tmp[q] *= W[wo + q]
-        # one pass over U: tmp[r:] = U^T x[r-range] and y[r-range] += U tmp[:r]
-        for ii in range(r1[b] - r0[b]):
-            i = r0[b] + ii
-            xi = x[i]
-            base = uo + ii * r
-            acc = 0.0
-            for q in range(r):
-                u = U[base + q]
-                acc += u * tmp[q]
-                tmp[r + q] += u * xi
-            y[i] += acc
-        for q in range(r):
-            tmp[r + q] *= W[wo + q]
-        for jj in range(c1[b] - c0[b]):
-            base = vo + jj * r
-            acc = 0.0
-            for q in range(r):
-                acc += V[base + q] * tmp[r + q]
-            y[c0[b] + jj] += acc
+        _block_both_ways1(r0[b], r1[b], c0[b], c1[b], rank[b], uoff[b], voff[b], woff[b], U, V, W, x, y, tmp, 0)
 
 
 @njit(nogil=True, cache=True, fastmath=ONE_RHS_FASTMATH)
@@ -404,10 +408,10 @@ def lowrank_matvec_rows1(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, 
         uo = uoff[blk]
         vo = voff[blk]
         wo = woff[blk]
-        inside = r0[blk] >= a and r1[blk] <= b and c0[blk] >= a and c1[blk] <= b
-        rows_meet = max(r0[blk], a) < min(r1[blk], b)
-        cols_meet = max(c0[blk], a) < min(c1[blk], b)
-        if rows_meet or inside:  # tmp[:r] = D V^T x[c-range]
+        if r0[blk] >= a and r1[blk] <= b and c0[blk] >= a and c1[blk] <= b:  # wholly inside: both ways
+            _block_both_ways1(r0[blk], r1[blk], c0[blk], c1[blk], r, uo, vo, wo, U, V, W, x, y, tmp, a)
+            continue
+        if max(r0[blk], a) < min(r1[blk], b):  # y[rows met] += U D V^T x[c-range]
             for q in range(r):
                 tmp[q] = 0.0
             for jj in range(c1[blk] - c0[blk]):
@@ -417,36 +421,20 @@ def lowrank_matvec_rows1(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, 
                     tmp[q] += V[base + q] * xj
             for q in range(r):
                 tmp[q] *= W[wo + q]
-        if inside:  # one pass over U: y[r-range] += U tmp[:r] and tmp[r:] = U^T x[r-range]
+            for i in range(max(r0[blk], a), min(r1[blk], b)):
+                base = uo + (i - r0[blk]) * r
+                acc = 0.0
+                for q in range(r):
+                    acc += U[base + q] * tmp[q]
+                y[i - a] += acc
+        if max(c0[blk], a) < min(c1[blk], b):  # y[columns met] += V D U^T x[r-range]
             for q in range(r):
                 tmp[r + q] = 0.0
             for ii in range(r1[blk] - r0[blk]):
-                i = r0[blk] + ii
-                xi = x[i]
+                xi = x[r0[blk] + ii]
                 base = uo + ii * r
-                acc = 0.0
                 for q in range(r):
-                    u = U[base + q]
-                    acc += u * tmp[q]
-                    tmp[r + q] += u * xi
-                y[i - a] += acc
-        else:
-            if rows_meet:  # y[rows met] += U tmp[:r]
-                for i in range(max(r0[blk], a), min(r1[blk], b)):
-                    base = uo + (i - r0[blk]) * r
-                    acc = 0.0
-                    for q in range(r):
-                        acc += U[base + q] * tmp[q]
-                    y[i - a] += acc
-            if cols_meet:  # tmp[r:] = U^T x[r-range]
-                for q in range(r):
-                    tmp[r + q] = 0.0
-                for ii in range(r1[blk] - r0[blk]):
-                    xi = x[r0[blk] + ii]
-                    base = uo + ii * r
-                    for q in range(r):
-                        tmp[r + q] += U[base + q] * xi
-        if inside or cols_meet:  # y[columns met] += V D tmp[r:]
+                    tmp[r + q] += U[base + q] * xi
             for q in range(r):
                 tmp[r + q] *= W[wo + q]
             for j in range(max(c0[blk], a), min(c1[blk], b)):
