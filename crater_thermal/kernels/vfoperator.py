@@ -401,7 +401,7 @@ def lowrank_matvec_rows1(r0, r1, c0, c1, rank, uoff, voff, woff, U, V, W, x, y, 
     into ``y`` ((b - a,), zeroed by the caller); x (n,) float64, tmp (2 * max rank,) float64. A block
     wholly inside those rows and columns is applied both ways in one pass over ``U`` (as
     :func:`lowrank_matvec1`); a block that meets them only partly, by the half or halves that land in
-    them. A distributed run's one-vector products (the periodic start's holds): 1.9x faster than the
+    them. A distributed run's one-vector products (the periodic start's holds): 2.3x faster than the
     several-vector kernels called with one vector (30,000 facets, half the rows; bench/row_block_products.py)."""
     for blk in range(r0.shape[0]):
         r = rank[blk]
