@@ -1685,12 +1685,6 @@ class RowBlock:
             total += 0 if x is None else x.nbytes
         return int(total)
 
-    def _max_rank(self) -> int:
-        """The largest rank of the far blocks held (computed once)."""
-        if getattr(self, "_rmax", None) is None:
-            self._rmax = int(self.lowrank[4].max())
-        return self._rmax
-
     def apply(self, X: np.ndarray) -> np.ndarray:
         """``(F @ X)[facets]``: X (n, k) over all facets in facet order -> (len(facets), k) float64.
 
@@ -1717,7 +1711,7 @@ class RowBlock:
             kv.csr_matmat(self.near.indptr, self.near.indices, self.near.data, Xc, Y)
         if len(self.lowrank[4]):  # only the halves of the far blocks that land in these rows
             far = np.zeros_like(Y)
-            rmax = 2 * self._max_rank()
+            rmax = 2 * int(self.lowrank[4].max())
             if one:
                 tmp = np.empty(rmax, Xc.dtype)
                 kv.lowrank_matvec_rows1(*self.lowrank, Xc.reshape(-1), far.reshape(-1), tmp, self.a, self.b)
