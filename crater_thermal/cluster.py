@@ -316,7 +316,10 @@ def replay_file(
             fp = _fingerprint(flux_path, stamp, profiles, options, fb, pb)
             _open_chunk_folder(folder, fp, output, resume, overwrite)
             todo = [c for c in chunks if not chunk_path(folder, c[0], c[1]).exists()]
+            nt = ds.sizes["time"]
+            pending = sum((p1 - p0) * nt * (f1 - f0) * np.dtype(np.float32).itemsize for *_, f0, f1, p0, p1 in todo)
             try:
+                runner.check_replay_disk(output, npf, nt, nf, chunk_bytes=pending)  # before any chunk is solved
                 if todo:
                     run = (flux_path, profiles, options, stamp)
                     _compute(run, todo, folder, fp, scheduler, workers, retries, progress)

@@ -77,6 +77,7 @@ def replay_file(
         tops, bottoms = zip(*(simulate.profile_densities(p) for p in profiles))
         skeleton = io.replay_dataset(ds, [p.label for p in profiles], tops, bottoms, None)
         shape = (len(profiles), ds.sizes["time"], ds.sizes["facet"])
+        check_replay_disk(output, *shape)
         variables = {"surface_temperature": (("profile", "time", "facet"), shape, {"units": "K"}, "f4")}
         with io.stream_dataset(
             skeleton, output, variables, overwrite=overwrite, time_rows=simulate.TIME_CHUNK
@@ -176,6 +177,36 @@ def _check_disk(
             f"{out_path}: the scratch store (~{need['store'] / gb:.1f} GB) and run.nc (up to "
             f"{need['run_nc'] / gb:.1f} GB before compression) may not fit in the {free / gb:.1f} GB free; "
             "if the disk fills, the run stops with its checkpoint kept: free space and run it again with --resume",
+            stacklevel=2,
+        )
+
+
+def check_replay_disk(output, n_profiles: int, n_times: int, n_facets: int, chunk_bytes: int = 0) -> None:
+    """Before a replay's work: refuse one whose chunk files cannot fit on the output's disk
+    (``DiskSpaceError``; ``chunk_bytes`` [B]: the unfinished chunks of a distributed replay, kept
+    uncompressed for ``--resume``), and warn when the replay dataset may not fit beside them: at most
+    ``n_profiles x n_times x n_facets`` float32 values [4 B] before compression (netCDF's zlib usually
+    makes it smaller, so this is a warning). A disk that fills later stops the replay with its temporary file
+    removed, an existing output kept, and a distributed replay's finished chunks kept for ``--resume``."""
+    output = Path(output)
+    folder = output.resolve().parent
+    free = shutil.disk_usage(folder).free
+    nc = int(n_profiles) * int(n_times) * int(n_facets) * np.dtype(np.float32).itemsize
+    gb = 1e9
+    if chunk_bytes > free:
+        raise DiskSpaceError(
+            f"this replay's chunks need ~{chunk_bytes / gb:.1f} GB beside {output} ({n_profiles} profiles x "
+            f"{n_times} samples x {n_facets} facets) and the replay up to {nc / gb:.1f} GB more, but {folder} has "
+            f"{free / gb:.1f} GB free: free some space, write the replay to a larger disk (-o), or replay fewer "
+            "profiles"
+        )
+    if chunk_bytes + nc > free:
+        warnings.warn(
+            f"{output}: the replay ({n_profiles} profiles x {n_times} samples x {n_facets} facets, up to "
+            f"{nc / gb:.1f} GB before compression"
+            + (f", after {chunk_bytes / gb:.1f} GB of chunks" if chunk_bytes else "")
+            + f") may not fit in the {free / gb:.1f} GB free; if the disk fills, the replay stops and "
+            + ("its finished chunks are kept for --resume" if chunk_bytes else "an existing output is kept"),
             stacklevel=2,
         )
 
