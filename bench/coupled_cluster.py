@@ -25,7 +25,8 @@ and the command's work can be told apart.
 Usage: ``python bench/coupled_cluster.py [--facets 30000] [--days 365] [--workers 2]
 [--chunk-facets 4000] [--modes stepper relaxed dask dask@15000 relaxed#2 dask#2]
 [--out bench/results/coupled_cluster.json]``. A mode ``dask@N`` cuts chunks of at most N facets (``dask``:
-one per worker); ``relaxed#2``, ``dask#2``: a repeat, paired with the relaxed run of its number.
+one per worker); ``dask~N``: with N scattering solves in flight instead of ``radiosity.ASYNC_SOLVES``
+(``dask@M~N`` both); ``relaxed#2``, ``dask#2``: a repeat, paired with the relaxed run of its number.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from crater_thermal import cluster_run, config, io, runner, simulate  # noqa: E402
+from crater_thermal import cluster_run, config, io, radiosity, runner, simulate  # noqa: E402
 
 
 def _scale_case_template() -> str:
@@ -153,6 +154,8 @@ def main() -> None:
         "modes": {},
     }
     temps = {}
+    default_solves = radiosity.ASYNC_SOLVES
+    result["async_solves_default"] = default_solves
     with tempfile.TemporaryDirectory(prefix="coupled_cluster_") as tmp:
         tmp = Path(tmp)
         os.environ.setdefault("CRATER_THERMAL_CACHE", str(tmp / "cache"))
@@ -171,10 +174,12 @@ def main() -> None:
             os.environ["CRATER_THERMAL_CACHE"] = str(tmp / f"cache_{mode}")
             kind = mode.split("#")[0]  # "relaxed#2": the second run of a mode (repeats alternate in one run)
             scheme = "extrapolated" if kind == "stepper" else "relaxed"
-            name = mode.replace("@", "_").replace("#", "_")
+            name = mode.replace("@", "_").replace("#", "_").replace("~", "_solves")
             case = config.load_case(write_case(tmp, name, args.facets, args.days, scheme, spinup))
             columns = None
             seen = {}
+            kind, _, solves = kind.partition("~")  # "dask~2": 2 scattering solves in flight
+            radiosity.ASYNC_SOLVES = int(solves) if solves else default_solves
             if kind.startswith("dask"):  # "dask", or "dask@N": chunks of at most N facets
                 chunk_facets = int(kind.split("@")[1]) if "@" in kind else args.chunk_facets
                 columns = observed_columns(args.workers, chunk_facets, seen)
@@ -209,6 +214,7 @@ def main() -> None:
                     entry["columns"] = rel["columns"]
             result["facets"], result["samples"] = nf, nt
             result["modes"][mode] = entry
+            entry["async_solves"] = radiosity.ASYNC_SOLVES
             print(mode, json.dumps(entry), flush=True)
             out.unlink()
     diffs = {}

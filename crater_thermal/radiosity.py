@@ -53,6 +53,11 @@ ITERATIVE_RTOL = 1e-6
 ITERATIVE_MAX = 500
 #: Right-hand sides per block of the iterative scattering solve (memory: a few (nf, k) arrays).
 ITERATIVE_BLOCK = 64
+#: Solves of the iterative scattering kept in flight with an asynchronous operator (a cluster's, whose
+#: products run on the workers): while the workers make the others' products this process updates one.
+#: 3 measured no faster than 2 on a 30k-facet year on 2 cores (the stage 27.1-30.5 s against 28.5-29.9 s;
+#: bench/results/coupled_cluster_30k_solves3_vs2.json, docs/cluster.md).
+ASYNC_SOLVES = 2
 
 #: How the linear systems (scattered sunlight, radiative equilibrium) are solved: "auto" as a run does it,
 #: by operator (:func:`resolve_solver`: direct with the exact matrix, iterative with the compressed
@@ -266,9 +271,10 @@ class ScatteringSolver:
     def _solved(self, problems) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray]]]:
         """``(i, (B, FB))`` of :meth:`_fixed_point` for each ``(rhs, B0)`` of ``problems`` (an iterable, read
         as the solves start), as each converges. With an :attr:`~ViewFactorOperator.asynchronous` operator
-        (a cluster's) two solves are in flight: one's product runs on the workers while this process
-        updates the other (the same operations per solve, so the same numbers); else one at a time."""
-        width = 2 if self.F.asynchronous else 1
+        (a cluster's) :data:`ASYNC_SOLVES` solves are in flight: the others' products run on the workers
+        while this process updates one (the same operations per solve, so the same numbers); else one at a
+        time."""
+        width = ASYNC_SOLVES if self.F.asynchronous else 1
         problems = enumerate(problems)
         active: list = []  # (i, solve, its product in flight), oldest first
 

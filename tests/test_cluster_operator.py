@@ -65,7 +65,7 @@ def test_operator_built_on_the_workers_equals_the_whole_one(tmp_path, monkeypatc
             assert F.rowsum_excess == pytest.approx(whole.rowsum_excess, abs=1e-12) and not F.is_zero
             # the whole operator's entries are on the workers, not here
             assert F.nbytes == 16 * mesh.n_facets and F.held_bytes >= whole.nbytes // 2
-            monkeypatch.setattr(radiosity, "ITERATIVE_BLOCK", 2)  # several blocks: two solves in flight
+            monkeypatch.setattr(radiosity, "ITERATIVE_BLOCK", 1)  # 4 lit blocks: ASYNC_SOLVES in flight
             E, Q = _scattering_through_the_workers(F, whole, rng)
             client = session.client
             victim = dask_procs.process_of(client, _sole_holder(client, F.rows), workers)
@@ -103,7 +103,7 @@ def _sole_holder(client, futures, timeout_s=60.0):
 
 
 def _scattering_through_the_workers(F, whole, rng):
-    """The scattered sunlight's fixed points with the workers' products (two solves in flight: the
+    """The scattered sunlight's fixed points with the workers' products (several solves in flight: the
     operator is asynchronous) against the whole operator's solve in one process: to the products'
     round-off carried through the fixed point (1 / (1 - q), q = A max row sum <= 0.3) plus both solves'
     stopping rules (ITERATIVE_RTOL of the largest first bounce, / (1 - q) each); several samples, one
