@@ -26,7 +26,8 @@ Usage: ``python bench/coupled_cluster.py [--facets 30000] [--days 365] [--worker
 [--chunk-facets 4000] [--modes stepper relaxed dask dask@15000 relaxed#2 dask#2]
 [--out bench/results/coupled_cluster.json]``. A mode ``dask@N`` cuts chunks of at most N facets (``dask``:
 one per worker); ``dask~N``: with N scattering solves in flight instead of ``radiosity.ASYNC_SOLVES``
-(``dask@M~N`` both); ``relaxed#2``, ``dask#2``: a repeat, paired with the relaxed run of its number.
+(``dask@M~N`` both); ``dask%``: the local cluster with dask's default settings instead of
+``cluster.LOCAL_CLUSTER_CONFIG``; ``relaxed#2``, ``dask#2``: a repeat, paired with the relaxed run of its number.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from crater_thermal import cluster_run, config, io, radiosity, runner, simulate  # noqa: E402
+from crater_thermal import cluster, cluster_run, config, io, radiosity, runner, simulate  # noqa: E402
 
 
 def _scale_case_template() -> str:
@@ -155,6 +156,8 @@ def main() -> None:
     }
     temps = {}
     default_solves = radiosity.ASYNC_SOLVES
+    default_config = dict(cluster.LOCAL_CLUSTER_CONFIG)
+    result["local_cluster_config"] = default_config
     result["async_solves_default"] = default_solves
     with tempfile.TemporaryDirectory(prefix="coupled_cluster_") as tmp:
         tmp = Path(tmp)
@@ -174,12 +177,15 @@ def main() -> None:
             os.environ["CRATER_THERMAL_CACHE"] = str(tmp / f"cache_{mode}")
             kind = mode.split("#")[0]  # "relaxed#2": the second run of a mode (repeats alternate in one run)
             scheme = "extrapolated" if kind == "stepper" else "relaxed"
-            name = mode.replace("@", "_").replace("#", "_").replace("~", "_solves")
+            name = mode.replace("@", "_").replace("#", "_").replace("~", "_solves").replace("%", "_dask_defaults")
             case = config.load_case(write_case(tmp, name, args.facets, args.days, scheme, spinup))
             columns = None
             seen = {}
             kind, _, solves = kind.partition("~")  # "dask~2": 2 scattering solves in flight
             radiosity.ASYNC_SOLVES = int(solves) if solves else default_solves
+            dask_defaults = kind.endswith("%")  # "dask%": dask's own settings for the local cluster
+            kind = kind.rstrip("%")
+            cluster.LOCAL_CLUSTER_CONFIG = {} if dask_defaults else default_config
             if kind.startswith("dask"):  # "dask", or "dask@N": chunks of at most N facets
                 chunk_facets = int(kind.split("@")[1]) if "@" in kind else args.chunk_facets
                 columns = observed_columns(args.workers, chunk_facets, seen)
@@ -215,6 +221,8 @@ def main() -> None:
             result["facets"], result["samples"] = nf, nt
             result["modes"][mode] = entry
             entry["async_solves"] = radiosity.ASYNC_SOLVES
+            if columns is not None:
+                entry["local_cluster_config"] = cluster.LOCAL_CLUSTER_CONFIG
             print(mode, json.dumps(entry), flush=True)
             out.unlink()
     diffs = {}

@@ -44,6 +44,17 @@ CONNECT_TIMEOUT_S = 10.0
 CHUNK_FACETS = 2000
 #: Default profiles per chunk (one dask task).
 CHUNK_PROFILES = 8
+#: dask settings of a local cluster's processes (``--workers``; a remote cluster's are its own): the
+#: workers' statistical profiler off (a sample of each worker's stack every 10 ms, for a dashboard that a
+#: local cluster does not serve), and dask's housekeeping (event-loop ticks, system and memory monitors)
+#: less often. An idle local cluster of 2 workers took 2.4-3.0 CPU-seconds per 20 s with dask's defaults
+#: and 0.4 with these (docs/cluster.md), CPU that the workers and the command share on one machine.
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "500ms",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.worker.memory.monitor-interval": "500ms",
+}
 #: Name of the worker plugin that has a session's workers reuse large temporaries from their heap.
 HEAP_PLUGIN = "crater_thermal-heap-reuse"
 
@@ -78,16 +89,19 @@ def connect(
         client = connect_scheduler(scheduler, purpose, CONNECT_TIMEOUT_S, "leave out --scheduler")
         _register_heap_plugin(client)
         return client, None
-    cluster = LocalCluster(
-        n_workers=int(workers),
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=None,
-        scheduler_kwargs={"dashboard_address": ":0"},  # its HTTP endpoints on a free port, not 8787
-        silence_logs=logging.ERROR,  # not dask's warnings about the tasks an interrupted command cancels
-    )
-    client = Client(cluster)
+    import dask
+
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):  # read as the processes start; the caller's config is kept
+        cluster = LocalCluster(
+            n_workers=int(workers),
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": ":0"},  # its HTTP endpoints on a free port, not 8787
+            silence_logs=logging.ERROR,  # not dask's warnings about the tasks an interrupted command cancels
+        )
+        client = Client(cluster)
     _register_heap_plugin(client)
     return client, cluster
 

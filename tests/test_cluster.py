@@ -397,3 +397,27 @@ def test_session_workers_reuse_their_heap_and_get_the_defaults_back(dask_cli):
     # (an earlier test of this module may have killed one of the two workers)
     assert inside and all(v == 0 for v in inside.values()), inside
     assert after and all(v >= n for v in after.values()), after
+
+
+def _worker_settings():
+    import dask
+
+    return {k: dask.config.get(k) for k in cluster.LOCAL_CLUSTER_CONFIG}
+
+
+def test_local_cluster_quiets_dask_housekeeping_and_keeps_the_callers_config():
+    """A local cluster's workers run with :data:`cluster.LOCAL_CLUSTER_CONFIG` (their profiler off, the
+    monitors less often: read by each worker process as it started), and the caller's dask settings are
+    what they were before and after."""
+    import dask
+
+    assert cluster.LOCAL_CLUSTER_CONFIG["distributed.worker.profile.enabled"] is False
+    before = {k: dask.config.get(k) for k in cluster.LOCAL_CLUSTER_CONFIG}
+    assert before != cluster.LOCAL_CLUSTER_CONFIG  # the test would prove nothing with dask's defaults equal
+    client, cl = cluster.connect(None, 2)
+    try:
+        seen = client.run(_worker_settings)
+        assert {k: dask.config.get(k) for k in cluster.LOCAL_CLUSTER_CONFIG} == before
+    finally:
+        cluster.disconnect(client, cl)
+    assert len(seen) == 2 and all(v == cluster.LOCAL_CLUSTER_CONFIG for v in seen.values()), seen
