@@ -828,10 +828,11 @@ class _SpinUpWindow:
         reached (a one-vector product per hold; products of a few right-hand sides cost as much as those
         of a block, measured); stepped to the samples of :func:`crater_thermal.waveform.hold_samples` (up
         to :data:`crater_thermal.waveform.FIRST_PASS_STEP_S` apart, the solver's coarse steps set by the
-        caller), the IR products made on those samples and interpolated linearly in time between them,
-        the temperatures filled in so that their emission is linear in time
+        caller), the temperatures filled in so that their emission is linear in time
         (:func:`crater_thermal.waveform.between`: the relaxed start's first pass, the same numbers).
-        Returns (input IR rows, surface temperature rows, their IR rows, the IR at the block's end)."""
+        Returns (input IR rows, surface temperature rows, the samples stepped to, their surface
+        temperatures, the IR at the block's end); the IR of the samples stepped to is made by
+        :meth:`_held_outputs`, a few blocks per product."""
         fc, ns, t = self.fc, self.n, self.t
         e = min(ns, b1 + 1)
         sol = fc.rows(fc.drive, b0, e)
@@ -851,25 +852,51 @@ class _SpinUpWindow:
         Tk = np.asarray(T_known)
         rows = np.arange(b0, b1)
         T_out = waveform.between(t, known, Tk, rows, emission=True)
-        ir_out = waveform.between(t, known, self.stepper.ir_rows(Tk), rows)
-        return ir_in, T_out, ir_out, ir
+        return ir_in, T_out, known, Tk, ir
 
-    def _lagged_ir_rows(self, b0: int, e: int, T: np.ndarray) -> np.ndarray:
-        """The IR rows [W m-2] of a lagged pass's surface temperatures ``T`` (e - b0, nf) [K] at samples
-        b0..e-1. With ``product_samples`` g > 1 the exact products are
-        made at every g-th sample from b0 and at e - 1 only; between two of them the IR is interpolated
+    def _held_outputs(self, pending: list, moved: np.ndarray) -> None:
+        """The first pass's output IR of the blocks ``pending`` (``(b0, b1, known, Tk)``: the samples
+        stepped to and their surface temperatures, :meth:`_held_ir_block`), from one product of all their
+        ``Tk``, interpolated linearly in time between the samples stepped to: into the store
+        (``lag_out``), ``moved`` (max |output - input| per column, against the input as stored) and
+        :attr:`ir_end` at the window's end."""
+        fc = self.fc
+        ir_k = self.stepper.ir_rows(np.concatenate([Tk for *_, Tk in pending]))
+        o = 0
+        for b0, b1, known, _ in pending:
+            rows = waveform.between(self.t, known, ir_k[o : o + len(known)], np.arange(b0, b1))
+            o += len(known)
+            fc.store.write(self.lag_out, b0, rows.astype(io.RUN_SERIES_DTYPE), in_place=True)
+            np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
+            if b1 == self.n:
+                self.ir_end = rows[-1].copy()
+            del rows
+        pending.clear()
+
+    def _exact_samples(self, n: int) -> np.ndarray:
+        """The samples (0 .. n - 1, from a block's first) whose IR :meth:`_lagged_ir_rows` takes from an exact
+        product: every ``product_samples``-th and the last; all of them when ``product_samples`` is 1."""
+        g = self.product_samples
+        if g <= 1 or n <= 2:
+            return np.arange(n)
+        return np.unique(np.r_[np.arange(0, n, g), n - 1])
+
+    def _lagged_ir_rows(self, b0: int, e: int, exact: np.ndarray) -> np.ndarray:
+        """The IR rows [W m-2] of a lagged pass's surface temperatures at samples b0..e-1, from ``exact``
+        ((len(idx), nf) [W m-2]), the products at the samples ``idx`` of :meth:`_exact_samples`. With
+        ``product_samples`` g > 1 the IR between two of them is interpolated
         linearly in time less its prompt part (:func:`crater_thermal.radiosity.prompt_ir`, which carries
         the kinks at sunrise and sunset on the terrain a facet sees), that part added back, and kept
         within the IR of the two exact ends: the record's interpolation
         (:meth:`crater_thermal.radiosity.CoupledStepper.steps`), without its check, since a pass's
         input is only the next pass's guess and the fixed point's residual is tested on the state."""
-        g, n = self.product_samples, T.shape[0]
-        if g <= 1 or n <= 2:
-            return self.stepper.ir_rows(T)
+        n = e - b0
+        idx = self._exact_samples(n)
+        if len(idx) == n:
+            return exact
         fc = self.fc
-        idx = np.unique(np.r_[np.arange(0, n, g), n - 1])
-        out = np.empty(T.shape)
-        out[idx] = self.stepper.ir_rows(T[idx])
+        out = np.empty((n, exact.shape[1]))
+        out[idx] = exact
         P = radiosity.prompt_ir(fc.rows("solar", b0, e), fc.rows("direct", b0, e), self.stepper.albedo)
         t = self.t[b0:e]
         for a, c in zip(idx[:-1], idx[1:]):
@@ -880,6 +907,42 @@ class _SpinUpWindow:
             np.clip(mid, np.minimum(out[a], out[c]), np.maximum(out[a], out[c]), out=mid)
             out[a + 1 : c] = mid
         return out
+
+    def _product_batches(self) -> list[list[tuple[int, int]]]:
+        """The blocks ``(b0, b1)`` of the window grouped so that one IR product serves each group
+        (:meth:`_exact_products`): consecutive blocks while their distinct exact samples (a block's last
+        is the next one's first) number at most a block's samples plus one, the right-hand sides of one
+        product of every sample of a block. With ``product_samples`` 2 that is two blocks a product,
+        ~49 right-hand sides instead of ~25: a product's cost grows much less than its right-hand sides
+        (docs/performance.md)."""
+        ns, block = self.n, self.block
+        batches: list[list[tuple[int, int]]] = []
+        count = 0
+        for b0 in range(0, ns, block):
+            b1 = min(ns, b0 + block)
+            k = len(self._exact_samples(min(ns, b1 + 1) - b0))
+            if batches and count + k - 1 <= block + 1:
+                batches[-1].append((b0, b1))
+                count += k - 1
+            else:
+                batches.append([(b0, b1)])
+                count = k
+        return batches
+
+    def _exact_products(self, batch: list[tuple[int, int]]) -> list[np.ndarray]:
+        """The exact IR [W m-2] of every block of ``batch`` at its :meth:`_exact_samples`, from one product
+        of their distinct samples' surface temperatures ("lag_T")."""
+        fc, ns = self.fc, self.n
+        locs = [b0 + self._exact_samples(min(ns, b1 + 1) - b0) for b0, b1 in batch]
+        samples = np.unique(np.concatenate(locs))
+        T = np.empty((len(samples), self.skipped.size))
+        for (b0, b1), loc in zip(batch, locs):
+            rows = fc.store.read("lag_T", b0, min(ns, b1 + 1), dtype=np.float64)
+            T[np.searchsorted(samples, loc)] = rows[loc - b0]
+            del rows
+        ir = self.stepper.ir_rows(T)
+        del T
+        return [ir[np.searchsorted(samples, loc)] for loc in locs]
 
     def lagged(self, report, expected: int) -> None:
         """One lagged pass (the first one with each facet's IR held a day at a time, in steps of up to
@@ -901,6 +964,8 @@ class _SpinUpWindow:
         some = run.size < self.skipped.size
         self.columns_run.append(int(run.size))
         moved = np.zeros(self.skipped.size) if first else None  # the first pass's max |output - input|
+        pending: list = []  # the first pass's blocks whose output IR is still to be made
+        held = 0  # their samples stepped to
         t_min = np.full(run.size, np.inf)
         # the first pass's coarse steps: one sub-step each, not refined
         with waveform.first_pass_steps(self.solver, first):
@@ -908,15 +973,19 @@ class _SpinUpWindow:
                 b1 = min(ns, b0 + block)
                 e = min(ns, b1 + 1)  # the block's samples plus the end of its last interval
                 if first:
-                    ir, T, rows, ir_held = self._held_ir_block(b0, b1, ir_held)
+                    ir, T, known, Tk, ir_held = self._held_ir_block(b0, b1, ir_held)
                     # the windows' own series, written over the last window's (a resumed run starts the
                     # spin-up again): in place, in run.nc's type (the last input is the saved spin-up IR)
                     fc.store.write(self.lag_in, b0, ir.astype(io.RUN_SERIES_DTYPE), in_place=True)
-                    fc.store.write(self.lag_out, b0, rows.astype(io.RUN_SERIES_DTYPE), in_place=True)
-                    np.maximum(moved, np.max(np.abs(rows - ir), axis=0), out=moved)
-                    if b1 == ns:
-                        self.ir_end = rows[-1].copy()
-                    del ir, rows
+                    del ir
+                    # the output IR a few blocks per product: at most a block's samples plus one
+                    # right-hand sides (as :meth:`_product_batches`), taking the next block's as this one's
+                    pending.append((b0, b1, known, Tk))
+                    held += len(known)
+                    if b1 == ns or held + len(known) > block + 1:
+                        self._held_outputs(pending, moved)
+                        held = 0
+                    del known, Tk
                 else:
                     ir = fc.store.read(self.lag_in, b0, e, dtype=np.float64)
                     sol = fc.rows(fc.drive, b0, e)
@@ -942,20 +1011,19 @@ class _SpinUpWindow:
         self.products_due = not first
 
     def _next_input(self) -> None:
-        """The IR products of the latest pass's temperatures ("lag_T"), block by block (the exact product
-        at every ``product_samples``-th sample, :meth:`_lagged_ir_rows`): the next pass's input, and each
-        column's input drift since its last run."""
-        fc, ns, block = self.fc, self.n, self.block
+        """The IR products of the latest pass's temperatures ("lag_T"), a few blocks per product
+        (:meth:`_product_batches`; the exact product at every ``product_samples``-th sample, interpolated
+        between by :meth:`_lagged_ir_rows`): the next pass's input, and each column's input drift since its
+        last run."""
+        fc, ns = self.fc, self.n
         moved = np.zeros(self.skipped.size)
-        for b0 in range(0, ns, block):
-            b1 = min(ns, b0 + block)
-            e = min(ns, b1 + 1)
-            T = fc.store.read("lag_T", b0, e, dtype=np.float64)
-            rows = self._lagged_ir_rows(b0, e, T)[: b1 - b0].astype(io.RUN_SERIES_DTYPE)
-            del T
-            np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
-            fc.store.write(self.lag_out, b0, rows, in_place=True)
-            del rows
+        for batch in self._product_batches():
+            for (b0, b1), exact in zip(batch, self._exact_products(batch)):
+                rows = self._lagged_ir_rows(b0, min(ns, b1 + 1), exact)[: b1 - b0].astype(io.RUN_SERIES_DTYPE)
+                del exact
+                np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
+                fc.store.write(self.lag_out, b0, rows, in_place=True)
+                del rows
         self._output_is_next_input(moved)
         self.products_due = False
 

@@ -541,6 +541,43 @@ def test_lagged_spinup_with_two_samples_per_ir_product(tmp_path, monkeypatch):
     assert np.abs(T[0] - grouped["surface_temperature"].values).max() <= 0.01
 
 
+def test_lagged_windows_batch_their_ir_products(tmp_path, monkeypatch):
+    """Issue 24: a lagged window's exact IR products are made a few blocks at a time
+    (``_SpinUpWindow._product_batches``): every block in one batch, in order, and a batch's distinct
+    exact samples (a block's last is the next one's first) at most a block's samples plus one. Against
+    each exact sample's product made alone (one right-hand side: the float64 one-vector kernels, another
+    path than the float32 kernels of several right-hand sides): within 2e-5 of the largest, the float32
+    arithmetic's bound of ``tests/test_vfoperator.py``. 10-sample blocks (``chunk_mb``), two samples per
+    product: 11 right-hand sides a product instead of 6, as 49 instead of 25 at 48-sample blocks."""
+    path = small_case(tmp_path, name="batched", facets=400, end="2019-01-03", extra_period='spinup_ir = "lagged"')
+    text = path.read_text().replace("[steps]", "[steps]\nir_product_samples = 2")
+    text = text.replace("[output]", "[output]\nchunk_mb = 0.2") + '[radiation]\nview_factors = "compressed"\n'
+    path.write_text(text)
+    case = config.load_case(path)
+    seen = []
+    next_input = simulate._SpinUpWindow._next_input
+
+    def checked(self):
+        ns, block = self.n, self.block
+        batches = self._product_batches()
+        assert [s for b in batches for s in b] == [(b0, min(ns, b0 + block)) for b0 in range(0, ns, block)]
+        for batch in batches:
+            locs = [b0 + self._exact_samples(min(ns, b1 + 1) - b0) for b0, b1 in batch]
+            assert len(np.unique(np.concatenate(locs))) <= block + 1
+            for (b0, b1), loc, exact in zip(batch, locs, self._exact_products(batch)):
+                T = self.fc.store.read("lag_T", b0, min(ns, b1 + 1), dtype=np.float64)[loc - b0]
+                alone = np.array([self.stepper.ir(row) for row in T])
+                assert exact.shape == alone.shape
+                assert np.abs(exact - alone).max() <= 2e-5 * np.abs(alone).max()
+        seen.append((block, [len(b) for b in batches]))
+        return next_input(self)
+
+    monkeypatch.setattr(simulate._SpinUpWindow, "_next_input", checked)
+    runner.run_case(case, tmp_path / "batched.nc", progress=False)
+    assert seen and all(block == 10 for block, _ in seen), seen
+    assert all(max(sizes) == 2 for _, sizes in seen), seen
+
+
 def test_only_windows_followed_by_another_make_their_ir_products(tmp_path, monkeypatch):
     """Issue 24: a lagged window's IR products are the next window's input, so they are made (in the
     ``skip`` hook) only when another window follows: of K windows the held first makes its own while it
