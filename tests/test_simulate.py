@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from crater_thermal import config, io, radiosity, runner, simulate, thermal, waveform
 from crater_thermal.constants import SIGMA
@@ -576,6 +578,39 @@ def test_lagged_windows_batch_their_ir_products(tmp_path, monkeypatch):
     runner.run_case(case, tmp_path / "batched.nc", progress=False)
     assert seen and all(block == 10 for block, _ in seen), seen
     assert all(max(sizes) == 2 for _, sizes in seen), seen
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    ns=st.integers(1, 3000),
+    block=st.integers(1, 200),
+    g=st.integers(1, 6),
+)
+def test_product_batches_cover_every_block_within_a_blocks_right_hand_sides(ns, block, g):
+    """Issue 24: for any window length, block and samples per product, the batches of
+    ``_SpinUpWindow._product_batches`` hold every block once, in order; each batch's distinct exact
+    samples (counted here from the samples themselves, not from the grouping's arithmetic) number at most
+    a block's samples plus one; a batch of two or more blocks could not have taken the next block; and
+    every block's exact samples are every g-th from its first plus its last (the window's last sample
+    included), all of them for g = 1."""
+    w = simulate._SpinUpWindow.__new__(simulate._SpinUpWindow)
+    w.n, w.block, w.product_samples = ns, block, g
+    batches = w._product_batches()
+    spans = [(b0, min(ns, b0 + block)) for b0 in range(0, ns, block)]
+    assert [s for b in batches for s in b] == spans
+
+    def samples(b0, b1):
+        e = min(ns, b1 + 1)
+        local = w._exact_samples(e - b0)
+        expect = np.arange(e - b0) if g == 1 or e - b0 <= 2 else np.union1d(np.arange(0, e - b0, g), [e - b0 - 1])
+        assert np.array_equal(local, expect)
+        return set((b0 + local).tolist())
+
+    for i, batch in enumerate(batches):
+        distinct = set().union(*(samples(*s) for s in batch))
+        assert len(distinct) <= block + 1 or len(batch) == 1
+        if i + 1 < len(batches):
+            assert len(distinct | samples(*batches[i + 1][0])) > block + 1
 
 
 def test_only_windows_followed_by_another_make_their_ir_products(tmp_path, monkeypatch):
