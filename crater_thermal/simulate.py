@@ -860,18 +860,22 @@ class _SpinUpWindow:
         ``Tk``, interpolated linearly in time between the samples stepped to: into the store
         (``lag_out``), ``moved`` (max |output - input| per column, against the input as stored) and
         :attr:`ir_end` at the window's end."""
-        fc = self.fc
         ir_k = self.stepper.ir_rows(np.concatenate([Tk for *_, Tk in pending]))
         o = 0
         for b0, b1, known, _ in pending:
             rows = waveform.between(self.t, known, ir_k[o : o + len(known)], np.arange(b0, b1))
             o += len(known)
-            fc.store.write(self.lag_out, b0, rows.astype(io.RUN_SERIES_DTYPE), in_place=True)
-            np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
+            self._output_block(b0, b1, rows, moved)
             if b1 == self.n:
                 self.ir_end = rows[-1].copy()
             del rows
         pending.clear()
+
+    def _output_block(self, b0: int, b1: int, rows: np.ndarray, moved: np.ndarray) -> None:
+        """Rows b0..b1-1 of a pass's output IR [W m-2] into the store (``lag_out``, in run.nc's type, in
+        place) and into ``moved``: max |output - input| per column, against the input as stored."""
+        self.fc.store.write(self.lag_out, b0, rows.astype(io.RUN_SERIES_DTYPE, copy=False), in_place=True)
+        np.maximum(moved, np.max(np.abs(rows - self.fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
 
     def _exact_samples(self, n: int) -> np.ndarray:
         """The samples (0 .. n - 1, from a block's first) whose IR :meth:`_lagged_ir_rows` takes from an exact
@@ -937,7 +941,7 @@ class _SpinUpWindow:
         samples = np.unique(np.concatenate(locs))
         T = np.empty((len(samples), self.skipped.size))
         for (b0, b1), loc in zip(batch, locs):
-            rows = fc.store.read("lag_T", b0, min(ns, b1 + 1), dtype=np.float64)
+            rows = fc.store.read("lag_T", b0, min(ns, b1 + 1))  # as stored; only the rows taken become float64
             T[np.searchsorted(samples, loc)] = rows[loc - b0]
             del rows
         ir = self.stepper.ir_rows(T)
@@ -965,7 +969,6 @@ class _SpinUpWindow:
         self.columns_run.append(int(run.size))
         moved = np.zeros(self.skipped.size) if first else None  # the first pass's max |output - input|
         pending: list = []  # the first pass's blocks whose output IR is still to be made
-        held = 0  # their samples stepped to
         t_min = np.full(run.size, np.inf)
         # the first pass's coarse steps: one sub-step each, not refined
         with waveform.first_pass_steps(self.solver, first):
@@ -981,10 +984,8 @@ class _SpinUpWindow:
                     # the output IR a few blocks per product: at most a block's samples plus one
                     # right-hand sides (as :meth:`_product_batches`), taking the next block's as this one's
                     pending.append((b0, b1, known, Tk))
-                    held += len(known)
-                    if b1 == ns or held + len(known) > block + 1:
+                    if b1 == ns or sum(len(p[2]) for p in pending) + len(known) > block + 1:
                         self._held_outputs(pending, moved)
-                        held = 0
                     del known, Tk
                 else:
                     ir = fc.store.read(self.lag_in, b0, e, dtype=np.float64)
@@ -1015,14 +1016,13 @@ class _SpinUpWindow:
         (:meth:`_product_batches`; the exact product at every ``product_samples``-th sample, interpolated
         between by :meth:`_lagged_ir_rows`): the next pass's input, and each column's input drift since its
         last run."""
-        fc, ns = self.fc, self.n
+        ns = self.n
         moved = np.zeros(self.skipped.size)
         for batch in self._product_batches():
             for (b0, b1), exact in zip(batch, self._exact_products(batch)):
                 rows = self._lagged_ir_rows(b0, min(ns, b1 + 1), exact)[: b1 - b0].astype(io.RUN_SERIES_DTYPE)
                 del exact
-                np.maximum(moved, np.max(np.abs(rows - fc.store.read(self.lag_in, b0, b1)), axis=0), out=moved)
-                fc.store.write(self.lag_out, b0, rows, in_place=True)
+                self._output_block(b0, b1, rows, moved)
                 del rows
         self._output_is_next_input(moved)
         self.products_due = False
